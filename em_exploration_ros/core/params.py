@@ -1,0 +1,320 @@
+"""Parameters of the exploration system, with the paper's values as defaults.
+
+Every number of the method lives here, grouped by the part of the system that uses it.
+Each field carries a description, a unit and a valid range in its metadata, so the ROS
+nodes can declare it as a parameter (``<group>.<field>``) and the tools can load it from
+YAML. Units follow REP-103: metres, radians, seconds.
+
+Sources: the paper (shared/seed) and the reference implementation's values
+(shared/reference/PARAMETERS.md). Where the two disagree, the default follows the paper
+and the reference behaviour is an option; the field's description says which is which.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+#: Ratio between a 95% error bound and the standard deviation of a Gaussian.
+BOUND_95_TO_SIGMA = 1.96
+
+
+def _param(default: Any, description: str, low: float | None = None,
+           high: float | None = None, choices: tuple[str, ...] | None = None) -> Any:
+    """A dataclass field with its documentation and range kept in metadata."""
+    metadata = {"description": description, "low": low, "high": high, "choices": choices}
+    return field(default=default, metadata=metadata)
+
+
+@dataclass(frozen=True)
+class WorldParams:
+    """The simulated environment: a rectangle [0, width] x [0, height] in the world frame."""
+
+    width_m: float = _param(100.0, "Environment width along world x [m].", 10.0, 2000.0)
+    height_m: float = _param(100.0, "Environment height along world y [m].", 10.0, 2000.0)
+    num_robots: int = _param(3, "Number of robots in the team.", 1, 26)
+    num_landmarks: int = _param(20, "Number of point landmarks placed at random.", 0, 1000)
+    landmark_radius_m: float = _param(1.0, "Physical radius of a landmark [m].", 0.0, 10.0)
+    landmark_min_separation_m: float = _param(
+        10.0, "Minimum distance between two landmark centres [m].", 0.0, 100.0)
+    robot_radius_m: float = _param(0.8, "Collision radius of a robot [m].", 0.0, 5.0)
+    start_region_x_fraction: tuple[float, float] = _param(
+        (0.1, 0.2), "Start region along x, as fractions of width (middle-left of the map).")
+    start_region_y_fraction: tuple[float, float] = _param(
+        (0.45, 0.55), "Start region along y, as fractions of height (middle-left of the map).")
+    start_min_separation_m: float = _param(
+        2.0, "Minimum distance between two robots' start positions [m].", 0.0, 10.0)
+    start_max_separation_m: float = _param(
+        6.0, "Maximum distance between two robots' start positions [m]; must stay below "
+        "the sonar range so every robot sees every other at the start.", 0.0, 100.0)
+    landmark_clearance_from_start_m: float = _param(
+        3.0, "Minimum distance between a landmark and a robot's start position [m].", 0.0, 50.0)
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """Simulated sonar, teammate detection and dead reckoning; errors are 95% bounds."""
+
+    sonar_max_range_m: float = _param(7.5, "Maximum sonar range [m].", 0.1, 100.0)
+    sonar_range_bound_m: float = _param(0.002, "Sonar range error, 95% bound [m].", 0.0, 10.0)
+    sonar_bearing_bound_rad: float = _param(
+        math.radians(0.5), "Sonar bearing error, 95% bound [rad] (0.5 deg).", 0.0, 1.0)
+    robot_obs_xy_bound_m: float = _param(
+        0.002, "Teammate relative-position error per axis, 95% bound [m].", 0.0, 10.0)
+    robot_obs_theta_bound_rad: float = _param(
+        math.radians(0.2), "Teammate relative-heading error, 95% bound [rad] (0.2 deg).", 0.0, 1.0)
+    gyro_bound_rad: float = _param(
+        math.radians(0.5), "Gyro heading error accumulated over one odometry interval, "
+        "95% bound [rad] (0.5 deg).", 0.0, 1.0)
+    accel_bound_m: float = _param(
+        0.05, "Accelerometer translation error over one odometry interval, 95% bound [m]; "
+        "capped by accel_bound_fraction of the distance moved.", 0.0, 10.0)
+    accel_bound_fraction: float = _param(
+        0.05, "Translation error bound as a fraction of the distance moved in the interval.",
+        0.0, 1.0)
+    odometry_interval_steps: int = _param(
+        10, "Number of simulation steps over which the gyro/accelerometer bounds apply; "
+        "noise is drawn every step with variance bound^2 / 1.96^2 / interval.", 1, 1000)
+    noise_enabled: bool = _param(True, "False makes every sensor output noise-free.")
+
+    @property
+    def sonar_range_sigma_m(self) -> float:
+        """Standard deviation of a sonar range reading [m]."""
+        return self.sonar_range_bound_m / BOUND_95_TO_SIGMA
+
+    @property
+    def sonar_bearing_sigma_rad(self) -> float:
+        """Standard deviation of a sonar bearing reading [rad]."""
+        return self.sonar_bearing_bound_rad / BOUND_95_TO_SIGMA
+
+
+@dataclass(frozen=True)
+class MotionParams:
+    """Robot kinematics and the artificial potential field local planner."""
+
+    time_step_s: float = _param(0.2, "Simulation time step [s].", 0.001, 10.0)
+    speed_mps: float = _param(1.0, "Constant forward speed while moving [m/s].", 0.01, 10.0)
+    max_turn_per_step_rad: float = _param(
+        math.radians(15.0), "Largest heading change in one step (one action) [rad].", 0.0, math.pi)
+    goal_tolerance_m: float = _param(1.0, "A target counts as reached within this distance [m].",
+                                     0.01, 50.0)
+    apf_attractive_gain: float = _param(1.0, "Gain of the attractive potential (unitless).",
+                                        0.0, 100.0)
+    apf_repulsive_gain: float = _param(
+        8.0, "Gain of the repulsive potential of a landmark [m^3].", 0.0, 1000.0)
+    apf_influence_m: float = _param(
+        3.0, "Distance from a landmark's surface beyond which it does not repel [m].", 0.0, 50.0)
+    safety_margin_m: float = _param(
+        0.3, "Extra clearance kept between robot and landmark surfaces [m].", 0.0, 10.0)
+
+
+@dataclass(frozen=True)
+class SlamParams:
+    """Per-robot team factor graph (iSAM2)."""
+
+    keyframe_interval_steps: int = _param(
+        10, "A keyframe (graph pose) every this many simulation steps; the SLAM update rate.",
+        1, 1000)
+    prior_sigmas: tuple[float, float, float] = _param(
+        (1e-4, 1e-4, 1e-6), "Prior on robot 0's first pose: sigma of (x [m], y [m], theta [rad]).")
+    use_fixed_sigmas: bool = _param(
+        False, "Reference behaviour: use the fixed hand-set sigmas below instead of the "
+        "covariances derived from the sensor noise (paper default: derived).")
+    fixed_odometry_sigmas: tuple[float, float, float] = _param(
+        (0.03, 0.03, 0.004), "Reference odometry factor sigmas (x [m], y [m], theta [rad]).")
+    fixed_bearing_range_sigmas: tuple[float, float] = _param(
+        (0.004, 0.001), "Reference bearing-range factor sigmas (bearing [rad], range [m]).")
+    fixed_robot_obs_sigmas: tuple[float, float, float] = _param(
+        (0.1, 0.1, 0.004), "Reference inter-robot factor sigmas (x [m], y [m], theta [rad]).")
+    virtual_robot_obs_sigmas: tuple[float, float, float] = _param(
+        (0.01, 0.01, 0.004), "Sigmas of virtual inter-robot observations in the EM step "
+        "(x [m], y [m], theta [rad]).")
+    relinearize_threshold: float = _param(0.01, "iSAM2 relinearization threshold.", 0.0, 10.0)
+
+
+@dataclass(frozen=True)
+class MapParams:
+    """The virtual map: occupancy (explored area) and per-cell uncertainty."""
+
+    cell_size_m: float = _param(2.0, "Virtual map cell size [m] (paper: 2 m small, 4 m large map).",
+                                0.1, 50.0)
+    prob_free: float = _param(0.3, "Occupancy probability of an observed free cell.", 0.0, 1.0)
+    prob_occupied: float = _param(0.7, "Occupancy probability of an observed landmark cell.",
+                                  0.0, 1.0)
+    prob_min: float = _param(0.05, "Lower clamp of cell occupancy probability.", 0.0, 1.0)
+    prob_max: float = _param(0.95, "Upper clamp of cell occupancy probability.", 0.0, 1.0)
+    explored_free_below: float = _param(0.45, "A cell is explored (free) below this probability.",
+                                        0.0, 1.0)
+    explored_occupied_above: float = _param(
+        0.55, "A cell is explored (occupied) above this probability.", 0.0, 1.0)
+    virtual_landmark_prior_sigma_m: float = _param(
+        1.2, "Prior sigma per axis of a never-observed virtual landmark [m].", 0.0, 100.0)
+
+
+@dataclass(frozen=True)
+class FrontierParams:
+    """Candidate targets: exploration, revisiting and rendezvous frontiers."""
+
+    boundary_distance_m: float = _param(
+        4.0, "Cells closer than this to the map edge are never frontiers [m].", 0.0, 100.0)
+    exploration_radius_m: float = _param(
+        10.0, "Exploration frontiers are those within this distance of the robot [m].", 0.0, 500.0)
+    all_frontiers_below_ratio: float = _param(
+        0.2, "While the explored ratio is below this, every exploration frontier is a candidate.",
+        0.0, 1.0)
+    revisit_radius_m: float = _param(
+        10.0, "Revisiting frontiers lie within this distance of a known landmark [m].", 0.0, 500.0)
+    min_revisiting: int = _param(
+        5, "If fewer revisiting frontiers exist, add frontiers whose straight path passes near "
+        "a landmark.", 0, 1000)
+    rendezvous_min_distance_m: float = _param(
+        10.0, "A teammate's target is a rendezvous candidate only farther than this [m].",
+        0.0, 500.0)
+    rendezvous_timeout_s: float = _param(
+        120.0, "A robot waits for a rendezvous partner at most this long [s sim time].",
+        0.0, 1e5)
+    max_candidates: int = _param(
+        40, "At most this many candidates are evaluated per decision (nearest first).", 1, 1000)
+
+
+@dataclass(frozen=True)
+class PlannerParams:
+    """Utility-based target selection: EM_2, EM_3, CE, BSP and nearest frontier (NF)."""
+
+    name: str = _param("EM_3", "Planner to use.",
+                       choices=("EM_2", "EM_3", "CE", "BSP", "NF"))
+    virtual_waypoint_spacing_m: float = _param(
+        2.0, "Spacing of virtual waypoints along a candidate path in the EM step [m].", 0.1, 100.0)
+    allocation_waypoint_spacing_m: float = _param(
+        10.0, "Spacing of waypoints used by task allocation [m].", 0.1, 100.0)
+    allocation_d_max_m: float = _param(
+        30.0, "Task allocation h(d) = 1 - d / d_max below d_max [m].", 0.1, 1000.0)
+    allocation_history: int = _param(
+        5, "Number of each teammate's latest targets used by task allocation.", 0, 1000)
+    q_min: float = _param(
+        0.55, "Algorithm 2: minimum probability of being observed for a cell to count "
+        "(the explored threshold as a probability of observation).", 0.0, 1.0)
+    utility_variant: str = _param(
+        "paper", "'paper': Eq. (13) with U_M over cells observed in both maps; 'reference': "
+        "the reference implementation's weights (U_M over all cells, U_T * 100 max(1-r, 0), "
+        "U_D * 10 r).", choices=("paper", "reference"))
+    em2_lambdas: tuple[float, float, float] = _param(
+        (1.0, 0.0, 10.0), "EM_2 weights (lambda_0 on U_M, lambda_1 on U_T, lambda_2 on U_D).")
+    em3_lambdas: tuple[float, float, float] = _param(
+        (1.0, 20.0, 10.0), "EM_3 weights; lambda_1 is multiplied by (1 - explored ratio).")
+    ce_lambdas: tuple[float, float] = _param(
+        (1.0, 10.0), "CE weights (lambda_0 on U_D, lambda_1 on U_T).")
+    bsp_lambdas: tuple[float, float] = _param(
+        (5.0, 1.0), "BSP weights (lambda_0 on U_D, lambda_1 on U_M = sum trace(sqrt(Sigma_x))).")
+
+
+@dataclass(frozen=True)
+class RunParams:
+    """When an exploration run stops, and its seed."""
+
+    seed: int = _param(0, "Seed of the world and of every noise draw.", 0, 2**31 - 1)
+    until_explored: float = _param(0.85, "Stop when the team's explored ratio reaches this.",
+                                   0.0, 1.0)
+    max_steps: int = _param(20000, "Stop after this many simulation steps.", 1, 10**8)
+    max_distance_m: float = _param(
+        1e9, "Stop when the team has travelled this far in total [m] (reference: 1400 m).",
+        0.0, 1e9)
+
+
+@dataclass(frozen=True)
+class ExplorationParams:
+    """All parameter groups of one exploration run."""
+
+    world: WorldParams = field(default_factory=WorldParams)
+    sensors: SensorParams = field(default_factory=SensorParams)
+    motion: MotionParams = field(default_factory=MotionParams)
+    slam: SlamParams = field(default_factory=SlamParams)
+    map: MapParams = field(default_factory=MapParams)
+    frontiers: FrontierParams = field(default_factory=FrontierParams)
+    planner: PlannerParams = field(default_factory=PlannerParams)
+    run: RunParams = field(default_factory=RunParams)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Mapping[str, Any]]) -> "ExplorationParams":
+        """Build parameters from nested ``{group: {field: value}}`` data (e.g. parsed YAML).
+
+        Unknown groups or fields raise ``ValueError`` naming them; values are checked
+        against each field's type and range.
+        """
+        groups = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(groups))
+        if unknown:
+            raise ValueError(f"unknown parameter group(s): {', '.join(unknown)}; "
+                             f"known: {', '.join(groups)}")
+        built = {}
+        for name, group_field in groups.items():
+            default_group = group_field.default_factory()  # type: ignore[misc]
+            built[name] = replace_checked(default_group, values.get(name, {}))
+        return cls(**built)
+
+    def flat(self) -> dict[str, Any]:
+        """All parameters as ``{'group.field': value}``, the ROS parameter names."""
+        out: dict[str, Any] = {}
+        for group in dataclasses.fields(self):
+            group_value = getattr(self, group.name)
+            for f in dataclasses.fields(group_value):
+                out[f"{group.name}.{f.name}"] = getattr(group_value, f.name)
+        return out
+
+    def replace(self, **group_overrides: Mapping[str, Any]) -> "ExplorationParams":
+        """A copy with some fields changed: ``params.replace(world={'num_robots': 5})``."""
+        changed = {name: replace_checked(getattr(self, name), overrides)
+                   for name, overrides in group_overrides.items()}
+        return dataclasses.replace(self, **changed)
+
+
+def replace_checked(group: Any, overrides: Mapping[str, Any]) -> Any:
+    """Copy of a parameter group with ``overrides`` applied after type and range checks."""
+    fields = {f.name: f for f in dataclasses.fields(group)}
+    unknown = sorted(set(overrides) - set(fields))
+    if unknown:
+        raise ValueError(f"unknown parameter(s) in {type(group).__name__}: {', '.join(unknown)}")
+    checked = {name: _checked_value(type(group).__name__, fields[name], getattr(group, name), value)
+               for name, value in overrides.items()}
+    return dataclasses.replace(group, **checked)
+
+
+def _checked_value(group_name: str, f: dataclasses.Field, default: Any, value: Any) -> Any:
+    """Coerce ``value`` to the type of the field's default and check its range."""
+    where = f"{group_name}.{f.name}"
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ValueError(f"{where} must be true or false, got {value!r}")
+        return value
+    if isinstance(default, tuple):
+        if not isinstance(value, (list, tuple)) or len(value) != len(default):
+            raise ValueError(f"{where} must be a list of {len(default)} numbers, got {value!r}")
+        try:
+            coerced_tuple = tuple(float(v) for v in value)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{where} must be numbers, got {value!r}") from error
+        if not all(math.isfinite(v) for v in coerced_tuple):
+            raise ValueError(f"{where} must be finite, got {value!r}")
+        return coerced_tuple
+    if isinstance(default, str):
+        choices = f.metadata.get("choices")
+        if not isinstance(value, str) or (choices and value not in choices):
+            raise ValueError(f"{where} must be one of {choices}, got {value!r}")
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                value = int(value)
+            else:
+                raise ValueError(f"{where} must be an integer, got {value!r}")
+    else:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{where} must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ValueError(f"{where} must be finite, got {value!r}")
+    low, high = f.metadata.get("low"), f.metadata.get("high")
+    if (low is not None and value < low) or (high is not None and value > high):
+        raise ValueError(f"{where} = {value!r} is outside [{low}, {high}]")
+    return value
