@@ -50,6 +50,9 @@ class WorldParams:
         "the sonar range so every robot sees every other at the start.", 0.0, 100.0)
     landmark_clearance_from_start_m: float = _param(
         3.0, "Minimum distance between a landmark and a robot's start position [m].", 0.0, 50.0)
+    landmark_edge_margin_m: float = _param(
+        2.0, "Minimum distance between a landmark centre and the map edge [m] (project "
+        "choice; the paper does not state one).", 0.0, 100.0)
 
 
 @dataclass(frozen=True)
@@ -158,6 +161,10 @@ class FrontierParams:
 
     boundary_distance_m: float = _param(
         4.0, "Cells closer than this to the map edge are never frontiers [m].", 0.0, 100.0)
+    explored_neighbors_below: int = _param(
+        3, "A frontier cell has fewer than this many explored 4-neighbours. The reference code "
+        "tests (count - 1) < 2, i.e. fewer than 3; fewer than 2 leaves no frontier at all on "
+        "a single sensing disc.", 1, 5)
     exploration_radius_m: float = _param(
         10.0, "Exploration frontiers are those within this distance of the robot [m].", 0.0, 500.0)
     all_frontiers_below_ratio: float = _param(
@@ -264,6 +271,11 @@ class ExplorationParams:
 
     def replace(self, **group_overrides: Mapping[str, Any]) -> "ExplorationParams":
         """A copy with some fields changed: ``params.replace(world={'num_robots': 5})``."""
+        groups = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(group_overrides) - groups)
+        if unknown:
+            raise ValueError(f"unknown parameter group(s): {', '.join(unknown)}; "
+                             f"known: {', '.join(sorted(groups))}")
         changed = {name: replace_checked(getattr(self, name), overrides)
                    for name, overrides in group_overrides.items()}
         return dataclasses.replace(self, **changed)

@@ -1,0 +1,129 @@
+"""SE(2) helpers, vectorized over leading dimensions.
+
+A pose is ``(x [m], y [m], theta [rad])`` of a body frame expressed in a parent frame,
+with theta wrapped to (-pi, pi]. Arrays of poses have shape ``(..., 3)`` and arrays of
+points ``(..., 2)``; leading dimensions broadcast with NumPy rules. Jacobians and
+covariances are taken with respect to the pose coordinates ``(x, y, theta)`` (additive
+perturbations), in that order.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+_TWO_PI = 2.0 * np.pi
+
+
+def wrap_angle(angle: ArrayLike) -> FloatArray:
+    """Angles [rad] wrapped to (-pi, pi], same shape as the input."""
+    angle = np.asarray(angle, dtype=float)
+    wrapped = angle - _TWO_PI * np.ceil((angle - np.pi) / _TWO_PI)
+    return np.where(wrapped <= -np.pi, wrapped + _TWO_PI, wrapped)
+
+
+def _rotate(cos_t: FloatArray, sin_t: FloatArray, x: FloatArray,
+            y: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Rotate the vector (x, y) by the angle whose cosine and sine are given."""
+    return cos_t * x - sin_t * y, sin_t * x + cos_t * y
+
+
+def compose(a: ArrayLike, b: ArrayLike) -> FloatArray:
+    """``a ⊕ b``: pose ``b`` (given in frame ``a``) expressed in ``a``'s parent frame."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    cos_t, sin_t = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x, y = _rotate(cos_t, sin_t, b[..., 0], b[..., 1])
+    return np.stack([a[..., 0] + x, a[..., 1] + y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def inverse(pose: ArrayLike) -> FloatArray:
+    """``pose^-1``: the parent frame expressed in the pose's body frame."""
+    pose = np.asarray(pose, dtype=float)
+    cos_t, sin_t = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    x, y = _rotate(cos_t, -sin_t, -pose[..., 0], -pose[..., 1])
+    return np.stack([x, y, wrap_angle(-pose[..., 2])], axis=-1)
+
+
+def between(a: ArrayLike, b: ArrayLike) -> FloatArray:
+    """``a^-1 ⊕ b``: pose ``b`` expressed in the body frame of pose ``a``."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    xy = inverse_transform_points(a, b[..., :2])
+    return np.concatenate([xy, wrap_angle(b[..., 2] - a[..., 2])[..., None]], axis=-1)
+
+
+def transform_points(pose: ArrayLike, points: ArrayLike) -> FloatArray:
+    """Points ``(..., 2)`` [m] from the pose's body frame to its parent frame.
+
+    A single pose ``(3,)`` applies to every point of ``(N, 2)``; poses ``(N, 3)`` pair
+    element-wise with points ``(N, 2)``.
+    """
+    pose = np.asarray(pose, dtype=float)
+    points = np.asarray(points, dtype=float)
+    cos_t, sin_t = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    x, y = _rotate(cos_t, sin_t, points[..., 0], points[..., 1])
+    return np.stack([pose[..., 0] + x, pose[..., 1] + y], axis=-1)
+
+
+def inverse_transform_points(pose: ArrayLike, points: ArrayLike) -> FloatArray:
+    """Points ``(..., 2)`` [m] from the pose's parent frame to its body frame."""
+    pose = np.asarray(pose, dtype=float)
+    points = np.asarray(points, dtype=float)
+    cos_t, sin_t = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    x, y = _rotate(cos_t, -sin_t, points[..., 0] - pose[..., 0], points[..., 1] - pose[..., 1])
+    return np.stack([x, y], axis=-1)
+
+
+def range_bearing(pose: ArrayLike, points: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Range [m] and bearing [rad] of points ``(..., 2)`` seen from poses ``(..., 3)``.
+
+    Both are in the parent frame of the pose on input; the bearing is measured in the
+    pose's body frame (counter-clockwise from its x axis), wrapped to (-pi, pi].
+    """
+    pose = np.asarray(pose, dtype=float)
+    points = np.asarray(points, dtype=float)
+    dx = points[..., 0] - pose[..., 0]
+    dy = points[..., 1] - pose[..., 1]
+    return np.hypot(dx, dy), wrap_angle(np.arctan2(dy, dx) - pose[..., 2])
+
+
+def compose_jacobians(a: ArrayLike, b: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Jacobians ``(..., 3, 3)`` of ``compose(a, b)`` w.r.t. the coordinates of ``a`` and ``b``.
+
+    First-order covariance propagation of independent pose errors:
+    ``cov(a ⊕ b) = J_a cov(a) J_a^T + J_b cov(b) J_b^T``.
+    """
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    shape = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    cos_t, sin_t = np.cos(a[..., 2]), np.sin(a[..., 2])
+    bx, by = b[..., 0], b[..., 1]
+    j_a = np.broadcast_to(np.eye(3), shape + (3, 3)).copy()
+    j_a[..., 0, 2] = -sin_t * bx - cos_t * by
+    j_a[..., 1, 2] = cos_t * bx - sin_t * by
+    j_b = np.broadcast_to(np.eye(3), shape + (3, 3)).copy()
+    j_b[..., 0, 0] = cos_t
+    j_b[..., 0, 1] = -sin_t
+    j_b[..., 1, 0] = sin_t
+    j_b[..., 1, 1] = cos_t
+    return j_a, j_b
+
+
+def coordinate_to_body_covariance(pose: ArrayLike, covariance: ArrayLike) -> FloatArray:
+    """Covariance ``(..., 3, 3)`` of additive coordinate errors of ``pose``, re-expressed
+    in the pose's own body frame (first order): position rotated by ``-theta``, heading kept.
+
+    This is the frame of a GTSAM ``Pose2`` tangent vector (``x``, ``y`` in the body frame),
+    e.g. for the noise model of a between factor whose measurement is ``pose``.
+    """
+    pose = np.asarray(pose, dtype=float)
+    covariance = np.asarray(covariance, dtype=float)
+    cos_t, sin_t = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    rotation = np.broadcast_to(np.eye(3), pose.shape[:-1] + (3, 3)).copy()
+    rotation[..., 0, 0] = cos_t
+    rotation[..., 0, 1] = sin_t
+    rotation[..., 1, 0] = -sin_t
+    rotation[..., 1, 1] = cos_t
+    return rotation @ covariance @ np.swapaxes(rotation, -1, -2)

@@ -1,0 +1,185 @@
+"""Simulated sonar, teammate detector and dead-reckoning odometry with seeded noise.
+
+All noise is zero-mean Gaussian with ``sigma = 95% bound / BOUND_95_TO_SIGMA`` and is
+not clipped. Every robot has one independent ``numpy.random.Generator`` per sensor,
+derived from the simulator's seed sequence by ``(robot_id, sensor index)``; each call
+of a sensor draws a fixed number of normals (independent of what is visible), so the
+noise of the k-th call of a robot's sensor depends only on the seed, the robot id, the
+sensor and k: never on other robots or on the order of calls across robots.
+
+With ``SensorParams.noise_enabled = False`` the outputs are exact, while the reported
+variances and covariances stay those of the noise model, so an estimator is configured
+the same way in both cases.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from em_exploration_ros.core.geometry import between, range_bearing, wrap_angle
+from em_exploration_ros.core.params import BOUND_95_TO_SIGMA, MotionParams, SensorParams
+from em_exploration_ros.core.world import World, derive_seed_sequence
+
+FloatArray = NDArray[np.float64]
+
+#: Index of each sensor's stream under a robot's branch of the seed sequence.
+SONAR_STREAM, TEAMMATE_STREAM, ODOMETRY_STREAM = 0, 1, 2
+
+#: A step shorter than this [m] counts as no translation; a smaller turn [rad] as no turn.
+_STILL_TOLERANCE = 1e-12
+
+
+@dataclass(frozen=True)
+class LandmarkReading:
+    """One sonar return: range [m] and bearing [rad, observer body frame, wrapped] of a
+    landmark centre, with the variances of their noise [m^2], [rad^2]."""
+
+    landmark_id: int
+    range_m: float
+    bearing_rad: float
+    range_variance: float
+    bearing_variance: float
+
+
+@dataclass(frozen=True)
+class TeammateReading:
+    """Pose ``(x [m], y [m], theta [rad])`` of teammate ``robot_id`` in the observer's body
+    frame, with the ``(3, 3)`` covariance of its additive noise in those coordinates."""
+
+    robot_id: int
+    relative_pose: FloatArray
+    covariance: FloatArray
+
+
+@dataclass(frozen=True)
+class OdometryReading:
+    """Motion ``(dx [m], dy [m], dtheta [rad])`` over one step, in the previous body frame,
+    with the ``(3, 3)`` covariance of its additive noise in those coordinates."""
+
+    delta: FloatArray
+    covariance: FloatArray
+
+
+def odometry_covariance_per_step(step_length_m: float, turned: bool,
+                                 sensor_params: SensorParams) -> FloatArray:
+    """Covariance ``(3, 3)`` of one step's odometry noise, in the previous body frame.
+
+    With ``K = odometry_interval_steps`` and ``d = step_length_m * K`` the distance of one
+    interval at this step length, the per-step noise is independent in each coordinate:
+
+    - heading: variance ``(gyro_bound_rad / 1.96)^2 / K``, if the robot moved or turned;
+    - translation: variance ``(min(accel_bound_m, accel_bound_fraction * d) / 1.96)^2 / K``
+      along the direction of travel and the same across it (isotropic, so the same in any
+      frame), if the robot moved.
+
+    Summed over one interval of K steps, the 95% bounds are the paper's gyro (0.5 deg)
+    and accelerometer (0.05 m) errors. A robot that neither moved nor turned has zero
+    covariance (its reading is exact).
+    """
+    steps = sensor_params.odometry_interval_steps
+    moved = step_length_m > _STILL_TOLERANCE
+    covariance = np.zeros((3, 3))
+    if moved or turned:
+        covariance[2, 2] = (sensor_params.gyro_bound_rad / BOUND_95_TO_SIGMA) ** 2 / steps
+    if moved:
+        bound = min(sensor_params.accel_bound_m,
+                    sensor_params.accel_bound_fraction * step_length_m * steps)
+        covariance[0, 0] = covariance[1, 1] = (bound / BOUND_95_TO_SIGMA) ** 2 / steps
+    return covariance
+
+
+class SensorSimulator:
+    """The sensors of every robot of a team in one simulated world (world frame, truth in)."""
+
+    def __init__(self, world: World, sensor_params: SensorParams, motion_params: MotionParams,
+                 seed_sequence: np.random.SeedSequence) -> None:
+        """Create one noise stream per robot and sensor from ``seed_sequence``.
+
+        Robot ``i``'s sensor ``s`` draws from ``derive_seed_sequence(seed_sequence, i, s)``
+        (``s`` is ``SONAR_STREAM``, ``TEAMMATE_STREAM`` or ``ODOMETRY_STREAM``);
+        ``seed_sequence`` itself is not modified.
+        """
+        self._world = world
+        self._params = sensor_params
+        self._motion = motion_params
+        self._streams = [
+            [np.random.default_rng(derive_seed_sequence(seed_sequence, robot, sensor))
+             for sensor in (SONAR_STREAM, TEAMMATE_STREAM, ODOMETRY_STREAM)]
+            for robot in range(world.num_robots)]
+        sp = sensor_params
+        self._range_variance = sp.sonar_range_sigma_m ** 2
+        self._bearing_variance = sp.sonar_bearing_sigma_rad ** 2
+        xy_variance = (sp.robot_obs_xy_bound_m / BOUND_95_TO_SIGMA) ** 2
+        theta_variance = (sp.robot_obs_theta_bound_rad / BOUND_95_TO_SIGMA) ** 2
+        self._teammate_covariance = np.diag([xy_variance, xy_variance, theta_variance])
+
+    @property
+    def motion_params(self) -> MotionParams:
+        """Kinematic parameters of the simulated robots."""
+        return self._motion
+
+    def _normals(self, robot_id: int, sensor: int, shape: tuple[int, ...]) -> FloatArray:
+        """Standard normals from the robot's stream of ``sensor`` (zeros if noise is off)."""
+        if not 0 <= robot_id < self._world.num_robots:
+            raise ValueError(f"robot_id {robot_id} outside [0, {self._world.num_robots})")
+        if not self._params.noise_enabled:
+            return np.zeros(shape)
+        return self._streams[robot_id][sensor].standard_normal(shape)
+
+    def sonar(self, robot_id: int, true_pose: ArrayLike) -> list[LandmarkReading]:
+        """Readings of the landmarks within ``sonar_max_range_m`` of the true pose ``(3,)``
+        (world frame), sorted by landmark id; range and bearing carry independent noise."""
+        pose = np.asarray(true_pose, dtype=float)
+        noise = self._normals(robot_id, SONAR_STREAM, (self._world.num_landmarks, 2))
+        ranges, bearings = range_bearing(pose, self._world.landmarks)
+        ranges = ranges + np.sqrt(self._range_variance) * noise[:, 0]
+        bearings = wrap_angle(bearings + np.sqrt(self._bearing_variance) * noise[:, 1])
+        visible = np.flatnonzero(
+            np.linalg.norm(self._world.landmarks - pose[:2], axis=1)
+            <= self._params.sonar_max_range_m)
+        visible = visible[np.argsort(self._world.landmark_ids[visible], kind="stable")]
+        return [LandmarkReading(landmark_id=int(self._world.landmark_ids[k]),
+                                range_m=float(ranges[k]), bearing_rad=float(bearings[k]),
+                                range_variance=self._range_variance,
+                                bearing_variance=self._bearing_variance)
+                for k in visible]
+
+    def teammates(self, robot_id: int, true_poses: ArrayLike,
+                  active: Sequence[bool] | None = None) -> list[TeammateReading]:
+        """Readings of the other active robots within ``sonar_max_range_m`` of robot
+        ``robot_id``, sorted by id; ``true_poses`` ``(N, 3)`` are all robots' world poses.
+
+        Each relative pose carries additive noise with covariance
+        ``diag(sxy^2, sxy^2, stheta^2)`` in the observer's body frame.
+        """
+        poses = np.asarray(true_poses, dtype=float)
+        count = poses.shape[0]
+        noise = self._normals(robot_id, TEAMMATE_STREAM, (count, 3))
+        relative = between(poses[robot_id], poses)
+        relative = relative + noise * np.sqrt(np.diag(self._teammate_covariance))
+        relative[:, 2] = wrap_angle(relative[:, 2])
+        seen = np.linalg.norm(poses[:, :2] - poses[robot_id, :2], axis=1) \
+            <= self._params.sonar_max_range_m
+        seen[robot_id] = False
+        if active is not None:
+            seen &= np.asarray(active, dtype=bool)
+        return [TeammateReading(robot_id=int(j), relative_pose=relative[j].copy(),
+                                covariance=self._teammate_covariance.copy())
+                for j in np.flatnonzero(seen)]
+
+    def odometry(self, robot_id: int, true_previous: ArrayLike,
+                 true_current: ArrayLike) -> OdometryReading:
+        """Dead-reckoning reading of one step between two true world poses ``(3,)``: the true
+        motion in the previous body frame plus noise with the covariance of
+        :func:`odometry_covariance_per_step` (exact reading if the robot stayed still)."""
+        true_delta = between(true_previous, true_current)
+        noise = self._normals(robot_id, ODOMETRY_STREAM, (3,))
+        covariance = odometry_covariance_per_step(
+            float(np.hypot(true_delta[0], true_delta[1])),
+            bool(abs(true_delta[2]) > _STILL_TOLERANCE), self._params)
+        delta = true_delta + noise * np.sqrt(np.diag(covariance))
+        delta[2] = wrap_angle(delta[2])
+        return OdometryReading(delta=delta, covariance=covariance)
