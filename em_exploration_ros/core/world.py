@@ -16,7 +16,7 @@ from em_exploration_ros.core.params import MotionParams, SensorParams, WorldPara
 FloatArray = NDArray[np.float64]
 
 #: Whole layouts (start poses, or landmarks) tried before generation gives up.
-_MAX_LAYOUT_ATTEMPTS = 200
+_MAX_LAYOUT_ATTEMPTS = 100
 #: Random candidates drawn at once for one start position or one landmark.
 _CANDIDATES_PER_DRAW = 256
 
@@ -111,6 +111,16 @@ def _place_points(rng: np.random.Generator, count: int, low: FloatArray, high: F
     return None
 
 
+def _packing_bound(low: FloatArray, high: FloatArray, separation: float) -> float:
+    """Upper bound on how many points ``separation`` apart fit in the box ``[low, high]``
+    (Oler's inequality for a convex region: 2/sqrt(3) A/d^2 + P/(2d) + 1)."""
+    if separation <= 0.0:
+        return np.inf
+    sides = high - low
+    area, perimeter = float(np.prod(sides)), 2.0 * float(np.sum(sides))
+    return 2.0 / np.sqrt(3.0) * area / separation ** 2 + perimeter / (2.0 * separation) + 1.0
+
+
 def _check_box(name: str, low: FloatArray, high: FloatArray) -> None:
     """Raise ValueError if the sampling box is empty."""
     if np.any(low > high):
@@ -162,6 +172,11 @@ def generate_world(world_params: WorldParams, sensor_params: SensorParams,
     landmark_low = np.full(2, wp.landmark_edge_margin_m)
     landmark_high = size - wp.landmark_edge_margin_m
     _check_box("landmark", landmark_low, landmark_high)
+    if wp.num_landmarks > _packing_bound(landmark_low, landmark_high,
+                                         wp.landmark_min_separation_m):
+        raise ValueError(
+            f"{wp.num_landmarks} landmarks cannot be {wp.landmark_min_separation_m} m apart in "
+            f"a {wp.width_m} x {wp.height_m} m map with edge margin {wp.landmark_edge_margin_m} m")
     landmarks = _place_points(rng, wp.num_landmarks, landmark_low, landmark_high,
                               wp.landmark_min_separation_m, np.inf, starts,
                               wp.landmark_clearance_from_start_m)
