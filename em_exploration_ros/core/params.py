@@ -134,6 +134,13 @@ class SlamParams:
         (0.01, 0.01, 0.004), "Sigmas of virtual inter-robot observations in the EM step "
         "(x [m], y [m], theta [rad]).")
     relinearize_threshold: float = _param(0.01, "iSAM2 relinearization threshold.", 0.0, 10.0)
+    extra_update_iterations: int = _param(
+        2, "At most this many extra iSAM2 update() calls after adding new measurements, "
+        "stopping as soon as no variable needs relinearization.", 0, 100)
+    covariance_floor_sigma: float = _param(
+        1e-6, "Sigma added in quadrature to every sensor-derived noise model [m or rad], so "
+        "degenerate covariances (robot at rest, noise-free sensors) stay invertible.",
+        0.0, 1.0)
 
 
 @dataclass(frozen=True)

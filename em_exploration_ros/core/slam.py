@@ -1,0 +1,559 @@
+"""Per-robot team factor graph on iSAM2: measurement records, estimates and covariances.
+
+Every robot runs one :class:`TeamSlam` that holds the whole team's pose graph as that
+robot knows it: its own keyframes and whatever its teammates shared, in any order.
+
+Graph layout (all in the ``map`` frame, poses ``(x [m], y [m], theta [rad])``):
+
+* pose of robot ``r`` at keyframe ``k``: key ``gtsam.symbol(chr(ord('a') + r), k)``
+  (robot 0 -> ``'a'``, robot 1 -> ``'b'``, ...), a ``gtsam.Pose2``;
+* landmark ``j``: key ``gtsam.symbol('L', j)``, a ``gtsam.Point2``;
+* a prior on robot 0's first keyframe at the mission's anchor pose (the gauge);
+* a ``BetweenFactorPose2`` per odometry link between consecutive keyframes of a robot;
+* a ``BearingRangeFactor2D`` per sonar landmark reading;
+* a ``BetweenFactorPose2`` per teammate reading (observer keyframe -> observed keyframe
+  with the same index).
+
+Noise convention: sensor covariances arrive as covariances of additive errors of the
+pose coordinates ``(x, y, theta)`` (the convention of :mod:`geometry`); they are rotated
+into the body frame of the measured relative pose, the frame of a GTSAM ``Pose2``
+tangent vector, before they become factor noise models. Pose covariances returned by
+the accessors are in the ``map`` frame by default (additive ``(x, y, theta)`` errors)
+and in the GTSAM body (tangent) frame with ``frame="body"``.
+"""
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterable, Literal
+
+import gtsam
+import numpy as np
+
+from em_exploration_ros.core.geometry import (compose, compose_jacobians,
+                                              coordinate_to_body_covariance)
+from em_exploration_ros.core.params import SlamParams
+
+if TYPE_CHECKING:
+    from em_exploration_ros.core.sensors import (LandmarkReading, OdometryReading,
+                                                 TeammateReading)
+
+#: Covariance frame of pose accessors: ``"map"`` (additive x, y, theta errors in the map
+#: frame) or ``"body"`` (GTSAM Pose2 tangent space, x and y in the pose's body frame).
+CovarianceFrame = Literal["map", "body"]
+
+#: (robot id, keyframe index) of one graph pose.
+KeyframeId = tuple[int, int]
+
+
+def pose_key(robot_id: int, index: int) -> int:
+    """GTSAM key of robot ``robot_id``'s pose at keyframe ``index`` (``'a' + robot_id``)."""
+    return gtsam.symbol(chr(ord("a") + robot_id), index)
+
+
+def landmark_key(landmark_id: int) -> int:
+    """GTSAM key of landmark ``landmark_id`` (``'L'``)."""
+    return gtsam.symbol("L", landmark_id)
+
+
+def body_to_map_covariance(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """Pose covariances ``(..., 3, 3)`` from the body (GTSAM tangent) frame to additive
+    map-frame ``(x, y, theta)`` errors: the position block rotated by ``+theta``."""
+    mirrored = np.asarray(pose, dtype=float) * np.array([1.0, 1.0, -1.0])
+    return coordinate_to_body_covariance(mirrored, covariance)
+
+
+@dataclass(frozen=True)
+class KeyframeMeasurements:
+    """Everything one robot measured at one keyframe, as shared with its teammates.
+
+    ``index = step // keyframe_interval_steps``; keyframes of different robots with the
+    same index are simultaneous. ``odom_delta`` is the motion from keyframe
+    ``previous_index`` to this one, expressed in the previous keyframe's body frame
+    (``x [m], y [m], theta [rad]``), and ``odom_covariance`` the covariance of its
+    additive coordinate errors. A robot's first keyframe has ``is_first=True``,
+    ``previous_index=-1`` and its odometry fields are ignored. Every teammate reading
+    refers to the observed teammate's keyframe with the same ``index``.
+    """
+
+    robot_id: int
+    index: int
+    stamp_s: float
+    is_first: bool
+    previous_index: int
+    odom_delta: np.ndarray
+    odom_covariance: np.ndarray
+    landmarks: tuple[LandmarkReading, ...]
+    teammates: tuple[TeammateReading, ...]
+
+    @property
+    def keyframe_id(self) -> KeyframeId:
+        """``(robot_id, index)``."""
+        return self.robot_id, self.index
+
+
+class OdometryAccumulator:
+    """Integrates per-step odometry into the motion since the last keyframe.
+
+    The accumulated delta is expressed in the body frame of the last keyframe; its
+    covariance (additive ``(x, y, theta)`` errors) is propagated to first order with the
+    compose Jacobians, step errors being independent.
+    """
+
+    def __init__(self) -> None:
+        self._delta = np.zeros(3)
+        self._covariance = np.zeros((3, 3))
+
+    def add(self, reading: OdometryReading) -> None:
+        """Append one step's motion (its delta is in the previous step's body frame)."""
+        j_acc, j_step = compose_jacobians(self._delta, reading.delta)
+        self._covariance = (j_acc @ self._covariance @ j_acc.T
+                            + j_step @ np.asarray(reading.covariance, dtype=float) @ j_step.T)
+        self._delta = compose(self._delta, reading.delta)
+
+    def take(self) -> tuple[np.ndarray, np.ndarray]:
+        """The accumulated ``(delta (3,), covariance (3, 3))``; starts a new interval."""
+        accumulated = (self._delta, self._covariance)
+        self._delta = np.zeros(3)
+        self._covariance = np.zeros((3, 3))
+        return accumulated
+
+
+class KeyframeBuilder:
+    """Turns one robot's per-step sensor stream into :class:`KeyframeMeasurements`.
+
+    A keyframe is cut at every step that is a multiple of ``keyframe_interval_steps``;
+    landmark and teammate readings are kept only at those steps.
+    """
+
+    def __init__(self, robot_id: int, slam_params: SlamParams) -> None:
+        self._robot_id = robot_id
+        self._interval = slam_params.keyframe_interval_steps
+        self._accumulator = OdometryAccumulator()
+        self._last_index: int | None = None
+
+    def add_step(self, step: int, stamp_s: float, odometry: OdometryReading | None,
+                 sonar: Iterable[LandmarkReading],
+                 teammates: Iterable[TeammateReading]) -> KeyframeMeasurements | None:
+        """Feed step ``step`` (``odometry``: motion from step-1 to step, None at the
+        start); returns the keyframe cut at this step, if any. ``stamp_s`` in seconds."""
+        if odometry is not None:
+            self._accumulator.add(odometry)
+        if step % self._interval != 0:
+            return None
+        delta, covariance = self._accumulator.take()
+        is_first = self._last_index is None
+        keyframe = KeyframeMeasurements(
+            robot_id=self._robot_id, index=step // self._interval, stamp_s=stamp_s,
+            is_first=is_first, previous_index=-1 if is_first else self._last_index,
+            odom_delta=np.zeros(3) if is_first else delta,
+            odom_covariance=np.zeros((3, 3)) if is_first else covariance,
+            landmarks=tuple(sonar), teammates=tuple(teammates))
+        self._last_index = keyframe.index
+        return keyframe
+
+
+class SlamNoise:
+    """The noise models of the team graph: derived from sensor covariances (paper) or
+    the reference implementation's fixed sigmas (``use_fixed_sigmas``)."""
+
+    def __init__(self, slam_params: SlamParams) -> None:
+        self._params = slam_params
+        self._floor = slam_params.covariance_floor_sigma ** 2
+        self.prior = gtsam.noiseModel.Diagonal.Sigmas(np.array(slam_params.prior_sigmas))
+        self.virtual_robot_observation = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array(slam_params.virtual_robot_obs_sigmas))
+        self._fixed_odometry = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array(slam_params.fixed_odometry_sigmas))
+        self._fixed_bearing_range = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array(slam_params.fixed_bearing_range_sigmas))
+        self._fixed_robot_observation = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array(slam_params.fixed_robot_obs_sigmas))
+
+    def _relative_pose(self, relative_pose: np.ndarray,
+                       covariance: np.ndarray) -> gtsam.noiseModel.Base:
+        """Noise of a measured relative pose given additive coordinate covariance."""
+        body = coordinate_to_body_covariance(relative_pose, covariance)
+        return gtsam.noiseModel.Gaussian.Covariance(body + self._floor * np.eye(3))
+
+    def odometry(self, delta: np.ndarray, covariance: np.ndarray) -> gtsam.noiseModel.Base:
+        """Noise model of an odometry between factor (``covariance`` of ``delta``'s
+        additive coordinates, [m^2], [rad^2])."""
+        if self._params.use_fixed_sigmas:
+            return self._fixed_odometry
+        return self._relative_pose(delta, covariance)
+
+    def bearing_range(self, reading: LandmarkReading) -> gtsam.noiseModel.Base:
+        """Noise model of a bearing-range factor, ordered (bearing [rad], range [m])."""
+        if self._params.use_fixed_sigmas:
+            return self._fixed_bearing_range
+        variances = np.array([reading.bearing_variance, reading.range_variance]) + self._floor
+        return gtsam.noiseModel.Diagonal.Variances(variances)
+
+    def robot_observation(self, reading: TeammateReading) -> gtsam.noiseModel.Base:
+        """Noise model of an inter-robot between factor."""
+        if self._params.use_fixed_sigmas:
+            return self._fixed_robot_observation
+        return self._relative_pose(reading.relative_pose, reading.covariance)
+
+
+def _pose2(pose: np.ndarray) -> gtsam.Pose2:
+    return gtsam.Pose2(float(pose[0]), float(pose[1]), float(pose[2]))
+
+
+def _pose_array(pose: gtsam.Pose2) -> np.ndarray:
+    return np.array([pose.x(), pose.y(), pose.theta()])
+
+
+class _TeamGraph:
+    """Bookkeeping of the team graph: received keyframes, what is already in the graph,
+    what still waits, and the construction of the factors and initial values of
+    everything that became connectable."""
+
+    def __init__(self, num_robots: int, noise: SlamNoise, anchor_pose: np.ndarray) -> None:
+        self.num_robots = num_robots
+        self.noise = noise
+        self.anchor_pose = np.asarray(anchor_pose, dtype=float)
+        self.factors = gtsam.NonlinearFactorGraph()
+        self.indices: list[list[int]] = [[] for _ in range(num_robots)]
+        self.landmark_ids: list[int] = []
+        self._landmark_set: set[int] = set()
+        self._received: set[KeyframeId] = set()
+        self._pending: dict[KeyframeId, KeyframeMeasurements] = {}
+        self._in_graph: set[KeyframeId] = set()
+        # observed keyframe -> [(observer keyframe, reading)] waiting for the observed one
+        self._waiting_observations: dict[KeyframeId, list[tuple[KeyframeId, TeammateReading]]] = {}
+
+    def receive(self, keyframe: KeyframeMeasurements) -> bool:
+        """Store a keyframe; False for a duplicate. Raises ValueError on bad robot ids."""
+        self._check_robot(keyframe.robot_id)
+        for reading in keyframe.teammates:
+            self._check_robot(reading.robot_id)
+            if reading.robot_id == keyframe.robot_id:
+                raise ValueError(f"robot {keyframe.robot_id} cannot observe itself")
+        if keyframe.keyframe_id in self._received:
+            return False
+        self._received.add(keyframe.keyframe_id)
+        self._pending[keyframe.keyframe_id] = keyframe
+        return True
+
+    def _check_robot(self, robot_id: int) -> None:
+        if not 0 <= robot_id < self.num_robots:
+            raise ValueError(f"robot id {robot_id} outside [0, {self.num_robots})")
+
+    @property
+    def num_pending(self) -> int:
+        """Received keyframes not yet connectable to the graph."""
+        return len(self._pending)
+
+    def contains(self, keyframe_id: KeyframeId) -> bool:
+        """Whether the pose is in the graph."""
+        return keyframe_id in self._in_graph
+
+    def collect(self, estimate: gtsam.Values) -> tuple[gtsam.NonlinearFactorGraph,
+                                                       gtsam.Values, int]:
+        """New factors, initial values of new variables and the number of keyframes that
+        became connectable; ``estimate`` holds the current values of the graph."""
+        batch = _Batch(estimate)
+        progress = True
+        while progress:
+            progress = False
+            for keyframe_id in sorted(self._pending, key=lambda kf: (kf[1], kf[0])):
+                keyframe = self._pending[keyframe_id]
+                initial = self._initial_pose(keyframe, batch)
+                if initial is None:
+                    continue
+                self._add(keyframe, initial, batch)
+                progress = True
+        self.factors.push_back(batch.factors)
+        return batch.factors, batch.values, batch.added
+
+    def _initial_pose(self, keyframe: KeyframeMeasurements, batch: _Batch) -> np.ndarray | None:
+        """Initial map-frame pose of a keyframe, or None while it is not connectable."""
+        if not keyframe.is_first:
+            previous = (keyframe.robot_id, keyframe.previous_index)
+            if previous not in self._in_graph:
+                return None
+            return compose(batch.pose(previous), keyframe.odom_delta)
+        if keyframe.robot_id == 0:
+            return self.anchor_pose
+        # Anchor from an observation with an anchored teammate, lowest robot id first.
+        candidates = []
+        for reading in keyframe.teammates:
+            other = (reading.robot_id, keyframe.index)
+            if other in self._in_graph:
+                # relative_pose = teammate in this robot's frame: self = other ⊕ rel^-1
+                inverse_relative = _pose_array(_pose2(reading.relative_pose).inverse())
+                candidates.append((reading.robot_id, compose(batch.pose(other),
+                                                             inverse_relative)))
+        for observer, reading in self._waiting_observations.get(keyframe.keyframe_id, []):
+            candidates.append((observer[0], compose(batch.pose(observer),
+                                                    reading.relative_pose)))
+        if not candidates:
+            return None
+        return min(candidates, key=lambda candidate: candidate[0])[1]
+
+    def _add(self, keyframe: KeyframeMeasurements, initial: np.ndarray, batch: _Batch) -> None:
+        """Insert a connectable keyframe with its factors into ``batch``."""
+        keyframe_id = keyframe.keyframe_id
+        key = pose_key(*keyframe_id)
+        del self._pending[keyframe_id]
+        self._in_graph.add(keyframe_id)
+        bisect.insort(self.indices[keyframe.robot_id], keyframe.index)
+        batch.insert_pose(keyframe_id, initial)
+        if keyframe.is_first and keyframe.robot_id == 0:
+            batch.factors.push_back(gtsam.PriorFactorPose2(key, _pose2(self.anchor_pose),
+                                                           self.noise.prior))
+        elif not keyframe.is_first:
+            previous_key = pose_key(keyframe.robot_id, keyframe.previous_index)
+            odometry_noise = self.noise.odometry(keyframe.odom_delta, keyframe.odom_covariance)
+            batch.factors.push_back(gtsam.BetweenFactorPose2(
+                previous_key, key, _pose2(keyframe.odom_delta), odometry_noise))
+        self._add_landmarks(keyframe, initial, batch)
+        for reading in keyframe.teammates:
+            observed = (reading.robot_id, keyframe.index)
+            if observed in self._in_graph:
+                self._add_observation(keyframe_id, reading, batch)
+            else:
+                self._waiting_observations.setdefault(observed, []).append((keyframe_id, reading))
+        for observer, reading in self._waiting_observations.pop(keyframe_id, []):
+            self._add_observation(observer, reading, batch)
+
+    def _add_landmarks(self, keyframe: KeyframeMeasurements, pose: np.ndarray,
+                       batch: _Batch) -> None:
+        """Bearing-range factors; unseen landmarks start at the first reading's point."""
+        key = pose_key(*keyframe.keyframe_id)
+        for reading in keyframe.landmarks:
+            point_key = landmark_key(reading.landmark_id)
+            if reading.landmark_id not in self._landmark_set:
+                bearing = pose[2] + reading.bearing_rad
+                point = pose[:2] + reading.range_m * np.array([np.cos(bearing), np.sin(bearing)])
+                batch.values.insert(point_key, gtsam.Point2(point))
+                bisect.insort(self.landmark_ids, reading.landmark_id)
+                self._landmark_set.add(reading.landmark_id)
+            landmark_noise = self.noise.bearing_range(reading)
+            batch.factors.push_back(gtsam.BearingRangeFactor2D(
+                key, point_key, gtsam.Rot2.fromAngle(reading.bearing_rad), reading.range_m,
+                landmark_noise))
+
+    def _add_observation(self, observer: KeyframeId, reading: TeammateReading,
+                         batch: _Batch) -> None:
+        """Between factor observer -> observed teammate keyframe (same index)."""
+        observation_noise = self.noise.robot_observation(reading)
+        batch.factors.push_back(gtsam.BetweenFactorPose2(
+            pose_key(*observer), pose_key(reading.robot_id, observer[1]),
+            _pose2(reading.relative_pose), observation_noise))
+
+
+class _Batch:
+    """Factors and initial values collected in one update, over the current estimate."""
+
+    def __init__(self, estimate: gtsam.Values) -> None:
+        self.estimate = estimate
+        self.factors = gtsam.NonlinearFactorGraph()
+        self.values = gtsam.Values()
+        self.added = 0
+
+    def insert_pose(self, keyframe_id: KeyframeId, pose: np.ndarray) -> None:
+        self.values.insert(pose_key(*keyframe_id), _pose2(pose))
+        self.added += 1
+
+    def pose(self, keyframe_id: KeyframeId) -> np.ndarray:
+        """Initial value (new this batch) or current estimate of a graph pose."""
+        key = pose_key(*keyframe_id)
+        source = self.values if self.values.exists(key) else self.estimate
+        return _pose_array(source.atPose2(key))
+
+
+def _isam_params(slam_params: SlamParams) -> gtsam.ISAM2Params:
+    """iSAM2 with QR factorization, relinearization checked at every update."""
+    params = gtsam.ISAM2Params()
+    params.setFactorization("QR")
+    params.setRelinearizeThreshold(slam_params.relinearize_threshold)
+    params.relinearizeSkip = 1
+    return params
+
+
+class TeamSlam:
+    """One robot's estimate of the whole team's trajectories and the landmarks.
+
+    Keyframes (own or teammates') may arrive in any order, with gaps and duplicates;
+    those not yet connectable wait until they are. Robot 0's first keyframe is anchored
+    by a prior at ``anchor_pose`` (map frame); every other robot's first keyframe is
+    initialised from an observation linking it to an anchored teammate's keyframe with
+    the same index (robot 0 preferred). Later keyframes start at the previous estimate
+    composed with their odometry; landmarks at their first bearing-range reading.
+    """
+
+    def __init__(self, robot_id: int, num_robots: int, slam_params: SlamParams,
+                 anchor_pose: np.ndarray) -> None:
+        if not 0 <= robot_id < num_robots <= 26:
+            raise ValueError(f"need 0 <= robot_id < num_robots <= 26, got {robot_id}, "
+                             f"{num_robots}")
+        self.robot_id = robot_id
+        self.num_robots = num_robots
+        self.slam_params = slam_params
+        self.noise = SlamNoise(slam_params)
+        self._graph = _TeamGraph(num_robots, self.noise, anchor_pose)
+        self._isam = gtsam.ISAM2(_isam_params(slam_params))
+        self._estimate = gtsam.Values()
+
+    # -- input -------------------------------------------------------------------------
+
+    def add_keyframe(self, keyframe: KeyframeMeasurements) -> None:
+        """Queue a keyframe (own or a teammate's) for the next :meth:`update`; duplicates
+        (same robot and index) are ignored."""
+        self._graph.receive(keyframe)
+
+    def update(self) -> int:
+        """Add every newly connectable keyframe to iSAM2; returns how many were added.
+
+        One iSAM2 update with the new factors and values, then up to
+        ``slam_params.extra_update_iterations`` plain updates while iSAM2 still
+        relinearizes variables.
+        """
+        factors, values, added = self._graph.collect(self._estimate)
+        if factors.size() == 0:
+            return added
+        result = self._isam.update(factors, values)
+        for _ in range(self.slam_params.extra_update_iterations):
+            if result.getVariablesRelinearized() == 0:
+                break
+            result = self._isam.update()
+        self._estimate = self._isam.calculateEstimate()
+        return added
+
+    def converge(self, tolerance: float = 1e-9, max_iterations: int = 50) -> int:
+        """Iterate iSAM2 until no variable is relinearized, the largest remaining
+        Gauss-Newton step is below ``tolerance`` (m or rad) or stops shrinking (the
+        floating-point floor of the problem's conditioning, about 1e-7 with the default
+        prior sigmas); returns the number of iterations run.
+
+        With a ``relinearize_threshold`` far below the expected accuracy (e.g. 0) this
+        reaches the batch optimum; with a larger threshold the estimate keeps the
+        threshold's linearization error.
+        """
+        iterations = 0
+        previous_step = np.inf
+        while iterations < max_iterations and self._isam.size() > 0:
+            result = self._isam.update()
+            iterations += 1
+            largest_step = float(np.max(np.abs(self._isam.getDelta().vector()), initial=0.0))
+            if (result.getVariablesRelinearized() == 0 or largest_step < tolerance
+                    or largest_step >= previous_step):
+                break
+            previous_step = largest_step
+        self._estimate = self._isam.calculateEstimate()
+        return iterations
+
+    # -- graph access (EM planner) ----------------------------------------------------
+
+    def graph(self) -> gtsam.NonlinearFactorGraph:
+        """A copy of every factor given to iSAM2 (prior, odometry, landmarks, robots)."""
+        return self._graph.factors.clone()
+
+    def values(self) -> gtsam.Values:
+        """The current estimate of every variable in the graph (map frame)."""
+        return gtsam.Values(self._estimate)
+
+    @staticmethod
+    def pose_key(robot_id: int, index: int) -> int:
+        """GTSAM key of a robot's keyframe pose (see :func:`pose_key`)."""
+        return pose_key(robot_id, index)
+
+    @staticmethod
+    def landmark_key(landmark_id: int) -> int:
+        """GTSAM key of a landmark (see :func:`landmark_key`)."""
+        return landmark_key(landmark_id)
+
+    def virtual_robot_observation_noise(self) -> gtsam.noiseModel.Base:
+        """Noise model of a virtual inter-robot observation in the EM step."""
+        return self.noise.virtual_robot_observation
+
+    # -- estimates ---------------------------------------------------------------------
+
+    def known_keyframes(self, robot_id: int) -> list[int]:
+        """Sorted keyframe indices of ``robot_id`` that are in the graph."""
+        return list(self._graph.indices[robot_id])
+
+    def latest_index(self, robot_id: int) -> int | None:
+        """Latest keyframe index of ``robot_id`` in the graph, None if it has none."""
+        indices = self._graph.indices[robot_id]
+        return indices[-1] if indices else None
+
+    def num_variables(self) -> int:
+        """Number of variables (poses and landmarks) in the graph."""
+        return self._estimate.size()
+
+    def num_pending(self) -> int:
+        """Number of received keyframes still waiting to be connectable."""
+        return self._graph.num_pending
+
+    def has_keyframe(self, robot_id: int, index: int) -> bool:
+        """Whether the pose of ``robot_id`` at keyframe ``index`` is in the graph."""
+        return self._graph.contains((robot_id, index))
+
+    def pose(self, robot_id: int, index: int) -> np.ndarray:
+        """Estimated map-frame pose ``(3,)`` of a keyframe in the graph."""
+        return _pose_array(self._estimate.atPose2(pose_key(robot_id, index)))
+
+    def trajectory(self, robot_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(indices (K,), poses (K, 3))`` of ``robot_id``'s keyframes, map frame."""
+        indices = self._graph.indices[robot_id]
+        # Values iterate in key order: robot r's poses follow those of robots < r.
+        start = sum(len(self._graph.indices[r]) for r in range(robot_id))
+        poses = gtsam.utilities.extractPose2(self._estimate)
+        return np.array(indices, dtype=int), poses[start:start + len(indices)].reshape(-1, 3)
+
+    def landmark_estimates(self) -> dict[int, np.ndarray]:
+        """Map-frame position ``(2,)`` [m] of every landmark in the graph, by id."""
+        points = gtsam.utilities.extractPoint2(self._estimate)
+        return {landmark_id: points[row] for row, landmark_id in
+                enumerate(self._graph.landmark_ids)}
+
+    def pose_covariance(self, robot_id: int, index: int,
+                        frame: CovarianceFrame = "map") -> np.ndarray:
+        """Marginal covariance ``(3, 3)`` of a keyframe pose, in ``frame``."""
+        key = pose_key(robot_id, index)
+        covariance = self._isam.marginalCovariance(key)
+        if frame == "body":
+            return covariance
+        return body_to_map_covariance(self.pose(robot_id, index), covariance)
+
+    def trajectory_covariances(self, robot_id: int,
+                               frame: CovarianceFrame = "map") -> np.ndarray:
+        """Marginal covariances ``(K, 3, 3)`` of ``robot_id``'s keyframes (trajectory order)."""
+        indices, poses = self.trajectory(robot_id)
+        covariances = np.array([self._isam.marginalCovariance(pose_key(robot_id, int(index)))
+                                for index in indices]).reshape(-1, 3, 3)
+        if frame == "body":
+            return covariances
+        return body_to_map_covariance(poses, covariances)
+
+    def landmark_covariance(self, landmark_id: int) -> np.ndarray:
+        """Marginal covariance ``(2, 2)`` [m^2] of a landmark, map frame."""
+        return self._isam.marginalCovariance(landmark_key(landmark_id))
+
+
+def batch_solve(keyframes: Iterable[KeyframeMeasurements], num_robots: int,
+                slam_params: SlamParams, anchor_pose: np.ndarray
+                ) -> tuple[dict[KeyframeId, np.ndarray], dict[int, np.ndarray]]:
+    """Levenberg-Marquardt solution of the team graph built from ``keyframes``.
+
+    The same graph as :class:`TeamSlam` builds (the test oracle). Returns map-frame
+    ``poses[(robot_id, index)] -> (3,)`` and ``landmarks[landmark_id] -> (2,)``.
+    """
+    team_graph = _TeamGraph(num_robots, SlamNoise(slam_params), anchor_pose)
+    for keyframe in keyframes:
+        team_graph.receive(keyframe)
+    factors, initial, _ = team_graph.collect(gtsam.Values())
+    lm_params = gtsam.LevenbergMarquardtParams()
+    lm_params.setRelativeErrorTol(1e-14)
+    lm_params.setAbsoluteErrorTol(1e-14)
+    lm_params.setMaxIterations(200)
+    result = gtsam.LevenbergMarquardtOptimizer(factors, initial, lm_params).optimize()
+    poses = {(robot_id, index): _pose_array(result.atPose2(pose_key(robot_id, index)))
+             for robot_id in range(num_robots) for index in team_graph.indices[robot_id]}
+    landmarks = {landmark_id: np.asarray(result.atPoint2(landmark_key(landmark_id)), dtype=float)
+                 for landmark_id in team_graph.landmark_ids}
+    return poses, landmarks
