@@ -1,0 +1,288 @@
+"""Virtual map uncertainty: per-cell covariances of virtual landmarks.
+
+Every cell of the virtual map holds a virtual landmark ``v`` at its centre (map frame, the
+cell layout of :class:`~em_exploration_ros.core.occupancy_grid.GridGeometry`). A robot
+pose ``x = (x [m], y [m], theta [rad])`` observes the cell when the centre lies within the
+sonar range (the rule of :func:`~em_exploration_ros.core.occupancy_grid.observation_pairs`),
+through the bearing-range model ``g(x, v) = (bearing [rad], range [m])``.
+
+Covariance of one observation (inverse sensor model)::
+
+    Sigma_v = Hl^+ (Hx Sigma_x Hx^T + R) Hl^+^T,    R = diag(sigma_bearing^2, sigma_range^2)
+
+with ``Hx`` (2x3) and ``Hl`` (2x2) the Jacobians of ``g`` w.r.t. the pose and the point,
+rows ordered (bearing, range), and ``Hl^+`` the pseudo-inverse of ``Hl`` (its inverse:
+``det Hl = -1/range``). The paper writes ``H Sigma_x H^T``; like the authors' reference
+implementation we add the sonar noise ``R`` and map the result into the point's
+coordinates through ``Hl^+``, so ``Sigma_v`` is a (2x2, [m^2]) map-frame position
+covariance. A cell centre closer than :data:`MIN_RANGE_M` to the pose is evaluated at that
+distance along the map x axis (the bearing is undefined at zero range).
+
+Several observations of one cell are fused by covariance intersection (Julier and
+Uhlmann): ``I = sum_k w_k I_k`` with ``I_k = Sigma_k^-1`` and convex weights ``w_k``. Any
+convex weights give a consistent result whatever the (unknown) correlation between the
+observations, which all share the SLAM estimate. We use the fast information-proportional
+weights ``w_k = det(I_k) / sum_j det(I_j)`` (a closed form for any number of inputs,
+no per-cell optimisation): the more certain observations dominate. Cells never observed
+keep the prior ``sigma0^2 I`` (``MapParams.virtual_landmark_prior_sigma_m``).
+
+Everything is vectorized over (pose, cell) pairs with closed-form 2x2 inverses; pose
+covariances may be given in the map frame (additive ``(x, y, theta)`` errors) or in the
+GTSAM ``Pose2`` tangent (body) frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from em_exploration_ros.core.occupancy_grid import GridGeometry, observation_pairs
+from em_exploration_ros.core.params import MapParams, SensorParams
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: Frame of pose covariances: ``"map"`` (additive map-frame errors) or ``"body"`` (GTSAM
+#: ``Pose2`` tangent space, x and y along the pose's own axes).
+CovarianceFrame = Literal["map", "body"]
+
+#: Smallest pose-to-cell distance [m] at which the bearing-range model is evaluated.
+MIN_RANGE_M = 1e-3
+
+
+def inverse_2x2(matrices: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Closed-form inverses and determinants of 2x2 matrices ``(..., 2, 2)``.
+
+    Returns ``(inverse (..., 2, 2), determinant (...))``; singular inputs give inf/nan.
+    """
+    m = np.asarray(matrices, dtype=float)
+    a, b, c, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 0], m[..., 1, 1]
+    det = a * d - b * c
+    inverse = np.stack([np.stack([d, -b], axis=-1), np.stack([-c, a], axis=-1)], axis=-2)
+    return inverse / det[..., None, None], det
+
+
+def observation_jacobians(poses: ArrayLike, points: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Jacobians of the bearing-range model of points ``(N, 2)`` seen from poses ``(N, 3)``.
+
+    Returns ``(Hx (N, 2, 3), Hl (N, 2, 2))``: rows are (bearing [rad], range [m]); ``Hx``
+    is w.r.t. the additive map-frame pose coordinates ``(x, y, theta)``, ``Hl`` w.r.t. the
+    map-frame point. Points closer than :data:`MIN_RANGE_M` are moved to that distance.
+    """
+    poses = np.asarray(poses, dtype=float).reshape(-1, 3)
+    points = np.asarray(points, dtype=float).reshape(-1, 2)
+    dx = points[:, 0] - poses[:, 0]
+    dy = points[:, 1] - poses[:, 1]
+    too_close = np.hypot(dx, dy) < MIN_RANGE_M
+    dx = np.where(too_close, MIN_RANGE_M, dx)
+    dy = np.where(too_close, 0.0, dy)
+    r2 = dx * dx + dy * dy
+    r = np.sqrt(r2)
+    zeros = np.zeros_like(r)
+    hx = np.stack([np.stack([dy / r2, -dx / r2, zeros - 1.0], axis=-1),
+                   np.stack([-dx / r, -dy / r, zeros], axis=-1)], axis=-2)
+    hl = np.stack([np.stack([-dy / r2, dx / r2], axis=-1),
+                   np.stack([dx / r, dy / r], axis=-1)], axis=-2)
+    return hx, hl
+
+
+def _body_to_map_jacobian(headings: FloatArray) -> FloatArray:
+    """``(N, 3, 3)`` maps from body-frame (GTSAM tangent) pose errors to map-frame ones."""
+    cos_t, sin_t = np.cos(headings), np.sin(headings)
+    rotation = np.zeros(headings.shape + (3, 3))
+    rotation[..., 0, 0] = cos_t
+    rotation[..., 0, 1] = -sin_t
+    rotation[..., 1, 0] = sin_t
+    rotation[..., 1, 1] = cos_t
+    rotation[..., 2, 2] = 1.0
+    return rotation
+
+
+@dataclass(frozen=True)
+class CellObservations:
+    """Pose-independent part of the (pose, cell) observations of a set of poses.
+
+    For pair ``p`` (pose ``pose_index[p]`` observing cell ``flat_cell[p]``, flat index
+    ``row * cols + col``) the virtual landmark covariance is
+    ``jacobian[p] @ Sigma_x @ jacobian[p].T + noise[p]`` with ``jacobian = Hl^+ Hx``
+    (2x3, in the pose covariance frame chosen at construction) and
+    ``noise = Hl^+ R Hl^+^T`` (2x2, [m^2]). Built once per set of poses so that many pose
+    covariance hypotheses (EM candidates) are evaluated with array algebra only.
+    """
+
+    pose_index: IntArray
+    flat_cell: IntArray
+    jacobian: FloatArray
+    noise: FloatArray
+    num_poses: int
+
+    @classmethod
+    def from_poses(cls, geometry: GridGeometry, poses: ArrayLike, sensor_params: SensorParams,
+                   covariance_frame: CovarianceFrame = "map") -> "CellObservations":
+        """Observations of every cell whose centre is within sonar range of a pose.
+
+        Args:
+            geometry: virtual map cell layout.
+            poses: (K, 3) map-frame poses ``(x [m], y [m], theta [rad])``.
+            sensor_params: sonar range and bearing/range noise.
+            covariance_frame: frame of the pose covariances that will be supplied.
+        """
+        poses = np.asarray(poses, dtype=float).reshape(-1, 3)
+        pose_index, flat_cell = observation_pairs(geometry, poses, sensor_params.sonar_max_range_m)
+        cells = np.stack(np.divmod(flat_cell, geometry.cols), axis=-1)
+        pair_poses = poses[pose_index]
+        hx, hl = observation_jacobians(pair_poses, geometry.cell_center(cells))
+        hl_inverse, _ = inverse_2x2(hl)
+        jacobian = hl_inverse @ hx
+        if covariance_frame == "body":
+            jacobian = jacobian @ _body_to_map_jacobian(pair_poses[:, 2])
+        variances = np.array([sensor_params.sonar_bearing_sigma_rad ** 2,
+                              sensor_params.sonar_range_sigma_m ** 2])
+        noise = (hl_inverse * variances[None, None, :]) @ np.swapaxes(hl_inverse, -1, -2)
+        return cls(pose_index, flat_cell, jacobian, noise, len(poses))
+
+    def concatenate(self, other: "CellObservations") -> "CellObservations":
+        """Observations of this pose set followed by ``other``'s (its poses renumbered after
+        this set's ``num_poses``)."""
+        return CellObservations(
+            np.concatenate([self.pose_index, other.pose_index + self.num_poses]),
+            np.concatenate([self.flat_cell, other.flat_cell]),
+            np.concatenate([self.jacobian, other.jacobian]),
+            np.concatenate([self.noise, other.noise]),
+            self.num_poses + other.num_poses)
+
+    def pair_covariances(self, pose_covariances: ArrayLike) -> FloatArray:
+        """Virtual landmark covariance ``(P, 2, 2)`` [m^2] of every pair, given the pose
+        covariances ``(num_poses, 3, 3)`` in the frame chosen at construction."""
+        pose_covariances = np.asarray(pose_covariances, dtype=float).reshape(-1, 3, 3)
+        jacobian = self.jacobian
+        spread = jacobian @ pose_covariances[self.pose_index] @ np.swapaxes(jacobian, -1, -2)
+        return spread + self.noise
+
+    def fused_information(self, pose_covariances: ArrayLike,
+                          num_cells: int) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """Covariance-intersection information ``(num_cells, 2, 2)`` [1/m^2] of every cell
+        and the mask ``(num_cells,)`` of observed cells (unobserved rows are zero)."""
+        return covariance_intersection(self.flat_cell, self.pair_covariances(pose_covariances),
+                                       num_cells)
+
+
+def covariance_intersection(cell_index: ArrayLike, covariances: ArrayLike,
+                            num_cells: int) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Fuse 2x2 covariances ``(P, 2, 2)`` that share a cell index ``(P,)`` by covariance
+    intersection with information-proportional weights ``w_k ∝ det(Sigma_k^-1)``.
+
+    Returns ``(information (num_cells, 2, 2), observed (num_cells,))``; the information of
+    a cell without input is zero and its ``observed`` flag False.
+    """
+    cell_index = np.asarray(cell_index, dtype=np.int64)
+    information, det = inverse_2x2(covariances)
+    weight = 1.0 / det
+    total = np.bincount(cell_index, weights=weight, minlength=num_cells)
+    observed = total > 0.0
+    scale = np.divide(1.0, total, out=np.zeros(num_cells), where=observed)
+
+    def weighted_sum(entry: FloatArray) -> FloatArray:
+        return np.bincount(cell_index, weights=weight * entry, minlength=num_cells) * scale
+
+    xx = weighted_sum(information[:, 0, 0])
+    xy = weighted_sum(information[:, 0, 1])
+    yy = weighted_sum(information[:, 1, 1])
+    fused = np.stack([np.stack([xx, xy], axis=-1), np.stack([xy, yy], axis=-1)], axis=-2)
+    return fused, observed
+
+
+def information_to_covariance(information: ArrayLike, observed: ArrayLike,
+                              prior_sigma_m: float) -> FloatArray:
+    """Cell covariances ``(..., 2, 2)`` [m^2]: the inverse of ``information`` where
+    ``observed``, the prior ``prior_sigma_m^2 I`` elsewhere."""
+    information = np.asarray(information, dtype=float)
+    observed = np.asarray(observed, dtype=bool)
+    prior = prior_sigma_m ** 2 * np.eye(2)
+    safe = np.where(observed[..., None, None], information, np.eye(2))
+    covariance, _ = inverse_2x2(safe)
+    return np.where(observed[..., None, None], covariance, prior)
+
+
+def information_trace_of_covariance(information: ArrayLike) -> FloatArray:
+    """``trace(I^-1)`` [m^2] of 2x2 information matrices ``(..., 2, 2)`` (A-optimality)."""
+    information = np.asarray(information, dtype=float)
+    _, det = inverse_2x2(information)
+    return (information[..., 0, 0] + information[..., 1, 1]) / det
+
+
+def cell_covariances_from_poses(geometry: GridGeometry, poses: ArrayLike,
+                                pose_covariances: ArrayLike, sensor_params: SensorParams,
+                                map_params: MapParams,
+                                covariance_frame: CovarianceFrame = "map"
+                                ) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Virtual map of a set of poses.
+
+    Args:
+        geometry: virtual map cell layout.
+        poses: (K, 3) map-frame poses; pose_covariances: (K, 3, 3) in ``covariance_frame``.
+        sensor_params: sonar range and noise; map_params: prior sigma of unobserved cells.
+
+    Returns:
+        ``(covariances (rows, cols, 2, 2) [m^2], observed (rows, cols))``.
+    """
+    observations = CellObservations.from_poses(geometry, poses, sensor_params, covariance_frame)
+    num_cells = geometry.rows * geometry.cols
+    information, observed = observations.fused_information(pose_covariances, num_cells)
+    covariance = information_to_covariance(information, observed,
+                                           map_params.virtual_landmark_prior_sigma_m)
+    return covariance.reshape(geometry.shape + (2, 2)), observed.reshape(geometry.shape)
+
+
+def observation_confidence(counts: ArrayLike, map_params: MapParams) -> FloatArray:
+    """Probability ``q`` that a cell counts as observed, from the number of poses (any
+    shape) that saw it: the occupancy probability ``p`` of the log-odds free update
+    ``counts * logit(prob_free)`` clamped to ``[prob_min, prob_max]``, as
+    ``q = max(p, 1 - p)`` (0.5 for an unseen cell). With the symmetric defaults
+    (free 0.3, occupied 0.7) a landmark cell gets the same ``q``."""
+    counts = np.asarray(counts, dtype=float)
+    logit = np.log(map_params.prob_free / (1.0 - map_params.prob_free))
+    low = np.log(map_params.prob_min / (1.0 - map_params.prob_min))
+    high = np.log(map_params.prob_max / (1.0 - map_params.prob_max))
+    probability = 1.0 / (1.0 + np.exp(-np.clip(counts * logit, low, high)))
+    return np.maximum(probability, 1.0 - probability)
+
+
+class VirtualMap:
+    """Per-cell covariances of a virtual map, rebuilt from poses and their covariances."""
+
+    def __init__(self, geometry: GridGeometry, map_params: MapParams,
+                 sensor_params: SensorParams) -> None:
+        self.geometry = geometry
+        self.map_params = map_params
+        self.sensor_params = sensor_params
+        prior = map_params.virtual_landmark_prior_sigma_m ** 2 * np.eye(2)
+        self._covariances = np.broadcast_to(prior, geometry.shape + (2, 2)).copy()
+        self._observed = np.zeros(geometry.shape, dtype=bool)
+
+    def update(self, poses: ArrayLike, pose_covariances: ArrayLike,
+               covariance_frame: CovarianceFrame = "map"
+               ) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """Rebuild from map-frame poses ``(K, 3)`` and covariances ``(K, 3, 3)`` (in
+        ``covariance_frame``); returns ``(covariances (rows, cols, 2, 2), observed (rows,
+        cols))`` (copies)."""
+        self._covariances, self._observed = cell_covariances_from_poses(
+            self.geometry, poses, pose_covariances, self.sensor_params, self.map_params,
+            covariance_frame)
+        return self.covariances, self.observed
+
+    @property
+    def covariances(self) -> FloatArray:
+        """Cell covariances ``(rows, cols, 2, 2)`` [m^2] (a copy)."""
+        return self._covariances.copy()
+
+    @property
+    def observed(self) -> NDArray[np.bool_]:
+        """Cells ``(rows, cols)`` observed by at least one pose (a copy)."""
+        return self._observed.copy()
+
+    def traces(self) -> FloatArray:
+        """A-optimality ``trace(Sigma_v)`` [m^2] of every cell, ``(rows, cols)``."""
+        return np.trace(self._covariances, axis1=-2, axis2=-1)

@@ -1,0 +1,171 @@
+"""Virtual map uncertainty: Jacobians, hand-computed cell covariances, covariance intersection."""
+import numpy as np
+import pytest
+
+from em_exploration_ros.core.geometry import range_bearing
+from em_exploration_ros.core.map_uncertainty import (CellObservations, VirtualMap,
+                                                     cell_covariances_from_poses,
+                                                     covariance_intersection, inverse_2x2,
+                                                     information_to_covariance,
+                                                     information_trace_of_covariance,
+                                                     observation_confidence,
+                                                     observation_jacobians)
+from em_exploration_ros.core.occupancy_grid import GridGeometry, predicted_observed_mask
+from em_exploration_ros.core.params import MapParams, SensorParams
+
+SENSORS = SensorParams()
+MAP = MapParams()
+GEOMETRY = GridGeometry(20.0, 10.0, 2.0)  # cell (row, col) centre ((col + .5) 2, (row + .5) 2)
+SB2 = SENSORS.sonar_bearing_sigma_rad ** 2
+SR2 = SENSORS.sonar_range_sigma_m ** 2
+
+
+def _measure(pose: np.ndarray, point: np.ndarray) -> np.ndarray:
+    distance, bearing = range_bearing(pose, point)
+    return np.array([bearing, distance])
+
+
+def test_jacobians_match_numerical_derivatives() -> None:
+    rng = np.random.default_rng(3)
+    poses = np.column_stack([rng.uniform(-5, 5, (20, 2)), rng.uniform(-3, 3, 20)])
+    points = rng.uniform(-8, 8, (20, 2))
+    hx, hl = observation_jacobians(poses, points)
+    step = 1e-6
+    for pose, point, jx, jl in zip(poses, points, hx, hl):
+        for i in range(3):
+            delta = np.zeros(3)
+            delta[i] = step
+            diff = _measure(pose + delta, point) - _measure(pose - delta, point)
+            diff[0] = (diff[0] + np.pi) % (2 * np.pi) - np.pi
+            np.testing.assert_allclose(jx[:, i], diff / (2 * step), atol=1e-6)
+        for i in range(2):
+            delta = np.zeros(2)
+            delta[i] = step
+            diff = _measure(pose, point + delta) - _measure(pose, point - delta)
+            diff[0] = (diff[0] + np.pi) % (2 * np.pi) - np.pi
+            np.testing.assert_allclose(jl[:, i], diff / (2 * step), atol=1e-6)
+
+
+def test_inverse_2x2_closed_form() -> None:
+    matrices = np.random.default_rng(4).normal(size=(50, 2, 2))
+    inverse, det = inverse_2x2(matrices)
+    np.testing.assert_allclose(inverse, np.linalg.inv(matrices), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(det, np.linalg.det(matrices), rtol=1e-9, atol=1e-12)
+
+
+def test_one_pose_one_cell_hand_computed() -> None:
+    # Pose at (1, 1) heading +x; cell (row 0, col 2) has its centre 4 m ahead at (5, 1).
+    # Hl^+ Hx = -[[1, 0, -dy], [0, 1, dx]] and Hl^+ R Hl^+^T = diag(sr^2, dx^2 sb^2).
+    pose = np.array([[1.0, 1.0, 0.0]])
+    cov = np.diag([0.01, 0.04, 0.0025])[None]
+    covariances, observed = cell_covariances_from_poses(GEOMETRY, pose, cov, SENSORS, MAP)
+    expected = np.diag([0.01 + SR2, 0.04 + 16 * 0.0025 + 16 * SB2])
+    assert observed[0, 2]
+    np.testing.assert_allclose(covariances[0, 2], expected, rtol=1e-12, atol=1e-15)
+
+
+def test_body_frame_covariance_is_rotated_into_the_map_frame() -> None:
+    # Heading +y: body x is map y. A body covariance diag(a, b, c) is map diag(b, a, c).
+    pose = np.array([[1.0, 1.0, np.pi / 2]])
+    body = np.diag([0.01, 0.04, 0.0025])[None]
+    as_map = np.diag([0.04, 0.01, 0.0025])[None]
+    from_body, _ = cell_covariances_from_poses(GEOMETRY, pose, body, SENSORS, MAP, "body")
+    from_map, _ = cell_covariances_from_poses(GEOMETRY, pose, as_map, SENSORS, MAP, "map")
+    np.testing.assert_allclose(from_body, from_map, rtol=1e-12, atol=1e-15)
+
+
+def test_two_poses_fused_by_covariance_intersection_hand_computed() -> None:
+    # Cell centre (5, 1) seen 4 m ahead from (1, 1) and 4 m behind from (9, 1).
+    poses = np.array([[1.0, 1.0, 0.0], [9.0, 1.0, 0.0]])
+    covs = np.array([np.diag([0.01, 0.04, 0.0025]), np.diag([0.09, 0.01, 0.0])])
+    a1, b1 = 0.01 + SR2, 0.04 + 16 * 0.0025 + 16 * SB2
+    a2, b2 = 0.09 + SR2, 0.01 + 16 * SB2
+    w1 = 1 / (a1 * b1) / (1 / (a1 * b1) + 1 / (a2 * b2))
+    fused_information = np.diag([w1 / a1 + (1 - w1) / a2, w1 / b1 + (1 - w1) / b2])
+    covariances, _ = cell_covariances_from_poses(GEOMETRY, poses, covs, SENSORS, MAP)
+    np.testing.assert_allclose(covariances[0, 2], np.linalg.inv(fused_information), rtol=1e-12)
+    # Not the naive (independent) fusion, which would be overconfident.
+    naive = np.linalg.inv(np.diag([1 / a1 + 1 / a2, 1 / b1 + 1 / b2]))
+    assert np.trace(covariances[0, 2]) > 1.5 * np.trace(naive)
+
+
+def test_identical_observations_are_not_double_counted() -> None:
+    cov = np.array([[[0.3, 0.1], [0.1, 0.2]]] * 4)
+    information, observed = covariance_intersection(np.zeros(4, dtype=np.int64), cov, 1)
+    assert observed[0]
+    np.testing.assert_allclose(np.linalg.inv(information[0]), cov[0], rtol=1e-12)
+
+
+def test_covariance_intersection_is_consistent_for_any_correlation() -> None:
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        count = int(rng.integers(2, 6))
+        roots = rng.normal(size=(count, 2, 2))
+        covariances = roots @ np.swapaxes(roots, 1, 2) + 0.05 * np.eye(2)
+        information, _ = covariance_intersection(np.zeros(count, dtype=np.int64), covariances, 1)
+        fused = np.linalg.inv(information[0])
+        individual = np.linalg.inv(covariances)
+        # The fused estimate is x = P sum_k w_k I_k x_k, i.e. gains P w_k I_k.
+        _, det = inverse_2x2(covariances)
+        weights = (1 / det) / np.sum(1 / det)
+        gains = fused @ (weights[:, None, None] * individual)
+        # Joint covariances with the given marginals: errors e_k = S_k Q_k z from one
+        # shared z (fully correlated, random rotations Q_k), mixed with independent errors.
+        roots_k = np.linalg.cholesky(covariances)
+        for mix in (0.0, 0.5, 1.0):
+            angles = rng.uniform(-np.pi, np.pi, count)
+            rotations = np.array([[[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+                                  for a in angles])
+            factors = roots_k @ rotations
+            actual = sum(gains[i] @ (mix * factors[i] @ factors[j].T
+                                     + (1 - mix) * (covariances[i] if i == j else 0.0))
+                         @ gains[j].T for i in range(count) for j in range(count))
+            assert np.linalg.eigvalsh(fused - actual).min() > -1e-10
+        # Never more informative than the best input in any direction.
+        for direction in rng.normal(size=(20, 2)):
+            fused_info = direction @ information[0] @ direction
+            assert fused_info <= max(direction @ i @ direction for i in individual) + 1e-9
+
+
+def test_unobserved_cell_keeps_the_prior() -> None:
+    pose = np.array([[1.0, 1.0, 0.0]])
+    covariances, observed = cell_covariances_from_poses(GEOMETRY, pose, np.eye(3)[None] * 0.01,
+                                                        SENSORS, MAP)
+    assert not observed[4, 9]
+    np.testing.assert_allclose(covariances[4, 9], 1.44 * np.eye(2))
+    assert np.trace(covariances[4, 9]) == pytest.approx(2.88)
+
+
+def test_observed_mask_matches_the_occupancy_rule_and_traces_agree() -> None:
+    rng = np.random.default_rng(6)
+    poses = np.column_stack([rng.uniform(0, 20, (15, 2)), rng.uniform(-3, 3, 15)])
+    roots = rng.normal(scale=0.1, size=(15, 3, 3))
+    covs = roots @ np.swapaxes(roots, 1, 2) + 1e-4 * np.eye(3)
+    virtual_map = VirtualMap(GEOMETRY, MAP, SENSORS)
+    covariances, observed = virtual_map.update(poses, covs)
+    np.testing.assert_array_equal(observed, predicted_observed_mask(GEOMETRY, poses, 7.5))
+    observations = CellObservations.from_poses(GEOMETRY, poses, SENSORS)
+    information, flat_observed = observations.fused_information(covs, GEOMETRY.rows * GEOMETRY.cols)
+    traces = information_trace_of_covariance(information[flat_observed])
+    np.testing.assert_allclose(traces, virtual_map.traces().ravel()[flat_observed], rtol=1e-10)
+    np.testing.assert_allclose(
+        information_to_covariance(information, flat_observed, 1.2).reshape(covariances.shape),
+        covariances)
+    assert np.all(np.linalg.eigvalsh(covariances) > 0)
+
+
+def test_concatenated_observations_equal_observations_of_all_poses() -> None:
+    rng = np.random.default_rng(7)
+    poses = np.column_stack([rng.uniform(0, 20, (8, 2)), rng.uniform(-3, 3, 8)])
+    covs = np.broadcast_to(np.diag([0.02, 0.03, 0.001]), (8, 3, 3))
+    joined = CellObservations.from_poses(GEOMETRY, poses[:5], SENSORS, "body").concatenate(
+        CellObservations.from_poses(GEOMETRY, poses[5:], SENSORS, "body"))
+    whole = CellObservations.from_poses(GEOMETRY, poses, SENSORS, "body")
+    cells = GEOMETRY.rows * GEOMETRY.cols
+    np.testing.assert_allclose(joined.fused_information(covs, cells)[0],
+                               whole.fused_information(covs, cells)[0], rtol=1e-12)
+
+
+def test_observation_confidence_follows_the_log_odds_update() -> None:
+    q = observation_confidence(np.array([0, 1, 2, 50]), MAP)
+    np.testing.assert_allclose(q, [0.5, 0.7, 1 - 0.3 ** 2 / (0.3 ** 2 + 0.7 ** 2), 0.95])
