@@ -1,0 +1,329 @@
+"""Frontier cells and the three kinds of candidate targets (paper sec. III-C / IV).
+
+* exploration frontiers: frontier cells near the robot (all of them early in the mission),
+* revisiting frontiers: frontier cells near known landmarks, to close loops,
+* rendezvous frontiers: teammates' current targets, to meet them and close inter-robot loops.
+
+Also the nearest-frontier (NF) rule and ``RendezvousBook``, the bookkeeping of who waits
+for whom. Positions are in the team ``map`` frame [m]; distances are straight-line.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Callable, Mapping
+
+import numpy as np
+
+from em_exploration_ros.core.occupancy_grid import OccupancyGrid
+from em_exploration_ros.core.params import FrontierParams
+
+#: Positions closer than this are the same target when de-duplicating [m].
+_SAME_POSITION_M = 1e-6
+
+
+class FrontierType(IntEnum):
+    """Kind of a candidate target; same values as ``em_exploration_msgs/TargetRecord``."""
+
+    EXPLORATION = 0
+    REVISITING = 1
+    RENDEZVOUS = 2
+
+
+def _read_only_point(value: np.ndarray) -> np.ndarray:
+    """A read-only float copy of a 2-D point."""
+    point = np.array(value, dtype=float).reshape(2)
+    point.flags.writeable = False
+    return point
+
+
+@dataclass(frozen=True, eq=False)
+class Frontier:
+    """One candidate target.
+
+    Attributes:
+        position: (2,) map-frame position [m] (read-only).
+        kind: frontier type.
+        partner_id: the teammate to meet (RENDEZVOUS only), else None.
+        waiting_penalty_m: RENDEZVOUS only: expected waiting expressed as distance [m],
+            ``|d_self - d_teammate|`` at equal speeds; 0 for the other kinds.
+    """
+
+    position: np.ndarray
+    kind: FrontierType
+    partner_id: int | None = None
+    waiting_penalty_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position", _read_only_point(self.position))
+        object.__setattr__(self, "kind", FrontierType(self.kind))
+
+
+def frontier_cells(grid: OccupancyGrid, params: FrontierParams) -> np.ndarray:
+    """Centres (K, 2) [m] of the frontier cells of the grid, in row-major cell order.
+
+    A frontier cell is an explored, not occupied cell with fewer than
+    ``params.explored_neighbors_below`` explored 4-neighbours (cells beyond the map edge
+    count as unexplored) whose centre lies at least ``params.boundary_distance_m`` from
+    every edge of the map. Occupied cells hold a landmark and cannot be driven to.
+    """
+    explored = grid.explored_mask()
+    padded = np.pad(explored, 1, constant_values=False).astype(np.int8)
+    explored_neighbors = (padded[:-2, 1:-1] + padded[2:, 1:-1]
+                          + padded[1:-1, :-2] + padded[1:-1, 2:])
+    is_frontier = (explored & ~grid.occupied_mask()
+                   & (explored_neighbors < params.explored_neighbors_below)
+                   & (grid.geometry.distance_to_edge() >= params.boundary_distance_m))
+    return grid.geometry.cell_center(np.argwhere(is_frontier))
+
+
+def _as_points(points: np.ndarray) -> np.ndarray:
+    """Float array (N, 2) of map-frame points."""
+    return np.asarray(points, dtype=float).reshape(-1, 2)
+
+
+def _by_distance(points: np.ndarray, robot_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 2) sorted nearest first from ``robot_xy`` (stable), with their distances."""
+    distances = np.linalg.norm(points - np.asarray(robot_xy, dtype=float)[:2], axis=1)
+    order = np.argsort(distances, kind="stable")
+    return points[order], distances[order]
+
+
+def _frontiers_of(points: np.ndarray, kind: FrontierType) -> list[Frontier]:
+    """One frontier of the given kind per row of ``points`` (N, 2)."""
+    return [Frontier(point, kind) for point in points]
+
+
+def exploration_frontiers(cells: np.ndarray, robot_xy: np.ndarray, explored_ratio: float,
+                          params: FrontierParams) -> list[Frontier]:
+    """Exploration candidates among frontier cells (K, 2) [m], nearest first.
+
+    Those within ``exploration_radius_m`` of the robot position ``robot_xy`` (2,) [m], all
+    of them while ``explored_ratio < all_frontiers_below_ratio``, and always the nearest.
+    Ties in distance keep the row-major cell order.
+    """
+    points, distances = _by_distance(_as_points(cells), robot_xy)
+    keep = distances <= params.exploration_radius_m
+    if explored_ratio < params.all_frontiers_below_ratio:
+        keep[:] = True
+    keep[:1] = True
+    return _frontiers_of(points[keep], FrontierType.EXPLORATION)
+
+
+def nearest_frontier(cells: np.ndarray, robot_xy: np.ndarray) -> Frontier | None:
+    """The NF rule: the frontier cell (K, 2) nearest to ``robot_xy`` [m], ties to the first
+    in row-major cell order (lowest y, then lowest x); None without frontier cells."""
+    points, _ = _by_distance(_as_points(cells), robot_xy)
+    if len(points) == 0:
+        return None
+    return Frontier(points[0], FrontierType.EXPLORATION)
+
+
+def segment_point_distances(start: np.ndarray, ends: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Distances (K, M) [m] from points (M, 2) to the segments ``start`` (2,) -> ``ends`` (K, 2)."""
+    start = np.asarray(start, dtype=float)[:2]
+    direction = _as_points(ends) - start
+    to_points = _as_points(points) - start
+    length_sq = np.einsum("kd,kd->k", direction, direction)
+    projection = to_points @ direction.T
+    fraction = np.clip(projection.T / np.maximum(length_sq, 1e-18)[:, None], 0.0, 1.0)
+    closest = fraction[:, :, None] * direction[:, None, :]
+    return np.linalg.norm(closest - to_points[None, :, :], axis=2)
+
+
+def revisiting_frontiers(cells: np.ndarray, landmarks: np.ndarray, robot_xy: np.ndarray,
+                         params: FrontierParams) -> list[Frontier]:
+    """Revisiting candidates among frontier cells (K, 2) [m], given known landmarks (M, 2).
+
+    First the cells within ``revisit_radius_m`` of a landmark (nearest to the robot first).
+    While fewer than ``min_revisiting`` were found, the nearest remaining cells whose
+    straight path from ``robot_xy`` passes within ``revisit_radius_m`` of a landmark are
+    added until ``min_revisiting`` is reached.
+    """
+    points, _ = _by_distance(_as_points(cells), robot_xy)
+    landmarks = _as_points(landmarks)
+    if len(points) == 0 or len(landmarks) == 0:
+        return []
+    to_landmarks = np.linalg.norm(points[:, None, :] - landmarks[None, :, :], axis=2)
+    near = to_landmarks.min(axis=1) <= params.revisit_radius_m
+    missing = params.min_revisiting - int(near.sum())
+    if missing > 0:
+        path_distance = segment_point_distances(robot_xy, points[~near], landmarks).min(axis=1)
+        passing = np.flatnonzero(~near)[path_distance <= params.revisit_radius_m][:missing]
+        near[passing] = True
+    return _frontiers_of(points[near], FrontierType.REVISITING)
+
+
+def rendezvous_frontiers(robot_id: int, robot_xy: np.ndarray,
+                         teammates: Mapping[int, tuple[np.ndarray, np.ndarray | None]],
+                         params: FrontierParams,
+                         speeds_mps: Mapping[int, float] | None = None) -> list[Frontier]:
+    """Rendezvous candidates: the current targets of teammates, in ascending teammate id.
+
+    Args:
+        robot_id: id of the deciding robot (skipped if it appears in ``teammates``).
+        robot_xy: (2,) its position [m].
+        teammates: ``{id: (current_xy (2,), current_target_xy (2,) or None)}`` [m].
+        params: frontier parameters; a target counts only when the deciding robot is
+            farther than ``rendezvous_min_distance_m`` from it.
+        speeds_mps: optional speed of each robot [m/s]; equal speeds are assumed where the
+            deciding robot's or the teammate's is missing. The waiting penalty is the
+            arrival-time difference expressed as distance travelled by the deciding robot:
+            ``|d_self - d_teammate * v_self / v_teammate|``.
+    """
+    robot_xy = np.asarray(robot_xy, dtype=float)[:2]
+    speeds = speeds_mps or {}
+    found = []
+    for teammate_id in sorted(teammates):
+        teammate_xy, target = teammates[teammate_id]
+        if teammate_id == robot_id or target is None:
+            continue
+        target = np.asarray(target, dtype=float)[:2]
+        d_self = float(np.linalg.norm(target - robot_xy))
+        if d_self <= params.rendezvous_min_distance_m:
+            continue
+        d_teammate = float(np.linalg.norm(target - np.asarray(teammate_xy, dtype=float)[:2]))
+        both_known = robot_id in speeds and teammate_id in speeds
+        speed_ratio = speeds[robot_id] / speeds[teammate_id] if both_known else 1.0
+        found.append(Frontier(target, FrontierType.RENDEZVOUS, partner_id=teammate_id,
+                              waiting_penalty_m=abs(d_self - d_teammate * speed_ratio)))
+    return found
+
+
+def candidate_targets(cells: np.ndarray, robot_id: int, robot_xy: np.ndarray,
+                      explored_ratio: float, landmarks: np.ndarray,
+                      teammates: Mapping[int, tuple[np.ndarray, np.ndarray | None]],
+                      params: FrontierParams,
+                      speeds_mps: Mapping[int, float] | None = None) -> list[Frontier]:
+    """All candidate targets of one decision, nearest first, at most ``max_candidates``.
+
+    Combines rendezvous, revisiting and exploration frontiers (arguments as in those
+    functions). A cell offered both as revisiting and as exploration frontier appears once,
+    as REVISITING; a rendezvous is a distinct option (one per partner) even where it
+    coincides with a frontier cell. Rendezvous candidates (at most one per teammate) are
+    always kept; the remaining budget goes to the nearest frontier cells.
+    """
+    rendezvous = rendezvous_frontiers(robot_id, robot_xy, teammates, params, speeds_mps)
+    others = (revisiting_frontiers(cells, landmarks, robot_xy, params)
+              + exploration_frontiers(cells, robot_xy, explored_ratio, params))
+    unique: dict[tuple[float, float, int | None], Frontier] = {}
+    for frontier in rendezvous + others:
+        key = (*np.round(frontier.position / _SAME_POSITION_M).tolist(), frontier.partner_id)
+        unique.setdefault(key, frontier)
+    robot_xy = np.asarray(robot_xy, dtype=float)[:2]
+    nearest_first = sorted(unique.values(),
+                           key=lambda f: float(np.linalg.norm(f.position - robot_xy)))
+    budget = params.max_candidates - sum(f.kind == FrontierType.RENDEZVOUS for f in nearest_first)
+    kept = []
+    for frontier in nearest_first:
+        if frontier.kind == FrontierType.RENDEZVOUS or budget > 0:
+            kept.append(frontier)
+            budget -= frontier.kind != FrontierType.RENDEZVOUS
+    return kept[:params.max_candidates]
+
+
+@dataclass(frozen=True, eq=False)
+class Meeting:
+    """A rendezvous: ``requester_id`` drives to ``meeting_point`` (2,) [m, map frame], the
+    current target of ``partner_id``, which waits there until both arrived or
+    ``deadline_s`` (simulation time) passes."""
+
+    rendezvous_id: int
+    requester_id: int
+    partner_id: int
+    meeting_point: np.ndarray
+    requested_at_s: float
+    deadline_s: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "meeting_point", _read_only_point(self.meeting_point))
+
+
+@dataclass
+class _OpenMeeting:
+    """A meeting and the robots that have arrived so far."""
+
+    meeting: Meeting
+    arrived: set[int] = field(default_factory=set)
+
+    def involves(self, robot_id: int) -> bool:
+        """True when the robot is the requester or the partner."""
+        return robot_id in (self.meeting.requester_id, self.meeting.partner_id)
+
+
+class RendezvousBook:
+    """ROS-free bookkeeping of rendezvous between robots (simulation time in seconds).
+
+    Mirrors the ``Rendezvous`` message events: ``request`` (REQUEST), ``arrived``
+    (ARRIVED), ``release`` (RELEASE, also used when a robot is declared dead), plus the
+    timeout (``expire``). A requester has at most one open meeting: a new request replaces
+    the previous one. A meeting closes when both robots have arrived, at its deadline
+    (``requested_at_s + timeout_s``), or when either robot is released.
+    """
+
+    def __init__(self, goal_tolerance_m: float, timeout_s: float) -> None:
+        """Args: arrival distance to the meeting point [m], longest wait after a request [s]."""
+        self.goal_tolerance_m = float(goal_tolerance_m)
+        self.timeout_s = float(timeout_s)
+        self._open: dict[int, _OpenMeeting] = {}
+
+    def request(self, requester_id: int, partner_id: int, meeting_point: np.ndarray,
+                time_s: float, rendezvous_id: int = 0) -> Meeting:
+        """Record that ``requester_id`` wants to meet ``partner_id`` at ``meeting_point``."""
+        if requester_id == partner_id:
+            raise ValueError(f"robot {requester_id} cannot rendezvous with itself")
+        meeting = Meeting(rendezvous_id, requester_id, partner_id, meeting_point,
+                          float(time_s), float(time_s) + self.timeout_s)
+        self._open[requester_id] = _OpenMeeting(meeting)
+        return meeting
+
+    def open_meetings(self) -> list[Meeting]:
+        """Open meetings, in ascending requester id."""
+        return [self._open[key].meeting for key in sorted(self._open)]
+
+    def arrived(self, robot_id: int, time_s: float,
+                requester_id: int | None = None) -> list[Meeting]:
+        """Mark ``robot_id`` arrived at its open meetings (only the one of ``requester_id``
+        when given) at ``time_s``; returns the meetings completed by this arrival (closed)."""
+        self.expire(time_s)
+        for key, entry in self._open.items():
+            if entry.involves(robot_id) and requester_id in (None, key):
+                entry.arrived.add(robot_id)
+        return self._close(lambda entry: len(entry.arrived) == 2)
+
+    def report_position(self, robot_id: int, xy: np.ndarray, time_s: float) -> list[Meeting]:
+        """Mark ``robot_id`` arrived at those of its open meetings whose point lies within
+        the goal tolerance of ``xy`` (2,) [m]; returns the meetings completed (closed)."""
+        xy = np.asarray(xy, dtype=float)[:2]
+        completed = []
+        for key, entry in list(self._open.items()):
+            close_enough = np.linalg.norm(entry.meeting.meeting_point - xy) <= self.goal_tolerance_m
+            if entry.involves(robot_id) and close_enough:
+                completed += self.arrived(robot_id, time_s, requester_id=key)
+        return completed
+
+    def expire(self, time_s: float) -> list[Meeting]:
+        """Close and return the meetings whose deadline is at or before ``time_s``."""
+        return self._close(lambda entry: entry.meeting.deadline_s <= time_s)
+
+    def release(self, robot_id: int) -> list[Meeting]:
+        """Close and return every meeting the robot takes part in (plans changed or dead)."""
+        return self._close(lambda entry: entry.involves(robot_id))
+
+    def is_waiting(self, robot_id: int) -> np.ndarray | None:
+        """Meeting point (2,) [m] where the robot must go and wait, or None.
+
+        A partner waits from the request on; a requester waits once it has arrived. With
+        several meetings, the earliest request wins.
+        """
+        waiting = [entry.meeting for entry in self._open.values()
+                   if entry.meeting.partner_id == robot_id
+                   or (entry.meeting.requester_id == robot_id and robot_id in entry.arrived)]
+        if not waiting:
+            return None
+        return min(waiting, key=lambda m: (m.requested_at_s, m.requester_id)).meeting_point
+
+    def _close(self, should_close: Callable[[_OpenMeeting], bool]) -> list[Meeting]:
+        """Remove and return (ascending requester id) the open meetings matching the rule."""
+        closing = sorted(key for key, entry in self._open.items() if should_close(entry))
+        return [self._open.pop(key).meeting for key in closing]
