@@ -31,7 +31,8 @@ import gtsam
 import numpy as np
 
 from em_exploration_ros.core.geometry import (compose, compose_jacobians,
-                                              coordinate_to_body_covariance)
+                                              coordinate_to_body_covariance, inverse,
+                                              transform_points)
 from em_exploration_ros.core.params import SlamParams
 
 if TYPE_CHECKING:
@@ -198,10 +199,12 @@ class SlamNoise:
 
 
 def _pose2(pose: np.ndarray) -> gtsam.Pose2:
+    """``(x, y, theta)`` as a ``gtsam.Pose2``."""
     return gtsam.Pose2(float(pose[0]), float(pose[1]), float(pose[2]))
 
 
 def _pose_array(pose: gtsam.Pose2) -> np.ndarray:
+    """A ``gtsam.Pose2`` as ``(x, y, theta)``."""
     return np.array([pose.x(), pose.y(), pose.theta()])
 
 
@@ -224,18 +227,16 @@ class _TeamGraph:
         # observed keyframe -> [(observer keyframe, reading)] waiting for the observed one
         self._waiting_observations: dict[KeyframeId, list[tuple[KeyframeId, TeammateReading]]] = {}
 
-    def receive(self, keyframe: KeyframeMeasurements) -> bool:
-        """Store a keyframe; False for a duplicate. Raises ValueError on bad robot ids."""
+    def receive(self, keyframe: KeyframeMeasurements) -> None:
+        """Store a keyframe unless it is a duplicate. Raises ValueError on bad robot ids."""
         self._check_robot(keyframe.robot_id)
         for reading in keyframe.teammates:
             self._check_robot(reading.robot_id)
             if reading.robot_id == keyframe.robot_id:
                 raise ValueError(f"robot {keyframe.robot_id} cannot observe itself")
-        if keyframe.keyframe_id in self._received:
-            return False
-        self._received.add(keyframe.keyframe_id)
-        self._pending[keyframe.keyframe_id] = keyframe
-        return True
+        if keyframe.keyframe_id not in self._received:
+            self._received.add(keyframe.keyframe_id)
+            self._pending[keyframe.keyframe_id] = keyframe
 
     def _check_robot(self, robot_id: int) -> None:
         if not 0 <= robot_id < self.num_robots:
@@ -283,9 +284,8 @@ class _TeamGraph:
             other = (reading.robot_id, keyframe.index)
             if other in self._in_graph:
                 # relative_pose = teammate in this robot's frame: self = other ⊕ rel^-1
-                inverse_relative = _pose_array(_pose2(reading.relative_pose).inverse())
                 candidates.append((reading.robot_id, compose(batch.pose(other),
-                                                             inverse_relative)))
+                                                             inverse(reading.relative_pose))))
         for observer, reading in self._waiting_observations.get(keyframe.keyframe_id, []):
             candidates.append((observer[0], compose(batch.pose(observer),
                                                     reading.relative_pose)))
@@ -326,8 +326,9 @@ class _TeamGraph:
         for reading in keyframe.landmarks:
             point_key = landmark_key(reading.landmark_id)
             if reading.landmark_id not in self._landmark_set:
-                bearing = pose[2] + reading.bearing_rad
-                point = pose[:2] + reading.range_m * np.array([np.cos(bearing), np.sin(bearing)])
+                in_body = reading.range_m * np.array([np.cos(reading.bearing_rad),
+                                                      np.sin(reading.bearing_rad)])
+                point = transform_points(pose, in_body)
                 batch.values.insert(point_key, gtsam.Point2(point))
                 bisect.insort(self.landmark_ids, reading.landmark_id)
                 self._landmark_set.add(reading.landmark_id)
@@ -355,6 +356,7 @@ class _Batch:
         self.added = 0
 
     def insert_pose(self, keyframe_id: KeyframeId, pose: np.ndarray) -> None:
+        """Initial value of a newly connected keyframe pose (map frame)."""
         self.values.insert(pose_key(*keyframe_id), _pose2(pose))
         self.added += 1
 

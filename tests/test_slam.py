@@ -1,0 +1,417 @@
+"""Team SLAM: odometry accumulation, keyframes, order independence against a batch
+solution, exactness without noise, estimator consistency (NEES) and waiting links."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+import pytest
+
+from em_exploration_ros.core.geometry import between, compose, wrap_angle
+from em_exploration_ros.core.params import ExplorationParams, SlamParams
+from em_exploration_ros.core.sensors import (LandmarkReading, OdometryReading, SensorSimulator,
+                                             TeammateReading)
+from em_exploration_ros.core.slam import (KeyframeBuilder, KeyframeMeasurements,
+                                          OdometryAccumulator, SlamNoise, TeamSlam,
+                                          batch_solve, body_to_map_covariance, landmark_key,
+                                          pose_key)
+from em_exploration_ros.core.world import advance_robot, generate_world, run_seed_sequences
+
+PARAMS = ExplorationParams()
+#: Relinearize everything at every update: iSAM2 then reaches the batch optimum.
+EXACT_SLAM = dataclasses.replace(PARAMS.slam, relinearize_threshold=0.0)
+#: Agreement with the batch optimum; the conditioning of the graph (1e-6 rad prior)
+#: limits both solvers to about 1e-7.
+BATCH_TOLERANCE = 1e-6
+
+
+@dataclass
+class TeamRun:
+    """Keyframes of a simulated team (in generation order) and the true keyframe poses."""
+
+    keyframes: list[KeyframeMeasurements]
+    truth: dict[tuple[int, int], np.ndarray]
+    landmarks: dict[int, np.ndarray]
+    anchor: np.ndarray
+
+
+def simulate_team(seed: int, steps: int, params: ExplorationParams = PARAMS,
+                  turn_rad: float = 0.015) -> TeamRun:
+    """Robots driving circles (alternating direction) from their start poses; sensors are
+    read at keyframe steps only, odometry at every step."""
+    world_seq, sensor_seq = run_seed_sequences(seed)
+    world = generate_world(params.world, params.sensors, world_seq)
+    sensors = SensorSimulator(world, params.sensors, params.motion, sensor_seq)
+    poses = np.array(world.start_poses, dtype=float)
+    builders = [KeyframeBuilder(robot, params.slam) for robot in range(world.num_robots)]
+    keyframes, truth = [], {}
+    forward = params.motion.speed_mps * params.motion.time_step_s
+    for step in range(steps + 1):
+        odometry = [None] * world.num_robots
+        if step > 0:
+            previous = poses.copy()
+            for robot in range(world.num_robots):
+                turn = turn_rad if robot % 2 == 0 else -turn_rad
+                poses[robot], _ = advance_robot(world, previous[robot], turn, forward,
+                                                params.motion)
+                odometry[robot] = sensors.odometry(robot, previous[robot], poses[robot])
+        at_keyframe = step % params.slam.keyframe_interval_steps == 0
+        for robot in range(world.num_robots):
+            sonar = sensors.sonar(robot, poses[robot]) if at_keyframe else []
+            mates = sensors.teammates(robot, poses) if at_keyframe else []
+            keyframe = builders[robot].add_step(step, step * params.motion.time_step_s,
+                                                odometry[robot], sonar, mates)
+            if keyframe is not None:
+                keyframes.append(keyframe)
+                truth[keyframe.keyframe_id] = poses[robot].copy()
+    landmarks = dict(zip(world.landmark_ids.tolist(), np.array(world.landmarks)))
+    return TeamRun(keyframes, truth, landmarks, np.array(world.start_poses[0]))
+
+
+@pytest.fixture(scope="module")
+def noisy_run() -> TeamRun:
+    return simulate_team(seed=8, steps=300)
+
+
+def _feed(slam: TeamSlam, keyframes: list[KeyframeMeasurements]) -> None:
+    """Deliver keyframes one at a time, updating after each, as a robot would."""
+    for keyframe in keyframes:
+        slam.add_keyframe(keyframe)
+        slam.update()
+
+
+# -- odometry accumulation and keyframes ---------------------------------------------
+
+def test_accumulator_composes_steps_and_matches_monte_carlo_covariance() -> None:
+    rng = np.random.default_rng(3)
+    steps = [np.array([0.2, 0.0, 0.25]), np.array([0.2, 0.01, -0.1]),
+             np.array([0.15, 0.0, 0.26]), np.array([0.2, -0.02, 0.2])]
+    step_cov = np.diag([1e-4, 4e-5, 2e-4])
+    accumulator = OdometryAccumulator()
+    for delta in steps:
+        accumulator.add(OdometryReading(delta=delta, covariance=step_cov))
+    delta, covariance = accumulator.take()
+    expected = np.zeros(3)
+    for step_delta in steps:
+        expected = compose(expected, step_delta)
+    np.testing.assert_allclose(delta, expected, atol=1e-12)
+    # Monte Carlo: compose noisy steps, additive-coordinate error of the composition.
+    samples = np.zeros((20000, 3))
+    for step_delta in steps:
+        noise = rng.multivariate_normal(np.zeros(3), step_cov, size=samples.shape[0])
+        samples = compose(samples, step_delta + noise)
+    errors = samples - expected
+    errors[:, 2] = wrap_angle(errors[:, 2])
+    np.testing.assert_allclose(np.cov(errors, rowvar=False), covariance, rtol=0.06,
+                               atol=0.03 * np.max(np.diag(covariance)))
+    # take() starts a new interval.
+    zero_delta, zero_cov = accumulator.take()
+    assert np.all(zero_delta == 0.0) and np.all(zero_cov == 0.0)
+
+
+def test_keyframe_builder_cuts_every_interval_with_composed_odometry() -> None:
+    builder = KeyframeBuilder(robot_id=1, slam_params=SlamParams(keyframe_interval_steps=3))
+    step_delta = np.array([0.2, 0.0, 0.1])
+    sonar = [LandmarkReading(4, 3.0, 0.1, 1e-6, 1e-5)]
+    keyframes = []
+    for step in range(8):
+        odometry = None if step == 0 else OdometryReading(step_delta, np.eye(3) * 1e-4)
+        keyframe = builder.add_step(step, 0.2 * step, odometry, sonar, [])
+        if keyframe is not None:
+            keyframes.append(keyframe)
+    assert [(kf.index, kf.previous_index, kf.is_first) for kf in keyframes] == \
+        [(0, -1, True), (1, 0, False), (2, 1, False)]
+    expected = compose(compose(step_delta, step_delta), step_delta)
+    np.testing.assert_allclose(keyframes[1].odom_delta, expected, atol=1e-12)
+    assert keyframes[2].stamp_s == pytest.approx(1.2)
+    assert keyframes[1].landmarks == tuple(sonar) and keyframes[1].robot_id == 1
+    assert np.all(np.linalg.eigvalsh(keyframes[1].odom_covariance) > 0.0)
+
+
+def test_derived_noise_is_expressed_in_the_measured_pose_body_frame() -> None:
+    noise = SlamNoise(PARAMS.slam)
+    floor = PARAMS.slam.covariance_floor_sigma ** 2
+    # Heading +90 deg: an error along map/previous-frame x is along the measured pose's -y.
+    model = noise.odometry(np.array([1.0, 2.0, math.pi / 2]), np.diag([4e-4, 1e-4, 1e-5]))
+    np.testing.assert_allclose(model.covariance(), np.diag([1e-4, 4e-4, 1e-5]) + floor * np.eye(3),
+                               rtol=1e-9, atol=1e-15)
+    # A robot at rest reports zero covariance: the floor keeps the model invertible.
+    still = noise.odometry(np.zeros(3), np.zeros((3, 3)))
+    np.testing.assert_allclose(still.sigmas(), [PARAMS.slam.covariance_floor_sigma] * 3)
+    reading = LandmarkReading(1, 4.0, 0.2, range_variance=1e-6, bearing_variance=4e-6)
+    np.testing.assert_allclose(noise.bearing_range(reading).sigmas() ** 2,
+                               [4e-6 + floor, 1e-6 + floor])
+    fixed = SlamNoise(dataclasses.replace(PARAMS.slam, use_fixed_sigmas=True))
+    np.testing.assert_allclose(fixed.bearing_range(reading).sigmas(),
+                               PARAMS.slam.fixed_bearing_range_sigmas)
+
+
+def test_empty_graph_accessors() -> None:
+    slam = TeamSlam(1, 2, PARAMS.slam, np.zeros(3))
+    indices, poses = slam.trajectory(1)
+    assert indices.shape == (0,) and poses.shape == (0, 3)
+    assert slam.trajectory_covariances(1).shape == (0, 3, 3)
+    assert slam.latest_index(0) is None and slam.landmark_estimates() == {}
+    assert slam.update() == 0 and slam.converge() == 0 and slam.num_variables() == 0
+
+
+# -- (a) order independence: every robot equals the batch solution ----------------------
+
+def _delivery_orders(keyframes: list[KeyframeMeasurements],
+                     rng: np.random.Generator) -> list[list[KeyframeMeasurements]]:
+    """Three ways the same keyframes reach robots 0, 1 and 2."""
+    in_time = list(keyframes)
+    # Robot 1: its own keyframes at once, teammates' five keyframes late.
+    own = [kf for kf in keyframes if kf.robot_id == 1]
+    others = [kf for kf in keyframes if kf.robot_id != 1]
+    delayed = []
+    for keyframe in own:
+        delayed.append(keyframe)
+        delayed.extend(kf for kf in others if kf.index == keyframe.index - 5)
+    delayed.extend(kf for kf in others if kf.index > own[-1].index - 5)
+    # Robot 2: shuffled, a block of robot 0's keyframes held back to the very end, and
+    # duplicates of some keyframes.
+    held_back = [kf for kf in keyframes if kf.robot_id == 0 and 4 <= kf.index < 9]
+    rest = [kf for kf in keyframes if kf not in held_back]
+    shuffled = [rest[i] for i in rng.permutation(len(rest))]
+    shuffled = shuffled + shuffled[:10] + held_back
+    return [in_time, delayed, shuffled]
+
+
+def test_every_robot_equals_the_batch_solution_whatever_the_delivery_order(
+        noisy_run: TeamRun) -> None:
+    poses, landmarks = batch_solve(noisy_run.keyframes, 3, EXACT_SLAM, noisy_run.anchor)
+    assert len(poses) == len(noisy_run.keyframes) and len(landmarks) >= 3
+    orders = _delivery_orders(noisy_run.keyframes, np.random.default_rng(11))
+    for robot, order in enumerate(orders):
+        assert sorted(kf.keyframe_id for kf in order) != [kf.keyframe_id for kf in order] \
+            or robot == 0
+        slam = TeamSlam(robot, 3, EXACT_SLAM, noisy_run.anchor)
+        _feed(slam, order)
+        slam.converge()
+        assert slam.num_pending() == 0
+        for (robot_id, index), pose in poses.items():
+            error = slam.pose(robot_id, index) - pose
+            assert np.max(np.abs(error[:2])) < BATCH_TOLERANCE
+            assert abs(wrap_angle(error[2])) < BATCH_TOLERANCE
+        estimates = slam.landmark_estimates()
+        assert estimates.keys() == landmarks.keys()
+        for landmark_id, point in landmarks.items():
+            assert np.max(np.abs(estimates[landmark_id] - point)) < BATCH_TOLERANCE
+
+
+def test_default_threshold_stays_close_to_the_batch_solution(noisy_run: TeamRun) -> None:
+    """With the paper's relinearization threshold the estimate is near, not at, the optimum."""
+    poses, _ = batch_solve(noisy_run.keyframes, 3, PARAMS.slam, noisy_run.anchor)
+    slam = TeamSlam(0, 3, PARAMS.slam, noisy_run.anchor)
+    _feed(slam, noisy_run.keyframes)
+    worst = max(np.max(np.abs(slam.pose(*key)[:2] - pose[:2])) for key, pose in poses.items())
+    assert worst < 5e-3
+
+
+# -- (b) exact sensors give the ground truth --------------------------------------------
+
+def test_noise_free_sensors_give_the_ground_truth() -> None:
+    params = PARAMS.replace(sensors={"noise_enabled": False})
+    run = simulate_team(seed=2, steps=300, params=params)
+    slam = TeamSlam(1, 3, params.slam, run.anchor)
+    _feed(slam, run.keyframes)
+    slam.converge()
+    for (robot, index), true_pose in run.truth.items():
+        error = slam.pose(robot, index) - true_pose
+        assert np.max(np.abs(error[:2])) < 1e-6 and abs(wrap_angle(error[2])) < 1e-6
+    estimates = slam.landmark_estimates()
+    assert len(estimates) >= 3
+    for landmark_id, point in estimates.items():
+        np.testing.assert_allclose(point, run.landmarks[landmark_id], atol=1e-6)
+
+
+# -- (c) estimator consistency ----------------------------------------------------------
+
+def chi_square_quantile(probability: float, dof: int) -> float:
+    """Wilson-Hilferty approximation of the chi-square quantile (relative error < 1e-3
+    for dof >= 30); the normal quantile from the inverse error function by bisection."""
+    low, high = -10.0, 10.0
+    for _ in range(100):
+        mid = 0.5 * (low + high)
+        if 0.5 * (1.0 + math.erf(mid / math.sqrt(2.0))) < probability:
+            low = mid
+        else:
+            high = mid
+    z = 0.5 * (low + high)
+    scale = 2.0 / (9.0 * dof)
+    return dof * (1.0 - scale + z * math.sqrt(scale)) ** 3
+
+
+def test_chi_square_quantile_matches_tabulated_values() -> None:
+    # Tabulated chi-square quantiles (e.g. scipy.stats.chi2.ppf).
+    assert chi_square_quantile(0.025, 60) == pytest.approx(40.4817, rel=1e-3)
+    assert chi_square_quantile(0.975, 60) == pytest.approx(83.2977, rel=1e-3)
+
+
+def test_final_pose_nees_lies_in_the_95_percent_band() -> None:
+    # Each robot's mean may leave its 95% band by chance (5% per robot): seeds 0..19 pass;
+    # seeds 100..119 put robot 0 at 1.77, just below. Over 300 runs (seeds 1000..1299)
+    # the means were 3.01, 2.86, 2.90 (standard error 0.13).
+    runs = 20
+    nees = np.zeros((runs, 3))
+    for run_index in range(runs):
+        run = simulate_team(seed=run_index, steps=200)
+        slam = TeamSlam(0, 3, PARAMS.slam, run.anchor)
+        _feed(slam, run.keyframes)
+        for robot in range(3):
+            index = slam.latest_index(robot)
+            error = run.truth[(robot, index)] - slam.pose(robot, index)
+            error[2] = wrap_angle(error[2])
+            nees[run_index, robot] = error @ np.linalg.solve(
+                slam.pose_covariance(robot, index), error)
+    band = np.array([chi_square_quantile(p, 3 * runs) for p in (0.025, 0.975)]) / runs
+    mean_nees = nees.mean(axis=0)
+    assert np.all(mean_nees > band[0]) and np.all(mean_nees < band[1]), (mean_nees, band)
+
+
+def test_fixed_sigmas_build_and_solve(noisy_run: TeamRun) -> None:
+    fixed = dataclasses.replace(PARAMS.slam, use_fixed_sigmas=True)
+    slam = TeamSlam(0, 3, fixed, noisy_run.anchor)
+    _feed(slam, noisy_run.keyframes)
+    graph = slam.graph()
+    sigmas = {tuple(np.round(graph.at(i).noiseModel().sigmas(), 9)) for i in range(1, graph.size())}
+    assert sigmas == {fixed.fixed_odometry_sigmas, fixed.fixed_bearing_range_sigmas,
+                      fixed.fixed_robot_obs_sigmas}
+    errors = [np.linalg.norm(slam.pose(*key)[:2] - pose[:2])
+              for key, pose in noisy_run.truth.items()]
+    assert max(errors) < 2.0
+
+
+# -- (d) waiting for links, duplicates --------------------------------------------------
+
+def _exact_keyframe(robot: int, index: int, poses: dict[tuple[int, int], np.ndarray],
+                    observes: tuple[int, ...] = ()) -> KeyframeMeasurements:
+    """A noise-free keyframe of ``robot`` at ``index`` from true poses."""
+    first = index == 0
+    delta = np.zeros(3) if first else between(poses[(robot, index - 1)], poses[(robot, index)])
+    teammates = tuple(TeammateReading(other, between(poses[(robot, index)],
+                                                     poses[(other, index)]), np.eye(3) * 1e-6)
+                      for other in observes)
+    return KeyframeMeasurements(robot_id=robot, index=index, stamp_s=2.0 * index,
+                                is_first=first, previous_index=index - 1 if not first else -1,
+                                odom_delta=delta, odom_covariance=np.eye(3) * 1e-4,
+                                landmarks=(), teammates=teammates)
+
+
+def _line_poses(robots: int, length: int) -> dict[tuple[int, int], np.ndarray]:
+    return {(robot, index): np.array([2.0 * index, 3.0 * robot, 0.1 * robot])
+            for robot in range(robots) for index in range(length)}
+
+
+def test_teammate_keyframe_waits_for_its_predecessor_and_duplicates_are_ignored() -> None:
+    poses = _line_poses(2, 4)
+    slam = TeamSlam(0, 2, PARAMS.slam, poses[(0, 0)])
+    slam.add_keyframe(_exact_keyframe(0, 0, poses, observes=(1,)))
+    slam.add_keyframe(_exact_keyframe(1, 0, poses))
+    assert slam.update() == 2
+    slam.add_keyframe(_exact_keyframe(1, 2, poses))
+    assert slam.update() == 0 and slam.num_pending() == 1
+    assert slam.known_keyframes(1) == [0] and slam.latest_index(1) == 0
+    slam.add_keyframe(_exact_keyframe(1, 1, poses))
+    slam.add_keyframe(_exact_keyframe(1, 1, poses))
+    assert slam.update() == 2 and slam.num_pending() == 0
+    assert slam.known_keyframes(1) == [0, 1, 2]
+    factors = slam.graph().size()
+    slam.add_keyframe(_exact_keyframe(1, 2, poses))
+    assert slam.update() == 0 and slam.graph().size() == factors
+    np.testing.assert_allclose(slam.pose(1, 2), poses[(1, 2)], atol=1e-6)
+
+
+def test_unanchored_first_keyframe_and_observation_of_unknown_keyframe_wait() -> None:
+    poses = _line_poses(3, 2)
+    slam = TeamSlam(2, 3, PARAMS.slam, poses[(0, 0)])
+    # Robot 2 observes only robot 1, and robot 1's keyframe 1 lacks its predecessor.
+    slam.add_keyframe(_exact_keyframe(2, 0, poses, observes=(1,)))
+    slam.add_keyframe(_exact_keyframe(1, 1, poses))
+    assert slam.update() == 0 and slam.latest_index(2) is None and slam.num_pending() == 2
+    # Robot 0 is anchored; its observation of robot 1's unknown keyframe 1 waits.
+    slam.add_keyframe(_exact_keyframe(0, 0, poses))
+    slam.add_keyframe(_exact_keyframe(0, 1, poses, observes=(1,)))
+    assert slam.update() == 2 and slam.num_pending() == 2
+    assert slam.graph().size() == 2  # prior and odometry
+    # Robot 1's first keyframe sees robot 0: robot 1, then robot 2 through it, connect,
+    # and the waiting observation joins the graph.
+    slam.add_keyframe(_exact_keyframe(1, 0, poses, observes=(0,)))
+    assert slam.update() == 3 and slam.num_pending() == 0
+    assert slam.graph().size() == 6
+    for key, pose in poses.items():
+        if key != (2, 1):
+            np.testing.assert_allclose(slam.pose(*key), pose, atol=1e-6)
+    slam.add_keyframe(_exact_keyframe(1, 0, poses))
+    assert slam.update() == 0 and slam.graph().size() == 6
+
+
+def test_robot_anchors_through_a_non_zero_teammate() -> None:
+    poses = _line_poses(3, 2)
+    slam = TeamSlam(2, 3, PARAMS.slam, poses[(0, 0)])
+    slam.add_keyframe(_exact_keyframe(0, 0, poses, observes=(1,)))
+    slam.add_keyframe(_exact_keyframe(1, 0, poses, observes=(2,)))
+    slam.add_keyframe(_exact_keyframe(2, 0, poses))
+    slam.add_keyframe(_exact_keyframe(2, 1, poses))
+    assert slam.update() == 4
+    for key, pose in poses.items():
+        if key != (0, 1) and key != (1, 1):
+            np.testing.assert_allclose(slam.pose(*key), pose, atol=1e-6)
+
+
+# -- accessors ---------------------------------------------------------------------------
+
+def test_accessors_agree_with_each_other_and_with_full_marginals(noisy_run: TeamRun) -> None:
+    slam = TeamSlam(1, 3, EXACT_SLAM, noisy_run.anchor)
+    _feed(slam, noisy_run.keyframes)
+    slam.converge()
+    indices, trajectory = slam.trajectory(1)
+    assert list(indices) == slam.known_keyframes(1) and slam.latest_index(1) == indices[-1]
+    for index, pose in zip(indices, trajectory):
+        np.testing.assert_array_equal(slam.pose(1, int(index)), pose)
+    landmarks = slam.landmark_estimates()
+    assert slam.num_variables() == len(noisy_run.keyframes) + len(landmarks)
+    values = slam.values()
+    assert values.size() == slam.num_variables()
+    np.testing.assert_allclose(values.atPoint2(slam.landmark_key(min(landmarks))),
+                               landmarks[min(landmarks)])
+    assert slam.pose_key(2, 5) == pose_key(2, 5) == gtsam.symbol("c", 5)
+    assert landmark_key(3) == gtsam.symbol("L", 3)
+
+    marginals = gtsam.Marginals(slam.graph(), values)
+    body = slam.trajectory_covariances(1, frame="body")
+    mapped = slam.trajectory_covariances(1)
+    for row in (0, len(indices) // 2, len(indices) - 1):
+        key = pose_key(1, int(indices[row]))
+        # Both are exact up to the conditioning of the graph (relative ~1e-5).
+        np.testing.assert_allclose(body[row], marginals.marginalCovariance(key),
+                                   rtol=1e-4, atol=1e-12)
+        np.testing.assert_allclose(mapped[row], slam.pose_covariance(1, int(indices[row])))
+    # Map frame: the position block is the body block rotated by the heading.
+    heading = trajectory[-1, 2]
+    rotation = np.array([[math.cos(heading), -math.sin(heading)],
+                         [math.sin(heading), math.cos(heading)]])
+    np.testing.assert_allclose(mapped[-1][:2, :2], rotation @ body[-1][:2, :2] @ rotation.T)
+    np.testing.assert_allclose(body_to_map_covariance(trajectory, body), mapped)
+    landmark_id = min(landmarks)
+    np.testing.assert_allclose(slam.landmark_covariance(landmark_id),
+                               marginals.marginalCovariance(landmark_key(landmark_id)),
+                               rtol=1e-4, atol=1e-12)
+    virtual = slam.virtual_robot_observation_noise().sigmas()
+    np.testing.assert_allclose(virtual, PARAMS.slam.virtual_robot_obs_sigmas)
+
+
+def test_invalid_robot_ids_are_rejected() -> None:
+    poses = _line_poses(2, 1)
+    slam = TeamSlam(0, 2, PARAMS.slam, poses[(0, 0)])
+    with pytest.raises(ValueError):
+        slam.add_keyframe(dataclasses.replace(_exact_keyframe(0, 0, poses), robot_id=2))
+    with pytest.raises(ValueError):
+        slam.add_keyframe(_exact_keyframe(0, 0, {**poses, (0, 0): poses[(0, 0)]},
+                                          observes=(0,)))
+    with pytest.raises(ValueError):
+        TeamSlam(2, 2, PARAMS.slam, poses[(0, 0)])
