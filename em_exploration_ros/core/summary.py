@@ -1,0 +1,108 @@
+"""The run summary: one JSON schema for em-sim, run_team.sh and the benchmark.
+
+Top-level keys (units in the names): ``explored_ratio``, ``distance_m`` (all robots),
+``loc_rmse_m``, ``landmark_rmse_m``, ``decisions``, ``wall_s``, ``sim_time_s``,
+``decision_time_median_s``, ``decision_time_max_s``, ``robots`` (per robot: ``id``,
+``distance_m``, ``decisions``, ``targets`` (in order: ``x``, ``y`` [m, map frame],
+``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``), plus ``seed``,
+``planner``, ``num_robots``, ``map_size_m``, ``num_landmarks``, ``stop_reason`` and
+``history``: samples of the metrics against distance travelled.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+REQUIRED_KEYS = ("explored_ratio", "distance_m", "loc_rmse_m", "landmark_rmse_m", "decisions",
+                 "wall_s", "sim_time_s", "decision_time_median_s", "decision_time_max_s",
+                 "robots")
+ROBOT_KEYS = ("id", "distance_m", "decisions", "targets", "decision_times_s")
+TARGET_TYPES = ("exploration", "revisiting", "rendezvous")
+
+
+@dataclass
+class TargetEntry:
+    """One chosen target: position in the map frame [m] and its frontier type."""
+
+    x: float
+    y: float
+    type: str
+
+
+@dataclass
+class RobotSummary:
+    """Per-robot part of the summary."""
+
+    id: int
+    distance_m: float = 0.0
+    decisions: int = 0
+    targets: list[TargetEntry] = field(default_factory=list)
+    decision_times_s: list[float] = field(default_factory=list)
+
+
+@dataclass
+class HistorySample:
+    """Team metrics at one moment, for plots against distance travelled."""
+
+    sim_time_s: float
+    distance_m: float
+    explored_ratio: float
+    loc_rmse_m: float
+    landmark_rmse_m: float
+
+
+@dataclass
+class RunSummary:
+    """Result of one exploration run."""
+
+    seed: int
+    planner: str
+    num_robots: int
+    map_size_m: tuple[float, float]
+    num_landmarks: int
+    explored_ratio: float = 0.0
+    distance_m: float = 0.0
+    loc_rmse_m: float = math.nan
+    landmark_rmse_m: float = math.nan
+    decisions: int = 0
+    wall_s: float = 0.0
+    sim_time_s: float = 0.0
+    decision_time_median_s: float = math.nan
+    decision_time_max_s: float = math.nan
+    stop_reason: str = ""
+    robots: list[RobotSummary] = field(default_factory=list)
+    history: list[HistorySample] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data with NaN written as None (JSON has no NaN)."""
+        return _nan_to_none(asdict(self))
+
+    def write(self, path: str | Path) -> None:
+        """Write the summary as indented JSON, creating parent folders."""
+        target = Path(path)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
+
+
+def check_summary(data: dict[str, Any]) -> list[str]:
+    """Problems with a parsed summary (empty when it follows the schema)."""
+    problems = [f"missing key '{key}'" for key in REQUIRED_KEYS if key not in data]
+    for robot in data.get("robots", []):
+        problems += [f"robot entry missing '{key}'" for key in ROBOT_KEYS if key not in robot]
+        for target in robot.get("targets", []):
+            if target.get("type") not in TARGET_TYPES:
+                problems.append(f"robot {robot.get('id')}: unknown target type {target.get('type')!r}")
+    return problems
+
+
+def _nan_to_none(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {key: _nan_to_none(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_nan_to_none(item) for item in value]
+    return value

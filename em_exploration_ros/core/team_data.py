@@ -1,0 +1,304 @@
+"""What teammates share, as plain data, and the bookkeeping that keeps the stream whole.
+
+Each robot publishes one ordered stream of ``TeamUpdate`` records: every record carries
+what is new since the previous one (keyframes with their measurements and the sender's
+estimates, landmark estimates, chosen targets, rendezvous events) and a sequence number
+(1, 2, 3, ...). A receiver applies records strictly in sequence order, buffers records
+that arrive early, asks for the missing range again, and rejects malformed records
+before they touch any state. These types mirror em_exploration_msgs/TeamUpdate; the
+ROS nodes convert between the two, em-sim passes them directly.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import numpy as np
+
+from em_exploration_ros.core.frontiers import FrontierType
+from em_exploration_ros.core.slam import KeyframeMeasurements
+
+#: Records further ahead of the expected sequence number than this are rejected as
+#: implausible (a hostile or corrupted sender), instead of opening a huge gap.
+MAX_SEQUENCE_LEAD = 10_000
+
+
+class RendezvousState(IntEnum):
+    """Rendezvous coordination events (values of em_exploration_msgs/Rendezvous.state)."""
+
+    REQUEST = 0
+    ARRIVED = 1
+    RELEASE = 2
+
+
+@dataclass(frozen=True)
+class SharedKeyframe:
+    """A keyframe's measurements plus the sender's estimate of it (map frame)."""
+
+    measurements: KeyframeMeasurements
+    estimate: np.ndarray  # (3,) x [m], y [m], theta [rad] in the map frame
+    estimate_covariance: np.ndarray  # (3, 3)
+
+
+@dataclass(frozen=True)
+class LandmarkEstimate:
+    """A landmark position estimate in the map frame with its 2x2 covariance [m^2]."""
+
+    landmark_id: int
+    position: np.ndarray  # (2,)
+    covariance: np.ndarray  # (2, 2)
+
+
+@dataclass(frozen=True)
+class TargetRecord:
+    """A target chosen by a robot's planner (map frame)."""
+
+    robot_id: int
+    decision_index: int
+    stamp_s: float
+    position: np.ndarray  # (2,) [m]
+    kind: FrontierType
+    partner_id: int
+    utility: float
+
+
+@dataclass(frozen=True)
+class RendezvousEvent:
+    """One rendezvous coordination event (map frame meeting point)."""
+
+    rendezvous_id: int
+    requester_id: int
+    partner_id: int
+    sender_id: int
+    state: RendezvousState
+    stamp_s: float
+    meeting_point: np.ndarray  # (2,) [m]
+    timeout_s: float
+
+
+@dataclass(frozen=True)
+class TeamUpdate:
+    """Everything new from one robot since its previous update."""
+
+    robot_id: int
+    sequence: int
+    stamp_s: float
+    keyframes: tuple[SharedKeyframe, ...] = ()
+    landmarks: tuple[LandmarkEstimate, ...] = ()
+    targets: tuple[TargetRecord, ...] = ()
+    rendezvous: tuple[RendezvousEvent, ...] = ()
+
+    def is_empty(self) -> bool:
+        """True when the update carries nothing."""
+        return not (self.keyframes or self.landmarks or self.targets or self.rendezvous)
+
+
+class InvalidTeamUpdate(ValueError):
+    """A received team update that must be rejected; the message says why."""
+
+
+def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
+    """Raise ``InvalidTeamUpdate`` if ``update`` is malformed for a team of ``num_robots``.
+
+    Checks robot ids, sequence numbers, finiteness of every number, shapes, and that
+    covariances are symmetric with a non-negative diagonal.
+    """
+    _check_robot_id(update.robot_id, num_robots, "robot_id")
+    if update.sequence < 1:
+        raise InvalidTeamUpdate(f"sequence must be >= 1, got {update.sequence}")
+    _check_finite(update.stamp_s, "stamp")
+    for shared in update.keyframes:
+        kf = shared.measurements
+        if kf.robot_id != update.robot_id:
+            raise InvalidTeamUpdate(
+                f"keyframe of robot {kf.robot_id} inside an update of robot {update.robot_id}")
+        if kf.index < 0 or (not kf.is_first and not 0 <= kf.previous_index < kf.index):
+            raise InvalidTeamUpdate(f"keyframe {kf.index}: bad previous index {kf.previous_index}")
+        _check_finite(kf.stamp_s, "keyframe stamp")
+        _check_vector(kf.odom_delta, 3, "odometry")
+        _check_covariance(kf.odom_covariance, 3, "odometry covariance")
+        _check_vector(shared.estimate, 3, "keyframe estimate")
+        _check_covariance(shared.estimate_covariance, 3, "keyframe estimate covariance")
+        for reading in kf.landmarks:
+            _check_finite(reading.range_m, "landmark range")
+            _check_finite(reading.bearing_rad, "landmark bearing")
+            if reading.range_m < 0 or reading.range_variance <= 0 or reading.bearing_variance <= 0:
+                raise InvalidTeamUpdate("landmark reading with negative range or variance <= 0")
+            _check_finite(reading.range_variance + reading.bearing_variance, "landmark variance")
+        for reading in kf.teammates:
+            _check_robot_id(reading.robot_id, num_robots, "observed teammate id")
+            if reading.robot_id == update.robot_id:
+                raise InvalidTeamUpdate("a robot cannot observe itself")
+            _check_vector(reading.relative_pose, 3, "teammate relative pose")
+            _check_covariance(reading.covariance, 3, "teammate covariance")
+    for landmark in update.landmarks:
+        _check_vector(landmark.position, 2, "landmark estimate")
+        _check_covariance(landmark.covariance, 2, "landmark covariance")
+    for target in update.targets:
+        if target.robot_id != update.robot_id:
+            raise InvalidTeamUpdate("target of another robot inside an update")
+        _check_robot_id(target.partner_id, num_robots, "target partner id")
+        _check_vector(target.position, 2, "target position")
+        _check_finite(target.stamp_s, "target stamp")
+    for event in update.rendezvous:
+        for name in ("requester_id", "partner_id", "sender_id"):
+            _check_robot_id(getattr(event, name), num_robots, f"rendezvous {name}")
+        if event.sender_id != update.robot_id:
+            raise InvalidTeamUpdate("rendezvous event sent on behalf of another robot")
+        _check_vector(event.meeting_point, 2, "meeting point")
+        _check_finite(event.timeout_s, "rendezvous timeout")
+
+
+def _check_robot_id(robot_id: int, num_robots: int, what: str) -> None:
+    if not 0 <= robot_id < num_robots:
+        raise InvalidTeamUpdate(f"{what} {robot_id} is not a robot of this team (0..{num_robots - 1})")
+
+
+def _check_finite(value: float, what: str) -> None:
+    if not math.isfinite(value):
+        raise InvalidTeamUpdate(f"{what} is not finite ({value})")
+
+
+def _check_vector(value: np.ndarray, size: int, what: str) -> None:
+    array = np.asarray(value, dtype=float)
+    if array.shape != (size,):
+        raise InvalidTeamUpdate(f"{what} must have {size} elements, got shape {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise InvalidTeamUpdate(f"{what} is not finite: {array.tolist()}")
+
+
+def _check_covariance(value: np.ndarray, size: int, what: str) -> None:
+    array = np.asarray(value, dtype=float)
+    if array.shape != (size, size):
+        raise InvalidTeamUpdate(f"{what} must be {size}x{size}, got shape {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise InvalidTeamUpdate(f"{what} is not finite")
+    if np.any(np.diag(array) < 0) or not np.allclose(array, array.T, rtol=1e-6, atol=1e-12):
+        raise InvalidTeamUpdate(f"{what} is not a covariance (asymmetric or negative variance)")
+
+
+@dataclass
+class _PeerStream:
+    """Receive state of one teammate's update stream."""
+
+    next_sequence: int = 1
+    early: dict[int, TeamUpdate] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class MissingRange:
+    """A range of a teammate's sequence numbers to ask for again (inclusive)."""
+
+    robot_id: int
+    first_sequence: int
+    last_sequence: int
+
+
+class TeamUpdateInbox:
+    """Orders the teammates' update streams: in-sequence delivery, gaps detected.
+
+    ``receive`` validates a record and files it; ``pop_ready(limits)`` returns, in robot
+    id then sequence order, every record that is next in its stream (optionally only up
+    to a per-robot sequence limit, the lockstep barrier); ``missing()`` lists the gaps
+    to request again.
+    """
+
+    def __init__(self, own_robot_id: int, num_robots: int) -> None:
+        self._own = own_robot_id
+        self._num_robots = num_robots
+        self._streams = {robot: _PeerStream() for robot in range(num_robots)
+                         if robot != own_robot_id}
+
+    def receive(self, update: TeamUpdate) -> bool:
+        """File one record. Returns False for a duplicate; raises InvalidTeamUpdate."""
+        validate_team_update(update, self._num_robots)
+        if update.robot_id == self._own:
+            raise InvalidTeamUpdate(f"update claims to come from this robot ({self._own})")
+        stream = self._streams[update.robot_id]
+        if update.sequence < stream.next_sequence or update.sequence in stream.early:
+            return False
+        if update.sequence > stream.next_sequence + MAX_SEQUENCE_LEAD:
+            raise InvalidTeamUpdate(
+                f"sequence {update.sequence} of robot {update.robot_id} is implausibly far "
+                f"ahead of the expected {stream.next_sequence}")
+        stream.early[update.sequence] = update
+        return True
+
+    def pop_ready(self, limits: dict[int, int] | None = None) -> list[TeamUpdate]:
+        """Records ready to apply, in robot id then sequence order.
+
+        ``limits[robot]`` caps the sequence numbers released for that robot (lockstep
+        barrier); robots missing from ``limits`` are not capped when ``limits`` is None
+        and fully held back otherwise.
+        """
+        ready: list[TeamUpdate] = []
+        for robot, stream in sorted(self._streams.items()):
+            limit = None if limits is None else limits.get(robot, 0)
+            while stream.next_sequence in stream.early and (
+                    limit is None or stream.next_sequence <= limit):
+                ready.append(stream.early.pop(stream.next_sequence))
+                stream.next_sequence += 1
+        return ready
+
+    def holds_up_to(self, limits: dict[int, int]) -> bool:
+        """True when every robot's records up to ``limits[robot]`` are received."""
+        for robot, limit in limits.items():
+            stream = self._streams.get(robot)
+            if stream is None:
+                continue
+            if any(seq not in stream.early for seq in range(stream.next_sequence, limit + 1)):
+                return False
+        return True
+
+    def missing(self, known_latest: dict[int, int] | None = None) -> list[MissingRange]:
+        """Gaps to request again: before buffered early records, and up to ``known_latest``."""
+        gaps: list[MissingRange] = []
+        for robot, stream in sorted(self._streams.items()):
+            latest = max(stream.early, default=stream.next_sequence - 1)
+            if known_latest is not None:
+                latest = max(latest, known_latest.get(robot, 0))
+            first = None
+            for seq in range(stream.next_sequence, latest + 1):
+                if seq not in stream.early and first is None:
+                    first = seq
+                if seq in stream.early and first is not None:
+                    gaps.append(MissingRange(robot, first, seq - 1))
+                    first = None
+            if first is not None:
+                gaps.append(MissingRange(robot, first, latest))
+        return gaps
+
+    def next_expected(self, robot_id: int) -> int:
+        """The next sequence number expected from ``robot_id``."""
+        return self._streams[robot_id].next_sequence
+
+
+class TeamUpdateOutbox:
+    """Numbers this robot's outgoing updates and keeps them for re-sending on request."""
+
+    def __init__(self, robot_id: int) -> None:
+        self._robot_id = robot_id
+        self._sent: list[TeamUpdate] = []
+
+    @property
+    def last_sequence(self) -> int:
+        """Sequence number of the latest update (0 before the first)."""
+        return len(self._sent)
+
+    def publish(self, stamp_s: float, keyframes: tuple[SharedKeyframe, ...] = (),
+                landmarks: tuple[LandmarkEstimate, ...] = (),
+                targets: tuple[TargetRecord, ...] = (),
+                rendezvous: tuple[RendezvousEvent, ...] = ()) -> TeamUpdate:
+        """Create, number and remember the next update."""
+        update = TeamUpdate(self._robot_id, self.last_sequence + 1, stamp_s, keyframes,
+                            landmarks, targets, rendezvous)
+        self._sent.append(update)
+        return update
+
+    def resend(self, first_sequence: int, last_sequence: int) -> list[TeamUpdate]:
+        """Stored updates with sequence in [first, last] (last = 0: up to the latest)."""
+        last = self.last_sequence if last_sequence == 0 else min(last_sequence,
+                                                                 self.last_sequence)
+        first = max(first_sequence, 1)
+        return self._sent[first - 1:last]

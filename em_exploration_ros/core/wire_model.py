@@ -1,0 +1,74 @@
+"""The numeric path data takes between the world simulator and a robot.
+
+On the wire, a robot's motion command is a velocity (geometry_msgs/Twist) and its
+dead-reckoning is an integrated odometry pose with a twist covariance
+(nav_msgs/Odometry). The world and the robot convert between those and per-step
+increments with the functions here. em-sim calls the same functions, so a robot in
+em-sim sees bit-identical numbers to a robot process fed over DDS, and seeded runs
+choose the same targets in both.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from em_exploration_ros.core.geometry import between, compose
+
+
+def command_to_twist(turn_rad: float, forward_m: float, time_step_s: float) -> tuple[float, float]:
+    """A per-step motion (turn [rad], forward distance [m]) as (linear.x [m/s], angular.z [rad/s])."""
+    return forward_m / time_step_s, turn_rad / time_step_s
+
+
+def twist_to_command(linear_x: float, angular_z: float, time_step_s: float) -> tuple[float, float]:
+    """Inverse of ``command_to_twist``: (turn [rad], forward distance [m]) for one step."""
+    return angular_z * time_step_s, linear_x * time_step_s
+
+
+def increment_covariance_to_twist(covariance: np.ndarray, time_step_s: float) -> np.ndarray:
+    """Covariance of a per-step increment (3x3, x/y/theta) as a 6x6 twist covariance.
+
+    nav_msgs/Odometry.twist.covariance is over (vx, vy, vz, wx, wy, wz) in the child frame;
+    the increment over one step is velocity times the step, so variances scale by 1/dt^2.
+    """
+    twist = np.zeros((6, 6))
+    index = [0, 1, 5]
+    twist[np.ix_(index, index)] = np.asarray(covariance) / time_step_s**2
+    return twist
+
+
+def twist_to_increment_covariance(twist_covariance: np.ndarray, time_step_s: float) -> np.ndarray:
+    """Inverse of ``increment_covariance_to_twist``: the 3x3 per-step increment covariance."""
+    index = [0, 1, 5]
+    return np.asarray(twist_covariance).reshape(6, 6)[np.ix_(index, index)] * time_step_s**2
+
+
+class DeadReckoningIntegrator:
+    """World side: integrates noisy per-step increments into the published odometry pose."""
+
+    def __init__(self) -> None:
+        self._pose = np.zeros(3)
+
+    @property
+    def pose(self) -> np.ndarray:
+        """Current dead-reckoning pose in the robot's odom frame (x [m], y [m], theta [rad])."""
+        return self._pose.copy()
+
+    def add(self, increment: np.ndarray) -> np.ndarray:
+        """Apply one measured increment (body frame of the previous pose); returns the pose."""
+        self._pose = compose(self._pose, np.asarray(increment, dtype=float))
+        return self.pose
+
+
+class DeadReckoningDifferencer:
+    """Robot side: recovers each per-step increment from consecutive odometry poses."""
+
+    def __init__(self) -> None:
+        self._previous: np.ndarray | None = None
+
+    def increment(self, odom_pose: np.ndarray) -> np.ndarray | None:
+        """The motion since the previous odometry pose (body frame), None for the first."""
+        pose = np.asarray(odom_pose, dtype=float)
+        previous, self._previous = self._previous, pose
+        if previous is None:
+            return None
+        return between(previous, pose)

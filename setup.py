@@ -1,0 +1,29 @@
+"""Python package of em_exploration_ros: the ROS-free core, the ROS 2 nodes and the tools."""
+from setuptools import find_packages, setup
+
+PACKAGE_NAME = "em_exploration_ros"
+
+# Console scripts: one per node and per tool (name -> module:function).
+CONSOLE_SCRIPTS = {
+    "em-sim": "em_exploration_ros.tools.sim_cli:main",
+}
+
+setup(
+    name=PACKAGE_NAME,
+    version="0.1.0",
+    packages=find_packages(include=[PACKAGE_NAME, f"{PACKAGE_NAME}.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE_NAME}"]),
+        (f"share/{PACKAGE_NAME}", ["package.xml"]),
+        (f"share/{PACKAGE_NAME}/config", ["config/exploration.yaml"]),
+    ],
+    install_requires=["numpy", "gtsam", "mcap", "mcap-ros2-support", "PyYAML"],
+    python_requires=">=3.11",
+    zip_safe=False,
+    maintainer="em_exploration_ros maintainers",
+    maintainer_email="maintainers@em-exploration.example.org",
+    description="Multi-robot exploration under localization uncertainty with EM, on ROS 2 Jazzy",
+    license="Apache-2.0",
+    entry_points={"console_scripts": [f"{name} = {target}" for name, target in
+                                      CONSOLE_SCRIPTS.items()]},
+)

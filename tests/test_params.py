@@ -1,0 +1,55 @@
+"""Parameters: defaults, checks, and the ROS 2 parameter YAML files."""
+from pathlib import Path
+
+import pytest
+
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.params_yaml import ParamsFileError, dump_params, load_params
+
+SHIPPED_CONFIG = Path(__file__).resolve().parents[1] / "config" / "exploration.yaml"
+
+
+def test_shipped_config_holds_every_default():
+    text = SHIPPED_CONFIG.read_text()
+    params = ExplorationParams()
+    assert load_params(SHIPPED_CONFIG) == params
+    for name in params.flat():
+        assert f" {name.split('.')[1]}:" in text, f"{name} missing from {SHIPPED_CONFIG.name}"
+
+
+def test_dump_and_load_round_trip(tmp_path):
+    params = ExplorationParams().replace(world={"num_robots": 5, "width_m": 150.0},
+                                         planner={"name": "BSP"}, slam={"use_fixed_sigmas": True})
+    path = tmp_path / "p.yaml"
+    path.write_text(dump_params(params))
+    assert load_params(path) == params
+
+
+def test_dotted_names_and_node_sections_merge(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    planner.name: CE\n    world: {num_robots: 4}\n"
+                    "/robot_1/em_robot:\n  ros__parameters:\n    world.num_robots: 2\n")
+    params = load_params(path)
+    assert params.planner.name == "CE" and params.world.num_robots == 2
+
+
+@pytest.mark.parametrize("text, message", [
+    ("/**:\n  ros__parameters:\n    bogus.x: 1\n", "unknown parameter group"),
+    ("/**:\n  ros__parameters:\n    world.nope: 1\n", "unknown parameter"),
+    ("/**:\n  ros__parameters:\n    world.num_robots: 0\n", "outside"),
+    ("/**:\n  ros__parameters:\n    planner.name: XY\n", "must be one of"),
+    ("/**:\n  ros__parameters:\n    slam.prior_sigmas: [1, 2]\n", "list of 3"),
+    ("/**:\n  ros__parameters:\n    sensors.noise_enabled: 1\n", "true or false"),
+    ("world: [unclosed\n", "not valid YAML"),
+    ("- a\n- b\n", "mapping"),
+])
+def test_bad_files_give_clear_errors(tmp_path, text, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ParamsFileError, match=message):
+        load_params(path)
+
+
+def test_missing_file_is_a_clear_error(tmp_path):
+    with pytest.raises(ParamsFileError, match="cannot read"):
+        load_params(tmp_path / "absent.yaml")

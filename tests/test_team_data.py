@@ -1,0 +1,98 @@
+"""The team update stream: validation, in-order delivery, gaps, duplicates, re-sending."""
+import math
+
+import numpy as np
+import pytest
+
+from em_exploration_ros.core.frontiers import FrontierType
+from em_exploration_ros.core.sensors import LandmarkReading, TeammateReading
+from em_exploration_ros.core.slam import KeyframeMeasurements
+from em_exploration_ros.core.team_data import (InvalidTeamUpdate, LandmarkEstimate,
+                                               MissingRange, SharedKeyframe, TargetRecord,
+                                               TeamUpdateInbox, TeamUpdateOutbox,
+                                               validate_team_update)
+
+NUM_ROBOTS = 3
+
+
+def keyframe(robot_id: int = 1, index: int = 2, odom=(2.0, 0.0, 0.1)) -> SharedKeyframe:
+    measurements = KeyframeMeasurements(
+        robot_id=robot_id, index=index, stamp_s=4.0, is_first=False, previous_index=index - 1,
+        odom_delta=np.array(odom), odom_covariance=np.diag([1e-4, 1e-4, 1e-5]),
+        landmarks=(LandmarkReading(3, 5.0, 0.2, 1e-6, 1e-5),),
+        teammates=(TeammateReading((robot_id + 1) % NUM_ROBOTS, np.array([3.0, 1.0, 0.2]),
+                                   np.eye(3) * 1e-6),))
+    return SharedKeyframe(measurements, np.array([1.0, 2.0, 0.3]), np.eye(3) * 1e-3)
+
+
+def updates_from(robot_id: int, count: int) -> list:
+    outbox = TeamUpdateOutbox(robot_id)
+    return [outbox.publish(float(i), keyframes=(keyframe(robot_id, i + 1),)) for i in range(count)]
+
+
+def test_outbox_numbers_from_one_and_resends_ranges():
+    outbox = TeamUpdateOutbox(2)
+    sent = [outbox.publish(float(i)) for i in range(5)]
+    assert [u.sequence for u in sent] == [1, 2, 3, 4, 5]
+    assert outbox.last_sequence == 5
+    assert [u.sequence for u in outbox.resend(2, 3)] == [2, 3]
+    assert [u.sequence for u in outbox.resend(4, 0)] == [4, 5]
+    assert outbox.resend(9, 12) == []
+
+
+def test_inbox_delivers_in_order_and_ignores_duplicates():
+    inbox = TeamUpdateInbox(own_robot_id=0, num_robots=NUM_ROBOTS)
+    first, second, third = updates_from(1, 3)
+    assert inbox.receive(third) and inbox.receive(first)
+    assert inbox.pop_ready() == [first]  # 2 is missing: 3 waits
+    assert inbox.missing() == [MissingRange(1, 2, 2)]
+    assert not inbox.receive(first)  # duplicate of an applied update
+    assert inbox.receive(second)
+    assert not inbox.receive(second)  # duplicate of a buffered update
+    assert inbox.pop_ready() == [second, third]
+    assert inbox.missing() == []
+    assert inbox.next_expected(1) == 4
+
+
+def test_inbox_barrier_limits_release_and_reports_known_gaps():
+    inbox = TeamUpdateInbox(own_robot_id=2, num_robots=NUM_ROBOTS)
+    for update in updates_from(0, 3):
+        inbox.receive(update)
+    assert not inbox.holds_up_to({0: 3, 1: 1})  # nothing from robot 1 yet
+    assert inbox.missing(known_latest={1: 2}) == [MissingRange(1, 1, 2)]
+    assert [u.sequence for u in inbox.pop_ready({0: 2, 1: 0})] == [1, 2]
+    assert [u.sequence for u in inbox.pop_ready({0: 3})] == [3]
+
+
+def test_inbox_rejects_own_id_and_implausible_sequence():
+    inbox = TeamUpdateInbox(own_robot_id=1, num_robots=NUM_ROBOTS)
+    with pytest.raises(InvalidTeamUpdate, match="this robot"):
+        inbox.receive(updates_from(1, 1)[0])
+    far = updates_from(0, 1)[0]
+    far = type(far)(far.robot_id, 10**9, far.stamp_s, far.keyframes)
+    with pytest.raises(InvalidTeamUpdate, match="implausibly far"):
+        inbox.receive(far)
+    assert inbox.missing() == []  # the rejected update opened no gap
+
+
+@pytest.mark.parametrize("corrupt, message", [
+    (lambda u: dict(robot_id=7), "not a robot of this team"),
+    (lambda u: dict(sequence=0), "sequence"),
+    (lambda u: dict(stamp_s=math.nan), "stamp"),
+    (lambda u: dict(keyframes=(keyframe(odom=(math.nan, 0.0, 0.0)),)), "odometry"),
+    (lambda u: dict(keyframes=(keyframe(robot_id=2),)), "keyframe of robot 2"),
+    (lambda u: dict(landmarks=(LandmarkEstimate(1, np.array([1.0, 2.0, 3.0]), np.eye(2)),)),
+     "2 elements"),
+    (lambda u: dict(landmarks=(LandmarkEstimate(1, np.zeros(2), -np.eye(2)),)), "not a covariance"),
+    (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.array([np.inf, 0.0]),
+                                          FrontierType.EXPLORATION, 1, 0.0),)), "target"),
+])
+def test_validation_rejects_malformed_updates(corrupt, message):
+    good = updates_from(1, 1)[0]
+    validate_team_update(good, NUM_ROBOTS)
+    fields = dict(robot_id=good.robot_id, sequence=good.sequence, stamp_s=good.stamp_s,
+                  keyframes=good.keyframes, landmarks=good.landmarks, targets=good.targets,
+                  rendezvous=good.rendezvous)
+    fields.update(corrupt(good))
+    with pytest.raises(InvalidTeamUpdate, match=message):
+        validate_team_update(type(good)(**fields), NUM_ROBOTS)
