@@ -110,6 +110,11 @@ class MotionParams:
         3.0, "Distance from a landmark's surface beyond which it does not repel [m].", 0.0, 50.0)
     safety_margin_m: float = _param(
         0.3, "Extra clearance kept between robot and landmark surfaces [m].", 0.0, 10.0)
+    target_timeout_factor: float = _param(
+        3.0, "A target not reached within this many times its straight-line travel time "
+        "(plus target_timeout_margin_s) is given up and a new one chosen.", 1.0, 100.0)
+    target_timeout_margin_s: float = _param(
+        30.0, "Extra time allowed to reach a target [s].", 0.0, 1e5)
 
 
 @dataclass(frozen=True)
