@@ -85,7 +85,7 @@ def test_inbox_rejects_own_id_and_implausible_sequence():
      "2 elements"),
     (lambda u: dict(landmarks=(LandmarkEstimate(1, np.zeros(2), -np.eye(2)),)), "not a covariance"),
     (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.array([np.inf, 0.0]),
-                                          FrontierType.EXPLORATION, 1, 0.0),)), "target"),
+                                          FrontierType.EXPLORATION, 1, 0.0, 0.0),)), "target"),
 ])
 def test_validation_rejects_malformed_updates(corrupt, message):
     good = updates_from(1, 1)[0]

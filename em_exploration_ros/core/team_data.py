@@ -61,6 +61,7 @@ class TargetRecord:
     kind: FrontierType
     partner_id: int
     utility: float
+    planning_time_s: float
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,303 @@
+"""One robot's brain: team SLAM, virtual map, planner and motion control.
+
+A ``RobotAgent`` knows only what its own sensors report (``StepInput``) and what its
+teammates share (``TeamUpdate``). It is driven identically by em-sim (in-process) and by
+the ``em-robot`` ROS node, which makes seeded runs of both choose the same targets.
+
+Per simulation step: teammates' updates released by the lockstep barrier are applied
+first (``apply_team_updates``), then ``step`` integrates odometry, cuts a keyframe every
+``keyframe_interval_steps`` (and updates SLAM), keeps rendezvous bookkeeping, decides a
+new target when the current one is reached, and returns the motion for the next step.
+What is new for the teammates is collected with ``take_outgoing``.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from em_exploration_ros.core.frontiers import (Frontier, FrontierType, RendezvousBook,
+                                               candidate_targets, frontier_cells)
+from em_exploration_ros.core.geometry import compose
+from em_exploration_ros.core.motion import ApfController
+from em_exploration_ros.core.occupancy_grid import OccupancyGrid
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.planners import PlanningContext, make_planner
+from em_exploration_ros.core.sensors import LandmarkReading, OdometryReading, TeammateReading
+from em_exploration_ros.core.slam import KeyframeBuilder, KeyframeMeasurements, TeamSlam
+from em_exploration_ros.core.team_data import (LandmarkEstimate, RendezvousEvent,
+                                               RendezvousState, SharedKeyframe, TargetRecord,
+                                               TeamUpdate, TeamUpdateOutbox)
+from em_exploration_ros.core.wire_model import DeadReckoningDifferencer
+
+_LOG = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class StepInput:
+    """What a robot's own sensors report at one simulation step.
+
+    ``odom_pose`` is the dead-reckoning pose in the robot's odom frame (x [m], y [m],
+    theta [rad]); ``odom_increment_covariance`` the 3x3 covariance of the last per-step
+    increment. Landmark and teammate readings are in the robot's body frame.
+    """
+
+    step: int
+    stamp_s: float
+    odom_pose: np.ndarray
+    odom_increment_covariance: np.ndarray
+    landmarks: tuple[LandmarkReading, ...] = ()
+    teammates: tuple[TeammateReading, ...] = ()
+
+
+@dataclass(frozen=True)
+class MotionCommand:
+    """Motion for the next step: turn [rad] then move ``forward_m`` [m] along the heading."""
+
+    turn_rad: float
+    forward_m: float
+    finished: bool
+
+
+@dataclass(frozen=True)
+class DecisionRecord:
+    """One planning decision of this robot."""
+
+    decision_index: int
+    stamp_s: float
+    target: Frontier
+    elapsed_s: float
+    num_candidates: int
+    explored_ratio: float
+
+
+@dataclass
+class _Pending:
+    """What this robot has produced since its last update to the team."""
+
+    keyframes: list = field(default_factory=list)
+    targets: list = field(default_factory=list)
+    rendezvous: list = field(default_factory=list)
+
+
+class RobotAgent:
+    """The decision-making of one robot, independent of ROS (see module docstring)."""
+
+    def __init__(self, robot_id: int, params: ExplorationParams, anchor_pose: np.ndarray) -> None:
+        """Args: robot id (0-based), all parameters, robot 0's launch pose in the map frame."""
+        self.robot_id = robot_id
+        self.params = params
+        self.num_robots = params.world.num_robots
+        self.slam = TeamSlam(robot_id, self.num_robots, params.slam, np.asarray(anchor_pose))
+        self.grid = OccupancyGrid(params.world.width_m, params.world.height_m, params.map,
+                                  params.sensors.sonar_max_range_m)
+        self.planner = make_planner(params)
+        self.controller = ApfController(params.motion, params.world.landmark_radius_m,
+                                        params.world.robot_radius_m)
+        self.rendezvous = RendezvousBook(params.motion.goal_tolerance_m,
+                                         params.frontiers.rendezvous_timeout_s)
+        self.outbox = TeamUpdateOutbox(robot_id)
+        self.decisions: list[DecisionRecord] = []
+        self.target: Frontier | None = None
+        self.finished = False
+        self.explored_ratio = 0.0
+        self.last_candidates: list[Frontier] = []
+        self.team_targets: dict[int, list[TargetRecord]] = {r: [] for r in range(self.num_robots)}
+        self._keyframes = KeyframeBuilder(robot_id, params.slam)
+        self._dead_reckoning = DeadReckoningDifferencer()
+        self._since_keyframe = np.zeros(3)
+        self._pending = _Pending()
+        self._target_deadline_s = np.inf
+        self._stamp_s = 0.0
+        self._arrivals_sent: set[tuple[int, int]] = set()
+
+    # -- inputs --------------------------------------------------------------------------
+
+    def apply_team_updates(self, updates: list[TeamUpdate]) -> None:
+        """Apply teammates' updates (already validated and in sequence order)."""
+        for update in updates:
+            for shared in update.keyframes:
+                self.slam.add_keyframe(shared.measurements)
+            for target in update.targets:
+                self.team_targets[target.robot_id].append(target)
+            for event in update.rendezvous:
+                self._apply_rendezvous_event(event)
+        if updates:
+            self.slam.update()
+
+    def step(self, sensed: StepInput) -> MotionCommand:
+        """Process one step of own sensor data; returns the motion for the next step."""
+        self._stamp_s = sensed.stamp_s
+        increment = self._dead_reckoning.increment(sensed.odom_pose)
+        odometry = None if increment is None else OdometryReading(
+            increment, np.asarray(sensed.odom_increment_covariance, dtype=float))
+        if odometry is not None:
+            self._since_keyframe = compose(self._since_keyframe, odometry.delta)
+        keyframe = self._keyframes.add_step(sensed.step, sensed.stamp_s, odometry,
+                                            sensed.landmarks, sensed.teammates)
+        if keyframe is not None:
+            self._since_keyframe = np.zeros(3)
+            self.slam.add_keyframe(keyframe)
+            self.slam.update()
+            self._pending.keyframes.append(keyframe)
+        pose = self.current_pose()
+        if pose is None or self.finished:
+            return MotionCommand(0.0, 0.0, self.finished)
+        self._handle_rendezvous(pose)
+        meeting_point = self.rendezvous.is_waiting(self.robot_id)
+        if meeting_point is not None and self.controller.reached(pose, meeting_point):
+            return MotionCommand(0.0, 0.0, False)
+        goal = meeting_point if meeting_point is not None else self._goal(pose)
+        if goal is None:
+            return MotionCommand(0.0, 0.0, self.finished)
+        landmarks = np.array(list(self.slam.landmark_estimates().values())).reshape(-1, 2)
+        turn = self.controller.command(pose, goal, landmarks)
+        motion = self.params.motion
+        return MotionCommand(float(turn), motion.speed_mps * motion.time_step_s, False)
+
+    # -- outputs -------------------------------------------------------------------------
+
+    def take_outgoing(self) -> TeamUpdate | None:
+        """The update to send to the teammates now, or None when nothing is new."""
+        pending, self._pending = self._pending, _Pending()
+        if not (pending.keyframes or pending.targets or pending.rendezvous):
+            return None
+        shared = tuple(self._share_keyframe(kf) for kf in pending.keyframes)
+        seen = sorted({reading.landmark_id for kf in pending.keyframes
+                       for reading in kf.landmarks})
+        known = self.slam.landmark_estimates()
+        landmarks = tuple(LandmarkEstimate(lid, known[lid], self.slam.landmark_covariance(lid))
+                          for lid in seen if lid in known)
+        return self.outbox.publish(self._stamp_s, shared, landmarks, tuple(pending.targets),
+                                   tuple(pending.rendezvous))
+
+    def current_pose(self) -> np.ndarray | None:
+        """Estimated current pose in the map frame, None until this robot is anchored."""
+        latest = self.slam.latest_index(self.robot_id)
+        if latest is None:
+            return None
+        return compose(self.slam.pose(self.robot_id, latest), self._since_keyframe)
+
+    def teammate_states(self) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
+        """``{teammate: (latest estimated position (2,), current target (2,) or None)}``."""
+        states = {}
+        for robot in range(self.num_robots):
+            latest = self.slam.latest_index(robot)
+            if robot == self.robot_id or latest is None:
+                continue
+            history = self.team_targets[robot]
+            target = history[-1].position if history else None
+            states[robot] = (self.slam.pose(robot, latest)[:2], target)
+        return states
+
+    # -- decisions -----------------------------------------------------------------------
+
+    def _goal(self, pose: np.ndarray) -> np.ndarray | None:
+        """The position to drive to; decides a new target when needed."""
+        reached = self.target is not None and self.controller.reached(pose, self.target.position)
+        timed_out = self._stamp_s > self._target_deadline_s
+        if self.target is None or reached or timed_out:
+            if timed_out and not reached:
+                _LOG.info("robot %d: target %s not reached in time, choosing another",
+                          self.robot_id, self.target.position.tolist())
+            self._decide(pose)
+        return None if self.target is None else self.target.position
+
+    def _decide(self, pose: np.ndarray) -> None:
+        """Rebuild the map from the SLAM estimate and choose the next target."""
+        started = time.perf_counter()
+        trajectories = [self.slam.trajectory(robot)[1] for robot in range(self.num_robots)]
+        landmark_positions = self.slam.landmark_estimates()
+        landmarks = np.array(list(landmark_positions.values())).reshape(-1, 2)
+        self.grid.rebuild(np.concatenate(trajectories), landmarks)
+        self.explored_ratio = self.grid.explored_ratio()
+        if self.explored_ratio >= self.params.run.until_explored:
+            self._finish("explored ratio %.3f reached" % self.explored_ratio)
+            return
+        cells = frontier_cells(self.grid, self.params.frontiers)
+        candidates = candidate_targets(cells, self.robot_id, pose[:2], self.explored_ratio,
+                                       landmarks, self.teammate_states(), self.params.frontiers)
+        self.last_candidates = candidates
+        if not candidates:
+            self._finish("no frontier left")
+            return
+        context = PlanningContext(
+            robot_id=self.robot_id, slam=self.slam, grid=self.grid, candidates=candidates,
+            robot_pose=pose, teammates=self.teammate_states(),
+            target_history={robot: [t.position for t in records]
+                            for robot, records in self.team_targets.items()},
+            explored_ratio=self.explored_ratio)
+        decision = self.planner.choose(context)
+        elapsed = time.perf_counter() - started
+        chosen = next(u.total for u in decision.utilities if u.frontier is decision.target)
+        self._set_target(decision.target, pose, elapsed, len(candidates), chosen)
+
+    def _set_target(self, target: Frontier, pose: np.ndarray, elapsed_s: float,
+                    num_candidates: int, utility: float) -> None:
+        index = len(self.decisions)
+        self.target = target
+        self.decisions.append(DecisionRecord(index, self._stamp_s, target, elapsed_s,
+                                             num_candidates, self.explored_ratio))
+        distance = float(np.linalg.norm(target.position - pose[:2]))
+        motion = self.params.motion
+        self._target_deadline_s = (self._stamp_s + motion.target_timeout_factor * distance
+                                   / motion.speed_mps + motion.target_timeout_margin_s)
+        partner = self.robot_id if target.partner_id is None else target.partner_id
+        record = TargetRecord(self.robot_id, index, self._stamp_s, target.position.copy(),
+                              target.kind, partner, utility, elapsed_s)
+        self.team_targets[self.robot_id].append(record)
+        self._pending.targets.append(record)
+        if target.kind == FrontierType.RENDEZVOUS:
+            self._send_rendezvous(RendezvousState.REQUEST, index, self.robot_id, partner,
+                                  target.position)
+            self.rendezvous.request(self.robot_id, partner, target.position, self._stamp_s, index)
+
+    def _finish(self, reason: str) -> None:
+        if not self.finished:
+            _LOG.info("robot %d finished: %s", self.robot_id, reason)
+        self.finished = True
+        self.target = None
+        for meeting in self.rendezvous.release(self.robot_id):
+            self._send_rendezvous(RendezvousState.RELEASE, meeting.rendezvous_id,
+                                  meeting.requester_id, meeting.partner_id,
+                                  meeting.meeting_point)
+
+    # -- rendezvous ----------------------------------------------------------------------
+
+    def _handle_rendezvous(self, pose: np.ndarray) -> None:
+        """Report own arrivals at meeting points; drop meetings past their deadline."""
+        self.rendezvous.expire(self._stamp_s)
+        for meeting in self.rendezvous.open_meetings():
+            involved = self.robot_id in (meeting.requester_id, meeting.partner_id)
+            announced = (meeting.requester_id, meeting.rendezvous_id) in self._arrivals_sent
+            if involved and not announced and self.controller.reached(pose, meeting.meeting_point):
+                self._arrivals_sent.add((meeting.requester_id, meeting.rendezvous_id))
+                self._send_rendezvous(RendezvousState.ARRIVED, meeting.rendezvous_id,
+                                      meeting.requester_id, meeting.partner_id,
+                                      meeting.meeting_point)
+                self.rendezvous.arrived(self.robot_id, self._stamp_s, meeting.requester_id)
+
+    def _apply_rendezvous_event(self, event: RendezvousEvent) -> None:
+        if event.state == RendezvousState.REQUEST:
+            self.rendezvous.request(event.requester_id, event.partner_id, event.meeting_point,
+                                    event.stamp_s, event.rendezvous_id)
+        elif event.state == RendezvousState.ARRIVED:
+            self.rendezvous.arrived(event.sender_id, event.stamp_s, event.requester_id)
+        else:
+            self.rendezvous.release(event.sender_id)
+
+    def _send_rendezvous(self, state: RendezvousState, rendezvous_id: int, requester: int,
+                         partner: int, point: np.ndarray) -> None:
+        self._pending.rendezvous.append(RendezvousEvent(
+            rendezvous_id, requester, partner, self.robot_id, state, self._stamp_s,
+            np.asarray(point, dtype=float).copy(), self.params.frontiers.rendezvous_timeout_s))
+
+    def _share_keyframe(self, keyframe: KeyframeMeasurements) -> SharedKeyframe:
+        """The keyframe with this robot's estimate of it; an all-zero estimate and
+        covariance mean "no estimate yet" (the robot is not anchored yet)."""
+        if not self.slam.has_keyframe(self.robot_id, keyframe.index):
+            return SharedKeyframe(keyframe, np.zeros(3), np.zeros((3, 3)))
+        return SharedKeyframe(keyframe, self.slam.pose(self.robot_id, keyframe.index),
+                              self.slam.pose_covariance(self.robot_id, keyframe.index))

@@ -1,0 +1,88 @@
+"""The world simulator's state and physics: ground truth, sensing and motion.
+
+``WorldSimulation`` owns the seeded world and every robot's true pose. Each step it
+produces what each robot's sensors report (``SensorFrame``, in the form it takes on the
+wire) and applies each robot's velocity command. The ``em-world`` ROS node and em-sim
+both drive this class, so they produce the same numbers.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.sensors import LandmarkReading, SensorSimulator, TeammateReading
+from em_exploration_ros.core.wire_model import (DeadReckoningIntegrator,
+                                                increment_covariance_to_twist,
+                                                twist_to_command)
+from em_exploration_ros.core.world import World, advance_robot, generate_world, run_seed_sequences
+
+
+@dataclass(frozen=True)
+class SensorFrame:
+    """One robot's sensor output at one step, as published.
+
+    ``odom_pose``: dead-reckoning pose in ``robot_<i>/odom`` (x [m], y [m], theta [rad]);
+    ``twist_covariance``: 6x6 covariance of the last step's velocity (nav_msgs/Odometry
+    convention), from which the robot recovers the per-step increment covariance.
+    """
+
+    robot_id: int
+    step: int
+    stamp_s: float
+    odom_pose: np.ndarray
+    twist_covariance: np.ndarray
+    landmarks: tuple[LandmarkReading, ...]
+    teammates: tuple[TeammateReading, ...]
+
+
+class WorldSimulation:
+    """Ground truth and physics of one seeded run (world frame)."""
+
+    def __init__(self, params: ExplorationParams) -> None:
+        self.params = params
+        world_sequence, sensor_sequence = run_seed_sequences(params.run.seed)
+        self.world: World = generate_world(params.world, params.sensors, world_sequence)
+        self._sensors = SensorSimulator(self.world, params.sensors, params.motion, sensor_sequence)
+        n = params.world.num_robots
+        self._true_poses = np.array(self.world.start_poses, dtype=float)
+        self._dead_reckoning = [DeadReckoningIntegrator() for _ in range(n)]
+        self._twist_covariance = [np.zeros((6, 6)) for _ in range(n)]
+        self.active = np.ones(n, dtype=bool)
+        self.step = 0
+
+    @property
+    def stamp_s(self) -> float:
+        """Simulation time of the current step [s]."""
+        return self.step * self.params.motion.time_step_s
+
+    def true_pose(self, robot_id: int) -> np.ndarray:
+        """True world-frame pose (3,) of a robot at the current step."""
+        return self._true_poses[robot_id].copy()
+
+    def sense(self, robot_id: int) -> SensorFrame:
+        """What robot ``robot_id``'s sensors report at the current step."""
+        pose = self._true_poses[robot_id]
+        return SensorFrame(
+            robot_id=robot_id, step=self.step, stamp_s=self.stamp_s,
+            odom_pose=self._dead_reckoning[robot_id].pose,
+            twist_covariance=self._twist_covariance[robot_id].copy(),
+            landmarks=tuple(self._sensors.sonar(robot_id, pose)),
+            teammates=tuple(self._sensors.teammates(robot_id, self._true_poses, self.active)))
+
+    def apply_command(self, robot_id: int, linear_x: float, angular_z: float) -> None:
+        """Move a robot for one step by its velocity command (Twist: m/s, rad/s)."""
+        time_step = self.params.motion.time_step_s
+        turn, forward = twist_to_command(linear_x, angular_z, time_step)
+        previous = self._true_poses[robot_id].copy()
+        current, _ = advance_robot(self.world, previous, turn, forward, self.params.motion)
+        self._true_poses[robot_id] = current
+        reading = self._sensors.odometry(robot_id, previous, current)
+        self._dead_reckoning[robot_id].add(reading.delta)
+        self._twist_covariance[robot_id] = increment_covariance_to_twist(reading.covariance,
+                                                                         time_step)
+
+    def advance(self) -> None:
+        """Move on to the next step (after every robot's command was applied)."""
+        self.step += 1

@@ -1,0 +1,118 @@
+"""em-sim: one seeded N-robot exploration in one process, with progress and a JSON summary.
+
+Each robot's SLAM is fed only by its own measurements and by what its teammates would
+send it (see core/team_runner.py). Examples::
+
+    em-sim --robots 3 --planner EM_3 --seed 7 --summary out/run.json
+    em-sim --params config/exploration.yaml --map-size 200 --cell-size 4
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from em_exploration_ros.core.params import ExplorationParams, PlannerParams
+from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
+from em_exploration_ros.core.team_runner import Progress, TeamRunner
+
+#: A progress line every this many simulation steps.
+PROGRESS_EVERY_STEPS = 250
+
+PLANNER_NAMES = PlannerParams.__dataclass_fields__["name"].metadata["choices"]
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options shared by em-sim and the benchmark for one exploration setting."""
+    parser.add_argument("--params", type=Path, help="ROS 2 parameter YAML file to start from")
+    parser.add_argument("--robots", type=int, help="number of robots (default 3)")
+    parser.add_argument("--planner", choices=PLANNER_NAMES, help="planner (default EM_3)")
+    parser.add_argument("--map-size", type=float, metavar="M",
+                        help="side of the square map [m] (default 100)")
+    parser.add_argument("--cell-size", type=float, metavar="M",
+                        help="virtual map cell size [m] (default 2)")
+    parser.add_argument("--landmarks", type=int, help="number of landmarks (default 20)")
+    parser.add_argument("--until-explored", type=float, metavar="RATIO",
+                        help="stop at this team explored ratio (default 0.85)")
+    parser.add_argument("--max-steps", type=int, help="stop after this many steps (default 20000)")
+
+
+def params_from_args(args: argparse.Namespace, seed: int | None = None) -> ExplorationParams:
+    """Parameters from --params and the command-line overrides (ValueError if invalid)."""
+    params = load_params(args.params) if args.params else ExplorationParams()
+    overrides: dict[str, dict[str, object]] = {}
+
+    def put(group: str, name: str, value: object) -> None:
+        if value is not None:
+            overrides.setdefault(group, {})[name] = value
+
+    put("world", "num_robots", args.robots)
+    put("world", "num_landmarks", args.landmarks)
+    if args.map_size is not None:
+        put("world", "width_m", args.map_size)
+        put("world", "height_m", args.map_size)
+    put("map", "cell_size_m", args.cell_size)
+    put("planner", "name", args.planner)
+    put("run", "until_explored", args.until_explored)
+    put("run", "max_steps", args.max_steps)
+    put("run", "seed", seed)
+    return params.replace(**overrides) if overrides else params
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="em-sim", description="Run one seeded multi-robot exploration in one process.")
+    add_run_arguments(parser)
+    parser.add_argument("--seed", type=int, default=None, help="seed of world and noise")
+    parser.add_argument("--summary", type=Path, help="write the JSON summary here")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    return parser
+
+
+def _format_progress(progress: Progress) -> str:
+    m = progress.metrics
+    loc = "n/a" if math.isnan(m.loc_rmse_m) else f"{m.loc_rmse_m:.3f} m"
+    return (f"t={m.stamp_s:7.1f} s  explored {m.explored_ratio:5.3f}  distance {m.distance_m:7.1f} m"
+            f"  loc RMSE {loc}  decisions {progress.decisions}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of em-sim; returns the process exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
+                        format="%(message)s")
+    try:
+        params = params_from_args(args, args.seed)
+    except (ParamsFileError, ValueError) as error:
+        parser.error(str(error))
+    log = logging.getLogger("em-sim")
+    try:
+        runner = TeamRunner(params)
+    except ValueError as error:
+        log.error("cannot build the world: %s", error)
+        return 2
+    def report(progress: Progress) -> None:
+        if not args.quiet and progress.step % PROGRESS_EVERY_STEPS == 0:
+            print(_format_progress(progress), flush=True)
+
+    try:
+        summary = runner.run(report)
+    except KeyboardInterrupt:
+        log.warning("interrupted")
+        return 130
+    print(f"done ({summary.stop_reason}): explored {summary.explored_ratio:.3f}, "
+          f"distance {summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, "
+          f"landmark RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, "
+          f"wall {summary.wall_s:.1f} s, sim {summary.sim_time_s:.1f} s")
+    if args.summary:
+        summary.write(args.summary)
+        print(f"summary: {args.summary}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

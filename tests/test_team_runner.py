@@ -1,0 +1,73 @@
+"""In-process team exploration (em-sim's engine) and the em-sim command."""
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.robot_agent import RobotAgent
+from em_exploration_ros.core.summary import check_summary
+from em_exploration_ros.core.team_runner import TeamRunner
+
+SMALL = dict(world={"width_m": 50.0, "height_m": 50.0, "num_landmarks": 5},
+             run={"seed": 3, "max_steps": 1500})
+
+
+def small_params(planner: str = "NF") -> ExplorationParams:
+    return ExplorationParams().replace(planner={"name": planner}, **SMALL)
+
+
+def test_small_nf_team_explores_to_target_ratio_with_metrics():
+    summary = TeamRunner(small_params()).run()
+    data = summary.to_dict()
+    assert check_summary(data) == []
+    assert summary.explored_ratio >= 0.85, summary.stop_reason
+    assert summary.sim_time_s < 1500 * 0.2
+    assert 0.0 < summary.loc_rmse_m < 1.0 and 0.0 < summary.landmark_rmse_m < 1.0
+    assert summary.decisions == sum(r.decisions for r in summary.robots) > 3
+    assert all(r.distance_m > 10.0 for r in summary.robots)  # every robot moved
+    distances = [s.distance_m for s in summary.history]
+    assert distances == sorted(distances) and len(summary.history) > 5
+    json.dumps(data)  # NaN-free, serializable
+
+
+def test_seeded_runs_reproduce_and_seeds_differ():
+    def targets(seed: int) -> list:
+        params = small_params().replace(run={"seed": seed, "max_steps": 400})
+        summary = TeamRunner(params).run()
+        return [(t.x, t.y, t.type) for r in summary.robots for t in r.targets]
+
+    first = targets(5)
+    assert first == targets(5)
+    assert first != targets(6)
+
+
+def test_agents_see_no_ground_truth():
+    runner = TeamRunner(small_params())
+    for agent in runner.agents:
+        assert isinstance(agent, RobotAgent)
+        forbidden = (runner.simulation, runner.simulation.world, runner.evaluator)
+        assert not any(value is item for value in vars(agent).values() for item in forbidden)
+
+
+def test_em_sim_command_writes_summary(tmp_path):
+    out = tmp_path / "run.json"
+    result = subprocess.run(
+        [sys.executable, "-m", "em_exploration_ros.tools.sim_cli", "--planner", "NF",
+         "--map-size", "50", "--landmarks", "5", "--seed", "2", "--max-steps", "300",
+         "--summary", str(out), "--quiet"], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    data = json.loads(out.read_text())
+    assert check_summary(data) == [] and data["planner"] == "NF" and data["seed"] == 2
+    assert data["num_robots"] == 3 and math.isfinite(data["explored_ratio"])
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--robots", "0"], "num_robots"), (["--planner", "XX"], "invalid choice"),
+    (["--params", "/nonexistent.yaml"], "cannot read"), (["--map-size", "-5"], "width_m")])
+def test_em_sim_refuses_bad_arguments(args, message):
+    result = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.sim_cli", *args],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and message in result.stderr
