@@ -15,7 +15,7 @@ from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sensors import LandmarkReading, SensorSimulator, TeammateReading
 from em_exploration_ros.core.wire_model import (DeadReckoningIntegrator,
                                                 increment_covariance_to_twist,
-                                                twist_to_command)
+                                                sim_time_s, twist_to_command)
 from em_exploration_ros.core.world import World, advance_robot, generate_world, run_seed_sequences
 
 
@@ -55,7 +55,7 @@ class WorldSimulation:
     @property
     def stamp_s(self) -> float:
         """Simulation time of the current step [s]."""
-        return self.step * self.params.motion.time_step_s
+        return sim_time_s(self.step, self.params.motion.time_step_s)
 
     def true_pose(self, robot_id: int) -> np.ndarray:
         """True world-frame pose (3,) of a robot at the current step."""

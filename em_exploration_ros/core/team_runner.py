@@ -25,7 +25,8 @@ from em_exploration_ros.core.simulation import SensorFrame, WorldSimulation
 from em_exploration_ros.core.summary import (HistorySample, RobotSummary, RunSummary,
                                              TargetEntry)
 from em_exploration_ros.core.team_data import TeamUpdateInbox
-from em_exploration_ros.core.wire_model import command_to_twist, twist_to_increment_covariance
+from em_exploration_ros.core.wire_model import (command_to_twist, pose_through_wire,
+                                                twist_to_increment_covariance)
 
 #: Team metrics are evaluated every this many steps (and at the end).
 METRICS_INTERVAL_STEPS = 10
@@ -37,7 +38,7 @@ FRONTIER_TYPE_NAMES = {FrontierType.EXPLORATION: "exploration",
 
 def step_input(frame: SensorFrame, time_step_s: float) -> StepInput:
     """The robot-side view of a world sensor frame (same conversion as the ROS robot node)."""
-    return StepInput(frame.step, frame.stamp_s, frame.odom_pose,
+    return StepInput(frame.step, frame.stamp_s, pose_through_wire(frame.odom_pose),
                      twist_to_increment_covariance(frame.twist_covariance, time_step_s),
                      frame.landmarks, frame.teammates)
 

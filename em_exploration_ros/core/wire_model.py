@@ -9,9 +9,46 @@ choose the same targets in both.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from em_exploration_ros.core.geometry import between, compose
+
+NANOSECONDS_PER_SECOND = 1_000_000_000
+
+
+def nanoseconds_to_seconds(nanoseconds: int) -> float:
+    """Seconds of an integer nanosecond time, computed as builtin_interfaces/Time is read
+    (``sec + nanosec * 1e-9``), so a time survives the wire bit for bit."""
+    sec, nanosec = divmod(int(nanoseconds), NANOSECONDS_PER_SECOND)
+    return sec + nanosec * 1e-9
+
+
+def seconds_to_nanoseconds(seconds: float) -> int:
+    """Integer nanoseconds of a time in seconds (rounded)."""
+    return int(round(seconds * NANOSECONDS_PER_SECOND))
+
+
+def sim_time_s(step: int, time_step_s: float) -> float:
+    """Simulation time of a step [s], in its wire-exact form (see nanoseconds_to_seconds)."""
+    return nanoseconds_to_seconds(seconds_to_nanoseconds(step * time_step_s))
+
+
+def planar_quaternion(yaw: float) -> tuple[float, float]:
+    """(z, w) of the unit quaternion of a rotation by ``yaw`` [rad] about +z."""
+    return math.sin(yaw / 2.0), math.cos(yaw / 2.0)
+
+
+def planar_yaw(z: float, w: float) -> float:
+    """Yaw [rad] of a rotation about +z given as quaternion (0, 0, z, w)."""
+    return math.atan2(2.0 * w * z, 1.0 - 2.0 * z * z)
+
+
+def pose_through_wire(pose: np.ndarray) -> np.ndarray:
+    """A planar pose as it reads after travelling in a geometry_msgs/Pose (yaw as quaternion)."""
+    z, w = planar_quaternion(float(pose[2]))
+    return np.array([float(pose[0]), float(pose[1]), planar_yaw(z, w)])
 
 
 def command_to_twist(turn_rad: float, forward_m: float, time_step_s: float) -> tuple[float, float]:

@@ -1,0 +1,289 @@
+"""Conversions between the core's plain data and ROS 2 messages.
+
+Pure functions, no node needed: tests build and read messages without a running graph.
+Frames follow REP-103/105: sensor data in ``robot_<i>/base_link``, dead reckoning in
+``robot_<i>/odom``, estimates in ``map``, ground truth in ``world``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from em_exploration_msgs import msg as em_msg
+from geometry_msgs.msg import PoseStamped, Quaternion
+from nav_msgs.msg import Odometry, Path
+
+from em_exploration_ros.core.frontiers import FrontierType
+from em_exploration_ros.core.sensors import LandmarkReading, TeammateReading
+from em_exploration_ros.core.simulation import SensorFrame
+from em_exploration_ros.core.slam import KeyframeMeasurements
+from em_exploration_ros.core.wire_model import (NANOSECONDS_PER_SECOND,
+                                                nanoseconds_to_seconds, planar_quaternion,
+                                                planar_yaw, seconds_to_nanoseconds)
+from em_exploration_ros.core.team_data import (InvalidTeamUpdate, LandmarkEstimate,
+                                               RendezvousEvent, RendezvousState,
+                                               SharedKeyframe, TargetRecord, TeamUpdate)
+
+MAP_FRAME = "map"
+WORLD_FRAME = "world"
+
+
+def robot_namespace(robot_id: int) -> str:
+    """Namespace of a robot's topics, ``robot_<i>``."""
+    return f"robot_{robot_id}"
+
+
+def seconds_to_time(seconds: float) -> Time:
+    """A simulation time [s] as builtin_interfaces/Time (rounded to the nanosecond)."""
+    sec, nanosec = divmod(seconds_to_nanoseconds(seconds), NANOSECONDS_PER_SECOND)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def time_to_seconds(stamp: Time) -> float:
+    """builtin_interfaces/Time as seconds (wire-exact, see core.wire_model)."""
+    return nanoseconds_to_seconds(stamp.sec * NANOSECONDS_PER_SECOND + stamp.nanosec)
+
+
+def yaw_to_quaternion(yaw: float) -> Quaternion:
+    """Rotation about +z by ``yaw`` [rad]."""
+    z, w = planar_quaternion(yaw)
+    return Quaternion(x=0.0, y=0.0, z=z, w=w)
+
+
+def quaternion_to_yaw(q: Quaternion) -> float:
+    """Yaw [rad] of a planar rotation (0, 0, z, w); x and y are ignored."""
+    return planar_yaw(q.z, q.w)
+
+
+def _matrix(values, size: int) -> np.ndarray:
+    return np.asarray(values, dtype=float).reshape(size, size)
+
+
+def _flat(matrix: np.ndarray) -> list[float]:
+    return [float(v) for v in np.asarray(matrix, dtype=float).ravel()]
+
+
+# -- sensors (world -> robot) -------------------------------------------------------------
+
+def landmark_reading_to_msg(reading: LandmarkReading) -> em_msg.LandmarkDetection:
+    return em_msg.LandmarkDetection(
+        landmark_id=int(reading.landmark_id), range=float(reading.range_m),
+        bearing=float(reading.bearing_rad), range_variance=float(reading.range_variance),
+        bearing_variance=float(reading.bearing_variance))
+
+
+def landmark_reading_from_msg(message: em_msg.LandmarkDetection) -> LandmarkReading:
+    return LandmarkReading(int(message.landmark_id), float(message.range),
+                           float(message.bearing), float(message.range_variance),
+                           float(message.bearing_variance))
+
+
+def teammate_reading_to_msg(reading: TeammateReading) -> em_msg.TeammateDetection:
+    x, y, theta = (float(v) for v in reading.relative_pose)
+    return em_msg.TeammateDetection(robot_id=int(reading.robot_id), x=x, y=y, theta=theta,
+                                    covariance=_flat(reading.covariance))
+
+
+def teammate_reading_from_msg(message: em_msg.TeammateDetection) -> TeammateReading:
+    return TeammateReading(int(message.robot_id),
+                           np.array([message.x, message.y, message.theta], dtype=float),
+                           _matrix(message.covariance, 3))
+
+
+def sonar_scan_to_msg(frame: SensorFrame, max_range_m: float,
+                      team_sequences: list[int]) -> em_msg.SonarScan:
+    """The sonar part of a sensor frame (body frame of the robot)."""
+    message = em_msg.SonarScan(robot_id=frame.robot_id, step=frame.step,
+                               max_range=float(max_range_m),
+                               landmarks=[landmark_reading_to_msg(r) for r in frame.landmarks],
+                               teammates=[teammate_reading_to_msg(r) for r in frame.teammates],
+                               team_sequences=[int(s) for s in team_sequences])
+    message.header.stamp = seconds_to_time(frame.stamp_s)
+    message.header.frame_id = f"{robot_namespace(frame.robot_id)}/base_link"
+    return message
+
+
+def odometry_to_msg(robot_id: int, stamp_s: float, pose: np.ndarray, frame_id: str,
+                    child_frame_id: str, twist_covariance: np.ndarray | None = None) -> Odometry:
+    """A planar pose (x [m], y [m], theta [rad]) as nav_msgs/Odometry."""
+    message = Odometry()
+    message.header.stamp = seconds_to_time(stamp_s)
+    message.header.frame_id = frame_id
+    message.child_frame_id = child_frame_id
+    message.pose.pose.position.x = float(pose[0])
+    message.pose.pose.position.y = float(pose[1])
+    message.pose.pose.orientation = yaw_to_quaternion(float(pose[2]))
+    if twist_covariance is not None:
+        message.twist.covariance = _flat(twist_covariance)
+    return message
+
+
+def dead_reckoning_to_msg(frame: SensorFrame) -> Odometry:
+    """The dead-reckoning part of a sensor frame, REP-105 odom -> base_link."""
+    namespace = robot_namespace(frame.robot_id)
+    return odometry_to_msg(frame.robot_id, frame.stamp_s, frame.odom_pose, f"{namespace}/odom",
+                           f"{namespace}/base_link", frame.twist_covariance)
+
+
+def odometry_pose(message: Odometry) -> np.ndarray:
+    """(x [m], y [m], theta [rad]) of an Odometry message's pose."""
+    p = message.pose.pose
+    return np.array([p.position.x, p.position.y, quaternion_to_yaw(p.orientation)])
+
+
+def odometry_twist_covariance(message: Odometry) -> np.ndarray:
+    """The 6x6 twist covariance of an Odometry message."""
+    return _matrix(message.twist.covariance, 6)
+
+
+# -- team data (robot <-> robot) ----------------------------------------------------------
+
+def _keyframe_to_msg(shared: SharedKeyframe) -> em_msg.Keyframe:
+    kf = shared.measurements
+    message = em_msg.Keyframe(
+        robot_id=kf.robot_id, index=kf.index, is_first=kf.is_first,
+        previous_index=max(kf.previous_index, 0),
+        odom_x=float(kf.odom_delta[0]), odom_y=float(kf.odom_delta[1]),
+        odom_theta=float(kf.odom_delta[2]), odom_covariance=_flat(kf.odom_covariance),
+        landmarks=[landmark_reading_to_msg(r) for r in kf.landmarks],
+        teammates=[teammate_reading_to_msg(r) for r in kf.teammates],
+        estimate_x=float(shared.estimate[0]), estimate_y=float(shared.estimate[1]),
+        estimate_theta=float(shared.estimate[2]),
+        estimate_covariance=_flat(shared.estimate_covariance))
+    message.stamp = seconds_to_time(kf.stamp_s)
+    return message
+
+
+def _keyframe_from_msg(message: em_msg.Keyframe) -> SharedKeyframe:
+    kf = KeyframeMeasurements(
+        robot_id=int(message.robot_id), index=int(message.index),
+        stamp_s=time_to_seconds(message.stamp), is_first=bool(message.is_first),
+        previous_index=-1 if message.is_first else int(message.previous_index),
+        odom_delta=np.array([message.odom_x, message.odom_y, message.odom_theta]),
+        odom_covariance=_matrix(message.odom_covariance, 3),
+        landmarks=tuple(landmark_reading_from_msg(r) for r in message.landmarks),
+        teammates=tuple(teammate_reading_from_msg(r) for r in message.teammates))
+    return SharedKeyframe(kf, np.array([message.estimate_x, message.estimate_y,
+                                        message.estimate_theta]),
+                          _matrix(message.estimate_covariance, 3))
+
+
+def landmark_estimate_to_msg(landmark: LandmarkEstimate) -> em_msg.LandmarkEstimate:
+    return em_msg.LandmarkEstimate(landmark_id=int(landmark.landmark_id),
+                                   x=float(landmark.position[0]), y=float(landmark.position[1]),
+                                   covariance=_flat(landmark.covariance))
+
+
+def landmark_estimate_from_msg(message: em_msg.LandmarkEstimate) -> LandmarkEstimate:
+    return LandmarkEstimate(int(message.landmark_id), np.array([message.x, message.y]),
+                            _matrix(message.covariance, 2))
+
+
+def target_to_msg(target: TargetRecord) -> em_msg.TargetRecord:
+    message = em_msg.TargetRecord(
+        robot_id=target.robot_id, decision_index=target.decision_index,
+        x=float(target.position[0]), y=float(target.position[1]),
+        frontier_type=int(target.kind), partner_id=int(target.partner_id),
+        utility=float(target.utility), planning_time=float(target.planning_time_s))
+    message.stamp = seconds_to_time(target.stamp_s)
+    return message
+
+
+def target_from_msg(message: em_msg.TargetRecord) -> TargetRecord:
+    try:
+        kind = FrontierType(message.frontier_type)
+    except ValueError:
+        raise InvalidTeamUpdate(f"unknown frontier type {message.frontier_type}") from None
+    return TargetRecord(int(message.robot_id), int(message.decision_index),
+                        time_to_seconds(message.stamp), np.array([message.x, message.y]), kind,
+                        int(message.partner_id), float(message.utility),
+                        float(message.planning_time))
+
+
+def _rendezvous_to_msg(event: RendezvousEvent) -> em_msg.Rendezvous:
+    message = em_msg.Rendezvous(
+        rendezvous_id=event.rendezvous_id, requester_id=event.requester_id,
+        partner_id=event.partner_id, sender_id=event.sender_id, state=int(event.state),
+        x=float(event.meeting_point[0]), y=float(event.meeting_point[1]),
+        timeout=float(event.timeout_s))
+    message.stamp = seconds_to_time(event.stamp_s)
+    return message
+
+
+def _rendezvous_from_msg(message: em_msg.Rendezvous) -> RendezvousEvent:
+    try:
+        state = RendezvousState(message.state)
+    except ValueError:
+        raise InvalidTeamUpdate(f"unknown rendezvous state {message.state}") from None
+    return RendezvousEvent(int(message.rendezvous_id), int(message.requester_id),
+                           int(message.partner_id), int(message.sender_id), state,
+                           time_to_seconds(message.stamp), np.array([message.x, message.y]),
+                           float(message.timeout))
+
+
+def team_update_to_msg(update: TeamUpdate) -> em_msg.TeamUpdate:
+    """A core TeamUpdate as em_exploration_msgs/TeamUpdate (frame ``map``)."""
+    message = em_msg.TeamUpdate(
+        robot_id=update.robot_id, sequence=update.sequence,
+        keyframes=[_keyframe_to_msg(k) for k in update.keyframes],
+        landmarks=[landmark_estimate_to_msg(lm) for lm in update.landmarks],
+        targets=[target_to_msg(t) for t in update.targets],
+        rendezvous=[_rendezvous_to_msg(r) for r in update.rendezvous])
+    message.header.stamp = seconds_to_time(update.stamp_s)
+    message.header.frame_id = MAP_FRAME
+    return message
+
+
+def team_update_from_msg(message: em_msg.TeamUpdate) -> TeamUpdate:
+    """A received TeamUpdate as core data; raises InvalidTeamUpdate on malformed content
+    (the caller validates the values with ``validate_team_update``)."""
+    try:
+        return TeamUpdate(
+            robot_id=int(message.robot_id), sequence=int(message.sequence),
+            stamp_s=time_to_seconds(message.header.stamp),
+            keyframes=tuple(_keyframe_from_msg(k) for k in message.keyframes),
+            landmarks=tuple(landmark_estimate_from_msg(lm) for lm in message.landmarks),
+            targets=tuple(target_from_msg(t) for t in message.targets),
+            rendezvous=tuple(_rendezvous_from_msg(r) for r in message.rendezvous))
+    except (ValueError, TypeError) as error:  # e.g. wrong covariance length
+        raise InvalidTeamUpdate(f"malformed TeamUpdate: {error}") from None
+
+
+# -- estimates for users (RViz, Foxglove, evaluator) ---------------------------------------
+
+def path_to_msg(stamp_s: float, stamps_s: np.ndarray, poses: np.ndarray,
+                frame_id: str = MAP_FRAME) -> Path:
+    """A trajectory (K, 3) with per-pose stamps [s] as nav_msgs/Path."""
+    message = Path()
+    message.header.stamp = seconds_to_time(stamp_s)
+    message.header.frame_id = frame_id
+    for stamp, pose in zip(stamps_s, np.asarray(poses).reshape(-1, 3)):
+        entry = PoseStamped()
+        entry.header.stamp = seconds_to_time(float(stamp))
+        entry.header.frame_id = frame_id
+        entry.pose.position.x = float(pose[0])
+        entry.pose.position.y = float(pose[1])
+        entry.pose.orientation = yaw_to_quaternion(float(pose[2]))
+        message.poses.append(entry)
+    return message
+
+
+def path_from_msg(message: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps [s] (K,), poses (K, 3)) of a nav_msgs/Path."""
+    stamps = np.array([time_to_seconds(p.header.stamp) for p in message.poses])
+    poses = np.array([[p.pose.position.x, p.pose.position.y, quaternion_to_yaw(p.pose.orientation)]
+                      for p in message.poses]).reshape(-1, 3)
+    return stamps, poses
+
+
+def landmark_array_to_msg(stamp_s: float, frame_id: str, landmarks: list[LandmarkEstimate],
+                          radius_m: float = 0.0) -> em_msg.LandmarkArray:
+    message = em_msg.LandmarkArray(radius=float(radius_m),
+                                   landmarks=[landmark_estimate_to_msg(lm) for lm in landmarks])
+    message.header.stamp = seconds_to_time(stamp_s)
+    message.header.frame_id = frame_id
+    return message
+
+
+def landmark_positions_from_msg(message: em_msg.LandmarkArray) -> dict[int, np.ndarray]:
+    """``{landmark_id: position (2,)}`` of a LandmarkArray."""
+    return {int(lm.landmark_id): np.array([lm.x, lm.y]) for lm in message.landmarks}

@@ -1,0 +1,26 @@
+"""Quality-of-service profiles of the system's topics, each chosen for what the data is.
+
+| profile | used for | why |
+|---|---|---|
+| ``SENSOR_QOS`` (reliable, keep last 50, volatile) | /robot_<i>/sonar, /robot_<i>/odom, /robot_<i>/motion_command | lockstep needs every step; a small queue absorbs bursts; old steps are useless to a late joiner |
+| ``TEAM_QOS`` (reliable, keep all, volatile) | /robot_<i>/team/updates, /team/update_requests | team data must arrive; losses and late joins are repaired by the sequence-number resend protocol, so durability is not needed |
+| ``LATCHED_QOS`` (reliable, keep last 1, transient local) | /world/landmarks, /robot_<i>/virtual_map, /robot_<i>/estimated_path, /robot_<i>/markers, /robot_<i>/target, /robot_<i>/landmarks | state whose last value a late subscriber (RViz, Foxglove, the evaluator) needs at once |
+| ``CLOCK_QOS`` (best effort, keep last 1) | /clock | the ROS 2 convention for /clock; only the newest time matters |
+| ``STREAM_QOS`` (reliable, keep last 100, volatile) | /world/ground_truth/robot_<i>, /evaluation/metrics | evaluation streams; reliable so the evaluator sees every true pose |
+"""
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+TEAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                       reliability=ReliabilityPolicy.BEST_EFFORT,
+                       durability=DurabilityPolicy.VOLATILE)
+STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)

@@ -1,0 +1,51 @@
+"""Declaring the exploration parameters on a node, with descriptions and ranges.
+
+Every field of ``ExplorationParams`` becomes a read-only ROS parameter ``<group>.<field>``
+(e.g. ``planner.name``, ``world.width_m``) with its description, unit and range, so
+``ros2 param describe`` documents it and ``--params-file config/exploration.yaml`` sets it.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.node import Node
+
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.params_yaml import nest_dotted
+
+
+def _descriptor(name: str, f: dataclasses.Field, default: Any) -> ParameterDescriptor:
+    descriptor = ParameterDescriptor(name=name, description=f.metadata.get("description", ""),
+                                     read_only=True)
+    low, high, choices = (f.metadata.get(key) for key in ("low", "high", "choices"))
+    if choices:
+        descriptor.additional_constraints = "one of: " + ", ".join(choices)
+    if low is not None and high is not None and not isinstance(default, bool):
+        if isinstance(default, int):
+            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high),
+                                                     step=0)]
+        elif isinstance(default, float):
+            descriptor.floating_point_range = [FloatingPointRange(
+                from_value=float(low), to_value=float(high), step=0.0)]
+    return descriptor
+
+
+def declare_exploration_params(node: Node) -> ExplorationParams:
+    """Declare every exploration parameter on ``node`` and return their values.
+
+    Raises ``ValueError`` (with the parameter's name) for a value the checks refuse; rclpy
+    raises its own exception for a value outside a declared range.
+    """
+    defaults = ExplorationParams()
+    values: dict[str, Any] = {}
+    for group in dataclasses.fields(defaults):
+        group_value = getattr(defaults, group.name)
+        for f in dataclasses.fields(group_value):
+            name = f"{group.name}.{f.name}"
+            default = getattr(group_value, f.name)
+            initial = list(default) if isinstance(default, tuple) else default
+            parameter = node.declare_parameter(name, initial, _descriptor(name, f, default))
+            values[name] = parameter.value
+    return defaults.replace(**nest_dotted(values))
