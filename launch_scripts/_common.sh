@@ -1,0 +1,79 @@
+# shellcheck shell=bash disable=SC2034  # the variables below are used by the sourcing scripts
+# Shared helpers of the launch scripts; source it, do not run it.
+#
+#   source "$(dirname "${BASH_SOURCE[0]}")/_common.sh"
+#
+# Defines the repository paths (EM_REPO_ROOT, EM_VENV, EM_BUILD_DIR) and:
+#   em_activate          export the environment of the project's venv (ROS 2 from PyPI wheels)
+#   em_pick_ros_domain   choose a ROS_DOMAIN_ID no other run on this machine holds, and hold it
+#   em_pip_freeze [VENV] print "name==version" of every package pip installed in a venv
+
+EM_REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+EM_VENV="$EM_REPO_ROOT/.venv"
+EM_BUILD_DIR="$EM_REPO_ROOT/build"
+
+# Directory of the per-domain lock files; tests/conftest.py uses the same one.
+EM_DOMAIN_LOCK_DIR="${TMPDIR:-/tmp}/em_exploration_ros-ros-domains"
+
+# Export the environment in which the venv's ROS 2 works, independent of the caller's shell.
+# A shell that sourced a full ROS 2 install (/opt/ros/...) would otherwise mix its Python
+# packages, libraries and ament prefixes into ours. The venv's ros_wheels_bootstrapper .pth hook
+# re-executes every venv Python once with LD_LIBRARY_PATH pointing at the venv's libraries;
+# clearing its guard variable makes it do so for the processes started from here.
+em_activate() {
+    export VIRTUAL_ENV="$EM_VENV"
+    export PATH="$EM_VENV/bin:$PATH"
+    export AMENT_PREFIX_PATH="$EM_VENV"
+    export CMAKE_PREFIX_PATH="$EM_VENV"
+    export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
+    unset PYTHONPATH PYTHONHOME LD_LIBRARY_PATH COLCON_PREFIX_PATH _ROS_WHEELS_BOOTSTRAP_COMPLETE
+}
+
+# Choose a ROS 2 domain for this run and keep it for the life of this shell and its children.
+#
+# Domains 1..101 (0 is the ROS default and left to other software) are tried in turn, starting
+# at one derived from the PID. A domain is taken by holding an exclusive flock on
+# $EM_DOMAIN_LOCK_DIR/<id>.lock through a file descriptor that stays open in this shell and is
+# inherited by every process started from it, so no two runs on this machine that use this
+# scheme share a domain while either is alive. Discovery is also kept on this host
+# (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST), so runs never see other machines.
+em_pick_ros_domain() {
+    local first offset id fd
+    mkdir -p "$EM_DOMAIN_LOCK_DIR"
+    first=$(( $$ % 101 ))
+    for (( offset = 0; offset < 101; offset++ )); do
+        id=$(( (first + offset) % 101 + 1 ))
+        exec {fd}>"$EM_DOMAIN_LOCK_DIR/$id.lock"
+        if flock --nonblock "$fd"; then
+            export ROS_DOMAIN_ID="$id"
+            export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+            return 0
+        fi
+        exec {fd}>&-
+    done
+    echo "error: all ROS domains 1..101 are held by other runs (locks in $EM_DOMAIN_LOCK_DIR)" >&2
+    return 1
+}
+
+# Print "name==version" (PEP 503 normalised names, sorted) of every distribution that pip
+# installed in the venv $1 (default: the project's venv). Left out: the project's own local or editable install, and the
+# *.egg-info folders that the ROS wheels ship inside site-packages (those are files of other
+# wheels, not installed distributions, and have no INSTALLER record).
+em_pip_freeze() {
+    "${1:-$EM_VENV}/bin/python" - <<'PY'
+import importlib.metadata
+import json
+import re
+
+pins = set()
+for dist in importlib.metadata.distributions():
+    if (dist.read_text("INSTALLER") or "").strip() != "pip":
+        continue
+    direct_url = json.loads(dist.read_text("direct_url.json") or "{}")
+    if "dir_info" in direct_url:
+        continue
+    name = re.sub(r"[-_.]+", "-", dist.metadata["Name"]).lower()
+    pins.add(f"{name}=={dist.version}")
+print("\n".join(sorted(pins)))
+PY
+}
