@@ -7,7 +7,6 @@ from em_exploration_ros.core.map_uncertainty import (CellObservations, VirtualMa
                                                      cell_covariances_from_poses,
                                                      covariance_intersection, inverse_2x2,
                                                      information_to_covariance,
-                                                     information_trace_of_covariance,
                                                      observation_confidence,
                                                      observation_jacobians)
 from em_exploration_ros.core.occupancy_grid import GridGeometry, predicted_observed_mask
@@ -145,25 +144,37 @@ def test_observed_mask_matches_the_occupancy_rule_and_traces_agree() -> None:
     covariances, observed = virtual_map.update(poses, covs)
     np.testing.assert_array_equal(observed, predicted_observed_mask(GEOMETRY, poses, 7.5))
     observations = CellObservations.from_poses(GEOMETRY, poses, SENSORS)
-    information, flat_observed = observations.fused_information(covs, GEOMETRY.rows * GEOMETRY.cols)
-    traces = information_trace_of_covariance(information[flat_observed])
-    np.testing.assert_allclose(traces, virtual_map.traces().ravel()[flat_observed], rtol=1e-10)
+    sums = observations.intersection_sums(covs, GEOMETRY.rows * GEOMETRY.cols)
+    information, flat_observed = sums.information(), sums.observed
+    np.testing.assert_allclose(sums.covariance_traces()[flat_observed],
+                               virtual_map.traces().ravel()[flat_observed], rtol=1e-10)
+    assert np.all(sums.covariance_traces()[~flat_observed] == 0.0)
     np.testing.assert_allclose(
         information_to_covariance(information, flat_observed, 1.2).reshape(covariances.shape),
         covariances)
     assert np.all(np.linalg.eigvalsh(covariances) > 0)
 
 
-def test_concatenated_observations_equal_observations_of_all_poses() -> None:
+def test_split_observations_sum_to_observations_of_all_poses() -> None:
     rng = np.random.default_rng(7)
     poses = np.column_stack([rng.uniform(0, 20, (8, 2)), rng.uniform(-3, 3, 8)])
-    covs = np.broadcast_to(np.diag([0.02, 0.03, 0.001]), (8, 3, 3))
-    joined = CellObservations.from_poses(GEOMETRY, poses[:5], SENSORS, "body").concatenate(
-        CellObservations.from_poses(GEOMETRY, poses[5:], SENSORS, "body"))
-    whole = CellObservations.from_poses(GEOMETRY, poses, SENSORS, "body")
+    roots = rng.normal(scale=0.1, size=(8, 3, 3))
+    covs = roots @ np.swapaxes(roots, 1, 2) + 1e-4 * np.eye(3)
     cells = GEOMETRY.rows * GEOMETRY.cols
-    np.testing.assert_allclose(joined.fused_information(covs, cells)[0],
-                               whole.fused_information(covs, cells)[0], rtol=1e-12)
+    whole = CellObservations.from_poses(GEOMETRY, poses, SENSORS, "body")
+    joined = CellObservations.from_poses(GEOMETRY, poses[:5], SENSORS, "body").concatenate(
+        whole.pose_range(5, 8))
+    summed = (whole.pose_range(0, 5).intersection_sums(covs[:5], cells)
+              + whole.pose_range(5, 8).intersection_sums(covs[5:], cells))
+    expected = whole.fused_information(covs, cells)[0]
+    np.testing.assert_allclose(joined.fused_information(covs, cells)[0], expected, rtol=1e-12)
+    np.testing.assert_allclose(summed.information(), expected, rtol=1e-12)
+    # The linear coefficients reproduce G Sigma G^T + N of the explicit Jacobians.
+    np.testing.assert_allclose(whole.pair_covariances(covs)[whole.pose_index == 2],
+                               cell_covariances_from_poses(GEOMETRY, poses[2:3], covs[2:3],
+                                                           SENSORS, MAP, "body")[0].reshape(
+                                   -1, 2, 2)[whole.flat_cell[whole.pose_index == 2]],
+                               rtol=1e-12)
 
 
 def test_observation_confidence_follows_the_log_odds_update() -> None:

@@ -100,21 +100,95 @@ def _body_to_map_jacobian(headings: FloatArray) -> FloatArray:
     return rotation
 
 
+#: Upper-triangle entries ``(j, k)`` of a 3x3 pose covariance, and of a 2x2 cell covariance.
+_POSE_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_CELL_ENTRIES = ((0, 0), (0, 1), (1, 1))
+
+
+def _pose_entries(covariances: FloatArray) -> FloatArray:
+    """Upper-triangle entries ``(K, 6)`` of symmetric 3x3 matrices ``(K, 3, 3)``."""
+    rows, cols = zip(*_POSE_ENTRIES)
+    return covariances[:, rows, cols]
+
+
+def _cell_matrices(entries: FloatArray) -> FloatArray:
+    """Symmetric 2x2 matrices ``(..., 2, 2)`` from their entries ``(..., 3)`` (xx, xy, yy)."""
+    xx, xy, yy = entries[..., 0], entries[..., 1], entries[..., 2]
+    return np.stack([np.stack([xx, xy], axis=-1), np.stack([xy, yy], axis=-1)], axis=-2)
+
+
+@dataclass(frozen=True)
+class CovarianceIntersectionSums:
+    """Per-cell accumulators of covariance intersection: the total weight ``(C,)`` and the
+    weighted information entries ``(C, 3)`` (xx, xy, yy) [1/m^2]. Sums over disjoint sets
+    of observations add up; the fused information is their ratio."""
+
+    weight: FloatArray
+    weighted_information: FloatArray
+
+    def __add__(self, other: "CovarianceIntersectionSums") -> "CovarianceIntersectionSums":
+        return CovarianceIntersectionSums(self.weight + other.weight,
+                                          self.weighted_information + other.weighted_information)
+
+    @property
+    def observed(self) -> NDArray[np.bool_]:
+        """Cells ``(C,)`` with at least one observation."""
+        return self.weight > 0.0
+
+    def information_entries(self) -> FloatArray:
+        """Fused information entries ``(C, 3)`` (xx, xy, yy), zero for unobserved cells."""
+        scale = np.divide(1.0, self.weight, out=np.zeros_like(self.weight),
+                          where=self.observed)
+        return self.weighted_information * scale[:, None]
+
+    def information(self) -> FloatArray:
+        """Fused information ``(C, 2, 2)`` [1/m^2], zero for unobserved cells."""
+        return _cell_matrices(self.information_entries())
+
+    def covariance_traces(self) -> FloatArray:
+        """``trace(Sigma)`` [m^2] of the fused covariance of each cell ``(C,)`` (A-optimality);
+        0 for unobserved cells."""
+        info = self.information_entries()
+        det = info[:, 0] * info[:, 2] - info[:, 1] ** 2
+        observed = self.observed
+        return np.divide(info[:, 0] + info[:, 2], det, out=np.zeros_like(det), where=observed)
+
+
+def _intersection_sums(cell_index: IntArray, entries: FloatArray,
+                       num_cells: int) -> CovarianceIntersectionSums:
+    """Covariance-intersection sums of 2x2 covariances given by entries ``(P, 3)``, with
+    weights ``det(Sigma)^-1 = det(I)`` (information-proportional)."""
+    xx, xy, yy = entries[:, 0], entries[:, 1], entries[:, 2]
+    weight = 1.0 / (xx * yy - xy * xy)
+    # weight * information = weight * adj(Sigma) / det(Sigma) = adj(Sigma) * weight^2
+    factor = weight * weight
+
+    def cell_sum(value: FloatArray) -> FloatArray:
+        return np.bincount(cell_index, weights=value, minlength=num_cells).astype(float)
+
+    return CovarianceIntersectionSums(
+        cell_sum(weight),
+        np.stack([cell_sum(factor * yy), cell_sum(-factor * xy), cell_sum(factor * xx)],
+                 axis=-1))
+
+
 @dataclass(frozen=True)
 class CellObservations:
     """Pose-independent part of the (pose, cell) observations of a set of poses.
 
     For pair ``p`` (pose ``pose_index[p]`` observing cell ``flat_cell[p]``, flat index
     ``row * cols + col``) the virtual landmark covariance is
-    ``jacobian[p] @ Sigma_x @ jacobian[p].T + noise[p]`` with ``jacobian = Hl^+ Hx``
-    (2x3, in the pose covariance frame chosen at construction) and
-    ``noise = Hl^+ R Hl^+^T`` (2x2, [m^2]). Built once per set of poses so that many pose
-    covariance hypotheses (EM candidates) are evaluated with array algebra only.
+    ``G Sigma_x G^T + Hl^+ R Hl^+^T`` with ``G = Hl^+ Hx`` (2x3, in the pose covariance
+    frame chosen at construction). It is stored linearly in the pose covariance entries:
+    ``coefficients`` ``(P, 3, 6)`` maps the 6 upper-triangle entries of ``Sigma_x`` to the 3
+    entries (xx, xy, yy) of the cell covariance, ``noise`` ``(P, 3)`` holds those of
+    ``Hl^+ R Hl^+^T`` [m^2]. Built once per set of poses, so that many pose covariance
+    hypotheses (EM candidates) are evaluated with array algebra only.
     """
 
     pose_index: IntArray
     flat_cell: IntArray
-    jacobian: FloatArray
+    coefficients: FloatArray
     noise: FloatArray
     num_poses: int
 
@@ -138,10 +212,18 @@ class CellObservations:
         jacobian = hl_inverse @ hx
         if covariance_frame == "body":
             jacobian = jacobian @ _body_to_map_jacobian(pair_poses[:, 2])
+        coefficients = np.empty((len(pose_index), 3, 6))
+        for q, (a, b) in enumerate(_CELL_ENTRIES):
+            for u, (j, k) in enumerate(_POSE_ENTRIES):
+                term = jacobian[:, a, j] * jacobian[:, b, k]
+                if j != k:
+                    term = term + jacobian[:, a, k] * jacobian[:, b, j]
+                coefficients[:, q, u] = term
         variances = np.array([sensor_params.sonar_bearing_sigma_rad ** 2,
                               sensor_params.sonar_range_sigma_m ** 2])
         noise = (hl_inverse * variances[None, None, :]) @ np.swapaxes(hl_inverse, -1, -2)
-        return cls(pose_index, flat_cell, jacobian, noise, len(poses))
+        return cls(pose_index, flat_cell, coefficients,
+                   noise[:, [0, 0, 1], [0, 1, 1]], len(poses))
 
     def concatenate(self, other: "CellObservations") -> "CellObservations":
         """Observations of this pose set followed by ``other``'s (its poses renumbered after
@@ -149,24 +231,40 @@ class CellObservations:
         return CellObservations(
             np.concatenate([self.pose_index, other.pose_index + self.num_poses]),
             np.concatenate([self.flat_cell, other.flat_cell]),
-            np.concatenate([self.jacobian, other.jacobian]),
+            np.concatenate([self.coefficients, other.coefficients]),
             np.concatenate([self.noise, other.noise]),
             self.num_poses + other.num_poses)
+
+    def pose_range(self, start: int, stop: int) -> "CellObservations":
+        """The observations of poses ``start <= index < stop``, renumbered from 0."""
+        first, last = np.searchsorted(self.pose_index, [start, stop])
+        return CellObservations(self.pose_index[first:last] - start, self.flat_cell[first:last],
+                                self.coefficients[first:last], self.noise[first:last],
+                                stop - start)
+
+    def _pair_entries(self, pose_covariances: ArrayLike) -> FloatArray:
+        """Cell covariance entries ``(P, 3)`` (xx, xy, yy) [m^2] of every pair."""
+        entries = _pose_entries(np.asarray(pose_covariances, dtype=float).reshape(-1, 3, 3))
+        spread = self.coefficients @ entries[self.pose_index][:, :, None]
+        return spread[:, :, 0] + self.noise
 
     def pair_covariances(self, pose_covariances: ArrayLike) -> FloatArray:
         """Virtual landmark covariance ``(P, 2, 2)`` [m^2] of every pair, given the pose
         covariances ``(num_poses, 3, 3)`` in the frame chosen at construction."""
-        pose_covariances = np.asarray(pose_covariances, dtype=float).reshape(-1, 3, 3)
-        jacobian = self.jacobian
-        spread = jacobian @ pose_covariances[self.pose_index] @ np.swapaxes(jacobian, -1, -2)
-        return spread + self.noise
+        return _cell_matrices(self._pair_entries(pose_covariances))
+
+    def intersection_sums(self, pose_covariances: ArrayLike,
+                          num_cells: int) -> CovarianceIntersectionSums:
+        """Covariance-intersection accumulators ``(num_cells,)`` of these observations."""
+        return _intersection_sums(self.flat_cell, self._pair_entries(pose_covariances),
+                                  num_cells)
 
     def fused_information(self, pose_covariances: ArrayLike,
                           num_cells: int) -> tuple[FloatArray, NDArray[np.bool_]]:
         """Covariance-intersection information ``(num_cells, 2, 2)`` [1/m^2] of every cell
         and the mask ``(num_cells,)`` of observed cells (unobserved rows are zero)."""
-        return covariance_intersection(self.flat_cell, self.pair_covariances(pose_covariances),
-                                       num_cells)
+        sums = self.intersection_sums(pose_covariances, num_cells)
+        return sums.information(), sums.observed
 
 
 def covariance_intersection(cell_index: ArrayLike, covariances: ArrayLike,
@@ -177,21 +275,10 @@ def covariance_intersection(cell_index: ArrayLike, covariances: ArrayLike,
     Returns ``(information (num_cells, 2, 2), observed (num_cells,))``; the information of
     a cell without input is zero and its ``observed`` flag False.
     """
-    cell_index = np.asarray(cell_index, dtype=np.int64)
-    information, det = inverse_2x2(covariances)
-    weight = 1.0 / det
-    total = np.bincount(cell_index, weights=weight, minlength=num_cells)
-    observed = total > 0.0
-    scale = np.divide(1.0, total, out=np.zeros(num_cells), where=observed)
-
-    def weighted_sum(entry: FloatArray) -> FloatArray:
-        return np.bincount(cell_index, weights=weight * entry, minlength=num_cells) * scale
-
-    xx = weighted_sum(information[:, 0, 0])
-    xy = weighted_sum(information[:, 0, 1])
-    yy = weighted_sum(information[:, 1, 1])
-    fused = np.stack([np.stack([xx, xy], axis=-1), np.stack([xy, yy], axis=-1)], axis=-2)
-    return fused, observed
+    covariances = np.asarray(covariances, dtype=float)
+    entries = covariances[:, [0, 0, 1], [0, 1, 1]]
+    sums = _intersection_sums(np.asarray(cell_index, dtype=np.int64), entries, num_cells)
+    return sums.information(), sums.observed
 
 
 def information_to_covariance(information: ArrayLike, observed: ArrayLike,
@@ -204,13 +291,6 @@ def information_to_covariance(information: ArrayLike, observed: ArrayLike,
     safe = np.where(observed[..., None, None], information, np.eye(2))
     covariance, _ = inverse_2x2(safe)
     return np.where(observed[..., None, None], covariance, prior)
-
-
-def information_trace_of_covariance(information: ArrayLike) -> FloatArray:
-    """``trace(I^-1)`` [m^2] of 2x2 information matrices ``(..., 2, 2)`` (A-optimality)."""
-    information = np.asarray(information, dtype=float)
-    _, det = inverse_2x2(information)
-    return (information[..., 0, 0] + information[..., 1, 1]) / det
 
 
 def cell_covariances_from_poses(geometry: GridGeometry, poses: ArrayLike,

@@ -1,0 +1,225 @@
+"""Algorithm 1 (EM step): virtual paths and measurements, and the fast low-rank
+propagation against the direct re-solve oracle."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from em_exploration_ros.core.geometry import between, range_bearing
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.sensors import (LandmarkReading, OdometryReading, TeammateReading,
+                                             odometry_covariance_per_step)
+from em_exploration_ros.core.slam import (KeyframeMeasurements, OdometryAccumulator,
+                                          TeamSlam, pose_key)
+from em_exploration_ros.core.uncertainty_propagation import (DecisionFactorization,
+                                                             ScenarioBuilder, TeamSnapshot,
+                                                             VirtualNoise, propagate_oracle,
+                                                             virtual_waypoints)
+
+PARAMS = ExplorationParams()
+#: Block-relative agreement required between the fast path and the oracle. Both solve
+#: the same linear problem; the 1e-6 rad prior of the gauge limits either to ~1e-10.
+ORACLE_TOLERANCE = 1e-9
+
+
+def straight(start: tuple[float, float, float], count: int, step: float = 2.0,
+             turn: float = 0.0) -> np.ndarray:
+    """``count`` keyframe poses (K, 3) driving ``step`` metres per keyframe, turning
+    ``turn`` radians before each step."""
+    poses = [np.array(start, dtype=float)]
+    for _ in range(count - 1):
+        pose = poses[-1].copy()
+        pose[2] += turn
+        pose[:2] += step * np.array([np.cos(pose[2]), np.sin(pose[2])])
+        poses.append(pose)
+    return np.array(poses)
+
+
+def team_slam(trajectories: list[np.ndarray], landmarks: dict[int, np.ndarray],
+              odometry_sigmas: tuple[float, float, float] = (0.05, 0.05, 0.01),
+              meetings: tuple[int, ...] = (), robot_id: int = 0,
+              params: ExplorationParams = PARAMS) -> TeamSlam:
+    """A TeamSlam fed with exact measurements of scripted simultaneous trajectories.
+
+    Landmarks within sonar range are read at every keyframe; teammates within range read
+    each other at keyframe 0 (initialisation) and at the keyframe indices in ``meetings``.
+    Odometry carries the given per-keyframe sigmas, so the uncertainty grows along paths.
+    """
+    sensors = params.sensors
+    slam = TeamSlam(robot_id, len(trajectories), params.slam, trajectories[0][0])
+    odometry_covariance = np.diag(np.square(odometry_sigmas))
+    teammate_covariance = np.diag([(sensors.robot_obs_xy_bound_m / 1.96) ** 2] * 2
+                                  + [(sensors.robot_obs_theta_bound_rad / 1.96) ** 2])
+    ids = sorted(landmarks)
+    points = np.array([landmarks[i] for i in ids]).reshape(-1, 2)
+    for robot, poses in enumerate(trajectories):
+        for index, pose in enumerate(poses):
+            distance, bearing = range_bearing(pose, points)
+            readings = tuple(
+                LandmarkReading(ids[j], float(distance[j]), float(bearing[j]),
+                                sensors.sonar_range_sigma_m ** 2,
+                                sensors.sonar_bearing_sigma_rad ** 2)
+                for j in np.flatnonzero(distance <= sensors.sonar_max_range_m))
+            mates = tuple(
+                TeammateReading(other, between(pose, others[index]), teammate_covariance)
+                for other, others in enumerate(trajectories)
+                if other != robot and index < len(others) and (index == 0 or index in meetings)
+                and np.hypot(*(others[index][:2] - pose[:2])) <= sensors.sonar_max_range_m)
+            slam.add_keyframe(KeyframeMeasurements(
+                robot, index, float(index), index == 0, index - 1,
+                np.zeros(3) if index == 0 else between(poses[index - 1], pose),
+                np.zeros((3, 3)) if index == 0 else odometry_covariance, readings, mates))
+    slam.update()
+    return slam
+
+
+def _block_error(fast: np.ndarray, oracle: np.ndarray) -> float:
+    """Largest relative (Frobenius) difference between corresponding 3x3 blocks."""
+    if len(oracle) == 0:
+        return 0.0
+    return float(np.max(np.linalg.norm(fast - oracle, axis=(1, 2))
+                        / np.linalg.norm(oracle, axis=(1, 2))))
+
+
+@pytest.fixture(scope="module")
+def team() -> dict:
+    """Three robots leaving x = 10 m eastwards; robot 0 saw landmark 0 at the start and
+    drove 48 m straight on; robot 1 curves north, robot 2 south."""
+    trajectories = [straight((10.0, 50.0, 0.0), 25), straight((10.0, 53.0, 0.0), 25, turn=0.06),
+                    straight((10.0, 47.0, 0.0), 25, turn=-0.06)]
+    landmarks = {0: np.array([14.0, 55.0]), 1: np.array([40.0, 75.0]),
+                 2: np.array([60.0, 50.0])}
+    slam = team_slam(trajectories, landmarks)
+    snapshot = TeamSnapshot.from_slam(slam, 0)
+    noise = VirtualNoise(slam.noise, PARAMS.sensors, PARAMS.motion)
+    targets = {1: trajectories[1][-1][:2] + np.array([5.0, 8.0]),
+               2: trajectories[2][-1][:2] + np.array([10.0, -5.0])}
+    builder = ScenarioBuilder(snapshot, targets, noise, 2.0, PARAMS.sensors.sonar_max_range_m)
+    return dict(slam=slam, snapshot=snapshot, builder=builder, targets=targets,
+                trajectories=trajectories)
+
+
+def test_virtual_waypoints_are_evenly_spaced_and_end_at_the_target() -> None:
+    waypoints = virtual_waypoints([0.0, 0.0, 1.0], [5.0, 0.0], 2.0)
+    np.testing.assert_allclose(waypoints, [[5 / 3, 0, 0], [10 / 3, 0, 0], [5, 0, 0]], atol=1e-12)
+    diagonal = virtual_waypoints([1.0, 1.0, 0.0], [7.0, 9.0], 2.0)
+    assert len(diagonal) == 5
+    np.testing.assert_allclose(diagonal[-1, :2], [7.0, 9.0])
+    np.testing.assert_allclose(diagonal[:, 2], np.arctan2(8.0, 6.0))
+    assert virtual_waypoints([1.0, 1.0, 0.0], None, 2.0).shape == (0, 3)
+    assert virtual_waypoints([1.0, 1.0, 0.0], [1.0, 1.0], 2.0).shape == (0, 3)
+
+
+def test_virtual_odometry_noise_matches_the_slam_keyframe_model() -> None:
+    slam = TeamSlam(0, 1, PARAMS.slam, np.zeros(3))
+    noise = VirtualNoise(slam.noise, PARAMS.sensors, PARAMS.motion)
+    accumulator = OdometryAccumulator()
+    step = PARAMS.motion.speed_mps * PARAMS.motion.time_step_s
+    for _ in range(10):
+        accumulator.add(OdometryReading(np.array([step, 0.0, 0.0]),
+                                        odometry_covariance_per_step(step, False, PARAMS.sensors)))
+    delta, covariance = accumulator.take()
+    root = noise.odometry(delta)
+    expected = slam.noise.odometry(delta, covariance).information()
+    np.testing.assert_allclose(root.T @ root, expected, rtol=1e-10)
+    # Twice the distance: twice the heading variance at least (errors accumulate).
+    longer = noise.odometry(np.array([2 * delta[0], 0.0, 0.0]))
+    assert np.linalg.inv(longer.T @ longer)[2, 2] > 1.9 * np.linalg.inv(root.T @ root)[2, 2]
+
+
+def test_scenario_paths_measurements_and_keys(team: dict) -> None:
+    builder, snapshot, targets = team["builder"], team["snapshot"], team["targets"]
+    # Back west to landmark 0, seen at the start: a landmark loop closure.
+    scenario = builder.build(np.array([20.0, 55.0]))
+    own = scenario.next
+    assert np.all(own.waypoint_robots == 0)
+    np.testing.assert_allclose(own.waypoints[-1, :2], [20.0, 55.0])
+    assert own.waypoint_keys[0] == pose_key(0, 25)
+    assert np.all(np.diff(own.waypoint_keys) == 1)
+    assert len(own.odometry.key1) == len(own.waypoint_keys)
+    assert own.odometry.key1[0] == snapshot.start_keys[0]
+    seen = own.landmark_observations
+    assert set(seen.landmark_key.tolist()) == {snapshot.landmark_keys[0], snapshot.landmark_keys[2]}
+    distance = np.hypot(*(seen.point - seen.pose[:, :2]).T)
+    assert np.all(distance <= 7.5)
+    np.testing.assert_allclose(seen.range, distance)
+    predicted = scenario.predicted
+    for robot in (1, 2):
+        path = predicted.waypoints[predicted.waypoint_robots == robot]
+        np.testing.assert_allclose(path[-1, :2], targets[robot])
+    assert snapshot.start_keys[0] in scenario.boundary_keys
+    assert len(own.robot_observations.key1) == 0
+
+
+def test_rendezvous_candidate_creates_inter_robot_readings(team: dict) -> None:
+    builder, targets = team["builder"], team["targets"]
+    scenario = builder.build(targets[1])
+    readings = scenario.next.robot_observations
+    assert len(readings.key1) > 0
+    last_alpha = scenario.next.waypoint_keys[-1]
+    last_partner = scenario.predicted.waypoint_keys[scenario.predicted.waypoint_robots == 1][-1]
+    assert (last_alpha, last_partner) in set(zip(readings.key1.tolist(), readings.key2.tolist()))
+    assert last_partner in scenario.boundary_keys
+    np.testing.assert_allclose(readings.sqrt_information[0],
+                               np.diag(1 / np.array(PARAMS.slam.virtual_robot_obs_sigmas)))
+
+
+@pytest.mark.parametrize("with_history,with_predicted", [(True, False), (False, True)])
+def test_fast_path_equals_the_oracle(team: dict, with_history: bool,
+                                     with_predicted: bool) -> None:
+    builder, snapshot = team["builder"], team["snapshot"]
+    candidates = [np.array([20.0, 55.0]),            # landmark loop closure
+                  team["targets"][1],                 # rendezvous with robot 1
+                  np.array([65.0, 44.0]),             # exploration past landmark 2
+                  team["trajectories"][0][-1][:2]]    # stay: no own waypoint
+    scenarios = [builder.build(c) for c in candidates]
+    boundary = sorted(set().union(*(s.boundary_keys for s in scenarios)))
+    factorization = DecisionFactorization(snapshot, builder.predicted, boundary,
+                                          with_history, with_predicted)
+    for scenario in scenarios:
+        fast = factorization.propagate(scenario)
+        oracle = propagate_oracle(snapshot, scenario)
+        assert _block_error(fast.next_covariances, oracle.next_covariances) < ORACLE_TOLERANCE
+        if with_history:
+            assert _block_error(fast.history_covariances,
+                                oracle.history_covariances) < ORACLE_TOLERANCE
+        else:
+            assert fast.history_covariances.shape == (0, 3, 3)
+        if with_predicted:
+            assert _block_error(fast.predicted_covariances,
+                                oracle.predicted_covariances) < ORACLE_TOLERANCE
+
+
+def test_loop_closure_shrinks_the_history_and_exploration_does_not(team: dict) -> None:
+    builder, snapshot = team["builder"], team["snapshot"]
+    revisit = builder.build(np.array([20.0, 55.0]))
+    explore = builder.build(np.array([62.0, 38.0]))
+    boundary = sorted(set(revisit.boundary_keys) | set(explore.boundary_keys))
+    factorization = DecisionFactorization(snapshot, builder.predicted, boundary)
+    before = factorization.tracked_covariances
+    after_revisit = factorization.propagate(revisit).history_covariances
+    after_explore = factorization.propagate(explore).history_covariances
+    # One landmark leaves the rotation about it free, so the closure removes about a
+    # quarter of the latest pose's uncertainty here; exploring removes nothing.
+    latest = -1
+    assert np.trace(after_revisit[latest]) < 0.8 * np.trace(before[latest])
+    assert np.trace(after_explore[latest]) > 0.99 * np.trace(before[latest])
+    assert np.sum(np.trace(after_revisit, axis1=1, axis2=2)) < 0.9 * np.sum(
+        np.trace(before, axis1=1, axis2=2))
+    # Measurements only add information: no covariance grows.
+    for after in (after_revisit, after_explore):
+        assert np.all(np.linalg.eigvalsh(before - after) > -1e-12)
+    # The means do not move: virtual readings equal their predictions.
+    reading = revisit.next.landmark_observations
+    distance, bearing = range_bearing(reading.pose, reading.point)
+    np.testing.assert_allclose(reading.range, distance)
+    np.testing.assert_allclose(reading.bearing, bearing)
+
+
+def test_boundary_must_cover_the_scenario(team: dict) -> None:
+    builder, snapshot = team["builder"], team["snapshot"]
+    scenario = builder.build(np.array([20.0, 55.0]))
+    factorization = DecisionFactorization(snapshot, builder.predicted,
+                                          [snapshot.start_keys[0]])
+    with pytest.raises(ValueError, match="outside the boundary"):
+        factorization.propagate(scenario)
