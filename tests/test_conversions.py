@@ -1,0 +1,110 @@
+"""Message conversions, without a running graph: values survive the wire bit for bit."""
+import numpy as np
+import pytest
+from em_exploration_msgs.msg import TeamUpdate as TeamUpdateMsg
+from rclpy.serialization import deserialize_message, serialize_message
+
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.team_data import InvalidTeamUpdate, LandmarkEstimate
+from em_exploration_ros.core.team_runner import TeamRunner, step_input
+from em_exploration_ros.core.wire_model import sim_time_s, twist_to_increment_covariance
+from em_exploration_ros.nodes import conversions as conv
+
+PARAMS = ExplorationParams().replace(world={"width_m": 50.0, "height_m": 50.0,
+                                            "num_landmarks": 5},
+                                     planner={"name": "NF"}, run={"seed": 4})
+
+
+def through_dds(message):
+    """The message as a subscriber receives it (CDR round trip)."""
+    return deserialize_message(serialize_message(message), type(message))
+
+
+@pytest.fixture(scope="module")
+def running_team() -> TeamRunner:
+    runner = TeamRunner(PARAMS)
+    for _ in range(120):
+        runner.step_once()
+    return runner
+
+
+def test_sensor_frame_over_the_wire_equals_em_sim_input(running_team):
+    dt = PARAMS.motion.time_step_s
+    for robot in range(PARAMS.world.num_robots):
+        frame = running_team.simulation.sense(robot)
+        scan = through_dds(conv.sonar_scan_to_msg(frame, 7.5, [3, 0, 5]))
+        odom = through_dds(conv.dead_reckoning_to_msg(frame))
+        expected = step_input(frame, dt)
+        assert scan.step == expected.step and list(scan.team_sequences) == [3, 0, 5]
+        assert conv.time_to_seconds(scan.header.stamp) == expected.stamp_s == sim_time_s(
+            frame.step, dt)
+        assert np.array_equal(conv.odometry_pose(odom), expected.odom_pose)
+        assert np.array_equal(twist_to_increment_covariance(conv.odometry_twist_covariance(odom),
+                                                            dt),
+                              expected.odom_increment_covariance)
+        assert tuple(conv.landmark_reading_from_msg(r) for r in scan.landmarks) == \
+            expected.landmarks
+        for got, want in zip((conv.teammate_reading_from_msg(r) for r in scan.teammates),
+                             expected.teammates):
+            assert got.robot_id == want.robot_id
+            assert np.array_equal(got.relative_pose, want.relative_pose)
+            assert np.array_equal(got.covariance, want.covariance)
+        assert scan.header.frame_id == f"robot_{robot}/base_link"
+        assert (odom.header.frame_id, odom.child_frame_id) == (f"robot_{robot}/odom",
+                                                               f"robot_{robot}/base_link")
+
+
+def _assert_same_update(a, b):
+    assert (a.robot_id, a.sequence, a.stamp_s) == (b.robot_id, b.sequence, b.stamp_s)
+    assert len(a.keyframes) == len(b.keyframes)
+    for x, y in zip(a.keyframes, b.keyframes):
+        mx, my = x.measurements, y.measurements
+        assert (mx.robot_id, mx.index, mx.stamp_s, mx.is_first, mx.previous_index) == \
+            (my.robot_id, my.index, my.stamp_s, my.is_first, my.previous_index)
+        for name in ("odom_delta", "odom_covariance"):
+            assert np.array_equal(getattr(mx, name), getattr(my, name))
+        assert mx.landmarks == my.landmarks
+        assert np.array_equal(x.estimate, y.estimate)
+        assert np.array_equal(x.estimate_covariance, y.estimate_covariance)
+    for x, y in zip(a.targets, b.targets):
+        assert (x.robot_id, x.decision_index, x.stamp_s, x.kind, x.partner_id, x.utility,
+                x.planning_time_s) == (y.robot_id, y.decision_index, y.stamp_s, y.kind,
+                                       y.partner_id, y.utility, y.planning_time_s)
+        assert np.array_equal(x.position, y.position)
+    for x, y in zip(a.landmarks, b.landmarks):
+        assert x.landmark_id == y.landmark_id and np.array_equal(x.position, y.position)
+
+
+def test_team_updates_survive_the_wire(running_team):
+    agent = running_team.agents[1]
+    sent = agent.outbox.resend(1, 0)
+    assert len(sent) > 5 and any(u.targets for u in sent)
+    for update in sent:
+        message = through_dds(conv.team_update_to_msg(update))
+        assert message.header.frame_id == "map"
+        _assert_same_update(conv.team_update_from_msg(message), update)
+
+
+def test_malformed_team_update_messages_are_rejected():
+    message = TeamUpdateMsg(robot_id=1, sequence=1)
+    message.targets.append(conv.em_msg.TargetRecord(frontier_type=9))
+    with pytest.raises(InvalidTeamUpdate, match="frontier type"):
+        conv.team_update_from_msg(message)
+    message = TeamUpdateMsg(robot_id=1, sequence=1)
+    message.rendezvous.append(conv.em_msg.Rendezvous(state=7))
+    with pytest.raises(InvalidTeamUpdate, match="rendezvous state"):
+        conv.team_update_from_msg(message)
+
+
+def test_path_and_landmarks_round_trip(running_team):
+    indices, poses = running_team.agents[0].slam.trajectory(0)
+    stamps = np.array([sim_time_s(int(i) * 10, 0.2) for i in indices])
+    got_stamps, got_poses = conv.path_from_msg(through_dds(conv.path_to_msg(9.0, stamps, poses)))
+    assert np.array_equal(got_stamps, stamps)
+    np.testing.assert_allclose(got_poses, poses, atol=1e-12)
+    estimates = running_team.agents[0].slam.landmark_estimates()
+    array = conv.landmark_array_to_msg(1.0, "map", [LandmarkEstimate(k, v, np.eye(2))
+                                                    for k, v in estimates.items()], 1.0)
+    got = conv.landmark_positions_from_msg(through_dds(array))
+    assert got.keys() == estimates.keys()
+    assert all(np.array_equal(got[k], estimates[k]) for k in got)
