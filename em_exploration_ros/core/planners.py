@@ -1,0 +1,307 @@
+"""Target selection: the utilities U_M, U_T, U_D and the planners EM_2, EM_3, CE, BSP, NF.
+
+All positions are in the team ``map`` frame [m]. For a candidate target ``a`` of the
+deciding robot alpha (every utility is a cost: lower is better):
+
+* ``U_D``: Euclidean distance from alpha's pose to ``a`` [m], plus the waiting penalty of
+  a rendezvous candidate.
+* ``U_T`` (task allocation): ``sum h(|a - a_beta|)`` over the last
+  ``allocation_history`` targets ``a_beta`` of every teammate, ``h(d) = 1 - d / d_max``
+  below ``d_max`` and 0 beyond (unitless).
+* ``U_M`` (Algorithm 2, EM): the sum of ``trace(Sigma_v)`` [m^2] over the cells of the
+  predicted local virtual map of alpha, built from alpha's optimized historical and new
+  poses ``X_new_alpha*`` (Algorithm 1, :mod:`uncertainty_propagation`), counting only the
+  cells whose probability of being observed exceeds ``q_min`` both in that local map and
+  in the current inter-robot map (the team occupancy grid). ``utility_variant =
+  'reference'`` sums over all cells instead (never-observed cells add the prior trace,
+  2.88) and uses the reference implementation's weights (below).
+* ``U_M_bsp`` (BSP): ``sum trace(sqrt(Sigma_x))`` over all robots' predicted waypoints
+  ``X_predict* U X_next*`` (matrix square root; units mix m and rad as in the paper).
+
+Planners (``PlannerParams``): EM_2 ``1 U_M + 0 U_T + 10 U_D``; EM_3 ``1 U_M + 20 (1 - r)
+U_T + 10 U_D`` (``r``: explored ratio); CE ``1 U_D + 10 U_T``; BSP ``5 U_D + 1 U_M_bsp``;
+NF: the nearest exploration frontier. Reference EM weights: ``U_M + 100 max(1 - r, 0) U_T
++ 10 r U_D`` (``U_T`` weight kept 0 for EM_2).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Mapping, Protocol, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from em_exploration_ros.core.frontiers import Frontier, FrontierType
+from em_exploration_ros.core.map_uncertainty import CellObservations, observation_confidence
+from em_exploration_ros.core.occupancy_grid import OccupancyGrid
+from em_exploration_ros.core.params import ExplorationParams, PlannerParams
+from em_exploration_ros.core.slam import TeamSlam
+from em_exploration_ros.core.uncertainty_propagation import (DecisionFactorization,
+                                                             ScenarioBuilder, TeamSnapshot,
+                                                             VirtualNoise, VirtualScenario)
+
+FloatArray = NDArray[np.float64]
+
+_LOG = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PlanningContext:
+    """Everything a planner may use for one decision of robot ``robot_id``.
+
+    ``robot_pose``: (3,) current map-frame pose; ``teammates``: ``{id: (position (2,),
+    current target (2,) or None)}``; ``target_history``: ``{robot id: targets (2,) in
+    chronological order}`` (alpha's own entry is ignored); ``explored_ratio`` in [0, 1].
+    """
+
+    robot_id: int
+    slam: TeamSlam
+    grid: OccupancyGrid
+    candidates: Sequence[Frontier]
+    robot_pose: np.ndarray
+    teammates: Mapping[int, tuple[np.ndarray, np.ndarray | None]]
+    target_history: Mapping[int, Sequence[np.ndarray]]
+    explored_ratio: float
+
+
+@dataclass(frozen=True)
+class CandidateUtility:
+    """Utility terms of one candidate; ``nan`` for a term the planner does not use."""
+
+    frontier: Frontier
+    u_m: float
+    u_t: float
+    u_d: float
+    total: float
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The chosen target, every candidate's utilities (candidate order) and the wall time
+    of the decision [s]."""
+
+    target: Frontier
+    utilities: list[CandidateUtility]
+    elapsed_s: float
+
+
+class Planner(Protocol):
+    """A target-selection rule."""
+
+    name: str
+
+    def choose(self, context: PlanningContext) -> Decision:
+        """Choose among ``context.candidates`` (at least one)."""
+
+
+def distance_utility(robot_xy: np.ndarray, candidates: Sequence[Frontier]) -> FloatArray:
+    """``U_D`` (C,) [m]: distance to each candidate plus its rendezvous waiting penalty."""
+    positions = np.array([c.position for c in candidates]).reshape(-1, 2)
+    penalty = np.array([c.waiting_penalty_m for c in candidates])
+    return np.linalg.norm(positions - np.asarray(robot_xy, dtype=float)[:2], axis=1) + penalty
+
+
+def allocation_utility(candidate_xy: np.ndarray, teammate_targets: np.ndarray,
+                       d_max_m: float) -> FloatArray:
+    """``U_T`` (C,): ``sum_j h(|a - a_j|)`` over teammate targets (T, 2) for candidates (C, 2)."""
+    candidate_xy = np.asarray(candidate_xy, dtype=float).reshape(-1, 2)
+    teammate_targets = np.asarray(teammate_targets, dtype=float).reshape(-1, 2)
+    distance = np.linalg.norm(candidate_xy[:, None, :] - teammate_targets[None, :, :], axis=2)
+    return np.sum(np.clip(1.0 - distance / d_max_m, 0.0, None), axis=1)
+
+
+def trace_sqrt_sum(covariances: np.ndarray) -> float:
+    """``sum_i trace(sqrt(Sigma_i))`` of symmetric PSD matrices ``(N, d, d)``: the sum of
+    the square roots of their eigenvalues (negative round-off clipped to 0)."""
+    covariances = np.asarray(covariances, dtype=float)
+    if covariances.size == 0:
+        return 0.0
+    return float(np.sum(np.sqrt(np.clip(np.linalg.eigvalsh(covariances), 0.0, None))))
+
+
+def _recent_teammate_targets(context: PlanningContext, count: int) -> np.ndarray:
+    """The last ``count`` targets (T, 2) of every teammate."""
+    targets = [np.asarray(t, dtype=float)[:2]
+               for robot, history in context.target_history.items()
+               if robot != context.robot_id and count > 0
+               for t in list(history)[-count:]]
+    return np.array(targets).reshape(-1, 2)
+
+
+def _utility_terms(context: PlanningContext,
+                   params: PlannerParams) -> tuple[np.ndarray, FloatArray, FloatArray]:
+    """Candidate positions (C, 2), ``U_T`` (C,) and ``U_D`` (C,)."""
+    positions = np.array([c.position for c in context.candidates]).reshape(-1, 2)
+    u_t = allocation_utility(positions, _recent_teammate_targets(context, params.allocation_history),
+                             params.allocation_d_max_m)
+    return positions, u_t, distance_utility(context.robot_pose, context.candidates)
+
+
+def _decide(context: PlanningContext, u_m: FloatArray, u_t: FloatArray, u_d: FloatArray,
+            total: FloatArray, started: float) -> Decision:
+    """The argmin of ``total`` (first candidate on ties) with every candidate's terms."""
+    if len(context.candidates) == 0:
+        raise ValueError("no candidate target to choose from")
+    utilities = [CandidateUtility(c, float(m), float(t), float(d), float(s))
+                 for c, m, t, d, s in zip(context.candidates, u_m, u_t, u_d, total)]
+    best = int(np.argmin(total))
+    return Decision(context.candidates[best], utilities, time.perf_counter() - started)
+
+
+class NearestFrontierPlanner:
+    """NF: the nearest exploration candidate (the nearest candidate if there is none)."""
+
+    name = "NF"
+
+    def choose(self, context: PlanningContext) -> Decision:
+        started = time.perf_counter()
+        u_d = distance_utility(context.robot_pose, context.candidates)
+        exploring = np.array([c.kind == FrontierType.EXPLORATION for c in context.candidates])
+        total = np.where(exploring, u_d, np.inf) if exploring.any() else u_d
+        nan = np.full(len(u_d), np.nan)
+        return _decide(context, nan, nan, u_d, total, started)
+
+
+class CoordinatedPlanner:
+    """CE (Burgard et al.): ``lambda_0 U_D + lambda_1 U_T``."""
+
+    name = "CE"
+
+    def __init__(self, params: PlannerParams) -> None:
+        self.params = params
+
+    def choose(self, context: PlanningContext) -> Decision:
+        started = time.perf_counter()
+        _, u_t, u_d = _utility_terms(context, self.params)
+        weight_d, weight_t = self.params.ce_lambdas
+        return _decide(context, np.full(len(u_d), np.nan), u_t, u_d,
+                       weight_d * u_d + weight_t * u_t, started)
+
+
+class _PropagationPlanner:
+    """Shared setup of the planners that run Algorithm 1 for every candidate."""
+
+    def __init__(self, params: ExplorationParams) -> None:
+        self.params = params
+
+    def _scenarios(self, context: PlanningContext, with_history: bool
+                   ) -> tuple[TeamSnapshot, list[VirtualScenario], DecisionFactorization] | None:
+        """Snapshot, one scenario per candidate and the decision's factorization (alpha's
+        history tracked for EM, the predicted waypoints otherwise); None while the deciding
+        robot has no pose in the graph."""
+        if context.slam.latest_index(context.robot_id) is None:
+            _LOG.warning("robot %d has no SLAM pose yet; uncertainty utility skipped",
+                         context.robot_id)
+            return None
+        snapshot = TeamSnapshot.from_slam(context.slam, context.robot_id)
+        noise = VirtualNoise(context.slam.noise, self.params.sensors, self.params.motion)
+        targets = {robot: target for robot, (_, target) in context.teammates.items()}
+        builder = ScenarioBuilder(snapshot, targets, noise,
+                                  self.params.planner.virtual_waypoint_spacing_m,
+                                  self.params.sensors.sonar_max_range_m)
+        scenarios = [builder.build(c.position) for c in context.candidates]
+        boundary = sorted(set().union(*(s.boundary_keys for s in scenarios)))
+        factorization = DecisionFactorization(snapshot, builder.predicted, boundary,
+                                              with_history=with_history,
+                                              with_predicted=not with_history)
+        return snapshot, scenarios, factorization
+
+
+class BspPlanner(_PropagationPlanner):
+    """BSP (Indelman): ``lambda_0 U_D + lambda_1 sum trace(sqrt(Sigma_x))`` over the
+    predicted waypoints of every robot."""
+
+    name = "BSP"
+
+    def choose(self, context: PlanningContext) -> Decision:
+        started = time.perf_counter()
+        _, u_t, u_d = _utility_terms(context, self.params.planner)
+        prepared = self._scenarios(context, with_history=False)
+        if prepared is None:
+            u_m = np.zeros(len(u_d))
+        else:
+            _, scenarios, factorization = prepared
+            results = [factorization.propagate(s) for s in scenarios]
+            u_m = np.array([trace_sqrt_sum(r.predicted_covariances)
+                            + trace_sqrt_sum(r.next_covariances) for r in results])
+        weight_d, weight_m = self.params.planner.bsp_lambdas
+        return _decide(context, u_m, np.full(len(u_d), np.nan), u_d,
+                       weight_d * u_d + weight_m * u_m, started)
+
+
+class EmPlanner(_PropagationPlanner):
+    """EM_2 / EM_3: ``lambda_0 U_M + lambda_1 U_T + lambda_2 U_D`` with ``U_M`` by
+    Algorithm 2 on the EM-propagated (Algorithm 1) covariances."""
+
+    def __init__(self, params: ExplorationParams, name: str) -> None:
+        super().__init__(params)
+        if name not in ("EM_2", "EM_3"):
+            raise ValueError(f"unknown EM planner {name!r}")
+        self.name = name
+
+    def weights(self, explored_ratio: float) -> tuple[float, float, float]:
+        """``(lambda_0, lambda_1, lambda_2)`` at the given explored ratio."""
+        planner = self.params.planner
+        lambdas = planner.em2_lambdas if self.name == "EM_2" else planner.em3_lambdas
+        if planner.utility_variant == "reference":
+            weight_t = 100.0 * max(1.0 - explored_ratio, 0.0) if lambdas[1] else 0.0
+            return 1.0, weight_t, 10.0 * explored_ratio
+        weight_t = lambdas[1] * (1.0 - explored_ratio) if self.name == "EM_3" else lambdas[1]
+        return lambdas[0], weight_t, lambdas[2]
+
+    def choose(self, context: PlanningContext) -> Decision:
+        started = time.perf_counter()
+        _, u_t, u_d = _utility_terms(context, self.params.planner)
+        u_m = self.map_uncertainty(context)
+        weight_m, weight_t, weight_d = self.weights(context.explored_ratio)
+        return _decide(context, u_m, u_t, u_d,
+                       weight_m * u_m + weight_t * u_t + weight_d * u_d, started)
+
+    def map_uncertainty(self, context: PlanningContext) -> FloatArray:
+        """``U_M`` (C,) [m^2] of every candidate (Algorithm 2)."""
+        prepared = self._scenarios(context, with_history=True)
+        if prepared is None:
+            return np.zeros(len(context.candidates))
+        snapshot, scenarios, factorization = prepared
+        grid, planner, sensors = context.grid, self.params.planner, self.params.sensors
+        num_cells = grid.geometry.rows * grid.geometry.cols
+        team_probability = grid.probability().ravel()
+        team_observed = np.maximum(team_probability, 1.0 - team_probability) > planner.q_min
+        history = CellObservations.from_poses(grid.geometry, snapshot.history_poses, sensors,
+                                              "body")
+        history_counts = np.bincount(history.flat_cell, minlength=num_cells)
+        bounds = np.cumsum([0] + [len(s.next.waypoints) for s in scenarios])
+        new_poses = CellObservations.from_poses(
+            grid.geometry, np.vstack([s.next.waypoints for s in scenarios]), sensors, "body")
+        prior_trace = 2.0 * self.params.map.virtual_landmark_prior_sigma_m ** 2
+        u_m = np.empty(len(scenarios))
+        for index, scenario in enumerate(scenarios):
+            result = factorization.propagate(scenario)
+            new = new_poses.pose_range(bounds[index], bounds[index + 1])
+            sums = (history.intersection_sums(result.history_covariances, num_cells)
+                    + new.intersection_sums(result.next_covariances, num_cells))
+            traces = sums.covariance_traces()
+            if planner.utility_variant == "reference":
+                u_m[index] = np.sum(traces) + prior_trace * np.count_nonzero(~sums.observed)
+            else:
+                counts = history_counts + np.bincount(new.flat_cell, minlength=num_cells)
+                local = observation_confidence(counts, self.params.map) > planner.q_min
+                u_m[index] = np.sum(traces[local & team_observed])
+        return u_m
+
+
+def make_planner(params: ExplorationParams, name: str | None = None) -> Planner:
+    """The planner called ``name`` (default ``params.planner.name``): EM_2, EM_3, CE, BSP
+    or NF."""
+    name = params.planner.name if name is None else name
+    if name in ("EM_2", "EM_3"):
+        return EmPlanner(params, name)
+    if name == "CE":
+        return CoordinatedPlanner(params.planner)
+    if name == "BSP":
+        return BspPlanner(params)
+    if name == "NF":
+        return NearestFrontierPlanner()
+    raise ValueError(f"unknown planner {name!r}; expected EM_2, EM_3, CE, BSP or NF")
