@@ -1,0 +1,172 @@
+"""em-bag: inspect and repair MCAP recordings (no ROS needed).
+
+    em-bag info FILE        topics, types, counts, duration, size, compression, start/end
+    em-bag repair IN OUT    rewrite the readable chunks of a damaged recording (e.g. one whose
+                            recorder was killed) as a complete, valid file
+
+A file that cannot be read gives a one-line error and exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from em_exploration_ros.bag_format.bag_reader import BagError, BagInfo, BagScanner, scan_bag
+from em_exploration_ros.bag_format.bag_writer import BagWriter
+from em_exploration_ros.bag_format.mcap_ros2_schema import MessageDefinition
+from em_exploration_ros.bag_format.qos_yaml import QosFormatError
+from em_exploration_ros.bag_format.rosbag2_metadata import MetadataFormatError
+
+EXIT_BAD_INPUT = 2
+_NS_PER_S = 1_000_000_000
+
+
+def _size(num_bytes: int) -> str:
+    if num_bytes < 1024:
+        return f"{num_bytes} B"
+    exponent = min(int(math.log(num_bytes, 1024)), 3)
+    return f"{num_bytes / 1024 ** exponent:.1f} {('KiB', 'MiB', 'GiB')[exponent - 1]}"
+
+
+def _time(ns: int | None) -> str:
+    if ns is None:
+        return "-"
+    seconds, rest = divmod(ns, _NS_PER_S)
+    stamp = time.strftime("%b %d %Y %H:%M:%S", time.gmtime(seconds))
+    return f"{stamp}.{rest:09d} UTC ({seconds}.{rest:09d})"
+
+
+def format_info(info: BagInfo) -> str:
+    """The ``em-bag info`` report of a scanned recording (layout of ``ros2 bag info``)."""
+    try:
+        metadata = info.rosbag2_metadata()
+    except MetadataFormatError:
+        metadata = None
+    duration_ns = 0 if info.first_log_ns is None else info.last_log_ns - info.first_log_ns
+    compressions = ", ".join(sorted(info.compressions)) or "-"
+    lines = [
+        f"Files:             {info.path.name}",
+        f"Bag size:          {_size(info.file_size)} ({info.file_size} bytes)",
+        f"Storage id:        mcap (profile {info.profile or '-'}, library {info.library or '-'})",
+        f"ROS distro:        {metadata.ros_distro if metadata else '- (no rosbag2 metadata)'}",
+        f"Duration:          {duration_ns / _NS_PER_S:.9f}s",
+        f"Start:             {_time(info.first_log_ns)}",
+        f"End:               {_time(info.last_log_ns)}",
+        f"Messages:          {info.message_count}",
+        f"Chunks:            {info.chunk_count} (compression: {compressions}; "
+        f"CRC verified: {info.crc_checked_chunks})",
+    ]
+    channels = sorted(info.channels.values(), key=lambda c: c.topic)
+    for index, channel in enumerate(channels):
+        schema = info.schemas.get(channel.schema_id)
+        label = "Topic information: " if index == 0 else " " * 19
+        lines.append(f"{label}Topic: {channel.topic} | "
+                     f"Type: {schema.name if schema else '(no schema)'} | "
+                     f"Count: {info.channel_message_counts.get(channel.id, 0)} | "
+                     f"Serialization Format: {channel.message_encoding}")
+    if not channels:
+        lines.append("Topic information: (none)")
+    return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class RepairResult:
+    """What a repair recovered from its input."""
+
+    messages: int
+    topics: int
+    input_complete: bool
+    problem: str | None
+    dropped_bytes: int
+
+
+def repair(source: Path, target: Path) -> RepairResult:
+    """Rewrite the readable records of ``source`` as a complete recording at ``target``.
+
+    Keeps every message of every chunk that is whole and passes its CRC, with the schemas
+    and channels (QoS, type hash) they use; the first damaged record ends the recovery.
+    The output gets a fresh summary and rosbag2 metadata record. Raises BagError if
+    ``source`` is not an MCAP file and FileExistsError if ``target`` exists.
+    """
+    if source.resolve() == target.resolve():
+        raise BagError(f"{target}: repair must write to a different file than it reads")
+    scanner = BagScanner(source, tolerant=True)
+    writer = BagWriter(target)
+    channel_map: dict[int, int] = {}
+
+    def register(channel_id: int) -> int | None:
+        if channel_id not in channel_map:
+            channel = scanner.info.channels[channel_id]
+            schema = scanner.info.schemas.get(channel.schema_id)
+            if schema is None:
+                return None
+            try:
+                offers = tuple(channel.offered_qos)
+            except QosFormatError:
+                offers = ()
+            definition = MessageDefinition(schema.name, schema.encoding,
+                                           schema.data.decode("utf-8", errors="replace"))
+            channel_map[channel_id] = writer.add_topic(channel.topic, definition, offers,
+                                                       channel.type_hash)
+        return channel_map[channel_id]
+
+    try:
+        for channel, message in scanner.messages():
+            new_id = register(channel.id)
+            if new_id is not None:
+                writer.write(new_id, message.log_time_ns, message.data, message.publish_time_ns)
+        for channel_id in scanner.info.channels:
+            register(channel_id)
+    except BaseException:
+        writer.close()
+        target.unlink(missing_ok=True)
+        raise
+    writer.close()
+    info = scanner.info
+    return RepairResult(messages=writer.message_count, topics=len(channel_map),
+                        input_complete=info.complete, problem=info.problem,
+                        dropped_bytes=info.file_size - info.readable_bytes)
+
+
+def _info_command(args: argparse.Namespace) -> None:
+    sys.stdout.write(format_info(scan_bag(args.file)) + "\n")
+
+
+def _repair_command(args: argparse.Namespace) -> None:
+    try:
+        result = repair(args.input, args.output)
+    except FileExistsError:
+        raise BagError(f"{args.output}: already exists; choose a new output file") from None
+    state = ("the input was complete" if result.input_complete else
+             f"stopped at: {result.problem}; {result.dropped_bytes} bytes dropped")
+    sys.stdout.write(f"recovered {result.messages} messages on {result.topics} topics into "
+                     f"{args.output} ({state})\n")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of em-bag."""
+    parser = argparse.ArgumentParser(prog="em-bag", description="Inspect MCAP recordings.")
+    commands = parser.add_subparsers(dest="command", required=True)
+    info = commands.add_parser("info", help="summarize a recording")
+    info.add_argument("file", type=Path)
+    info.set_defaults(run=_info_command)
+    fix = commands.add_parser("repair", help="recover the readable part of a damaged recording")
+    fix.add_argument("input", type=Path)
+    fix.add_argument("output", type=Path)
+    fix.set_defaults(run=_repair_command)
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        args.run(args)
+    except BagError as error:
+        hint = "; `em-bag repair IN OUT` recovers its complete chunks" if (
+            "truncated" in str(error) and args.command == "info") else ""
+        sys.stderr.write(f"em-bag: {error}{hint}\n")
+        sys.exit(EXIT_BAD_INPUT)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,94 @@
+"""rclpy glue shared by em-record and em-replay: message classes, QoS conversion, CLI args."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Any, Callable
+
+from rclpy.duration import Duration
+from rclpy.qos import (
+    DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
+
+from em_exploration_ros.bag_format.interface_index import split_type_name
+from em_exploration_ros.bag_format.qos_yaml import DURATION_INFINITE_NS, QosProfile
+
+_POLICY_ENUMS: dict[str, Any] = {
+    "history": HistoryPolicy, "reliability": ReliabilityPolicy,
+    "durability": DurabilityPolicy, "liveliness": LivelinessPolicy}
+
+
+ROS_ARGS_FLAG = "--ros-args"
+
+
+class MessageTypeError(LookupError):
+    """A message type is not installed (its Python package cannot be imported)."""
+
+
+def import_message_class(type_name: str) -> type:
+    """The Python class of ``pkg/msg/Type``; raises MessageTypeError if it is not installed."""
+    package, namespace, name = split_type_name(type_name)
+    try:
+        return getattr(importlib.import_module(f"{package}.{namespace}"), name)
+    except (ImportError, AttributeError) as error:
+        raise MessageTypeError(f"message type {type_name} is not installed ({error})") from None
+
+
+def _policy_name(value: Any) -> str:
+    return value.name.lower()
+
+
+def _duration_ns(duration: Duration) -> int:
+    return min(duration.nanoseconds, DURATION_INFINITE_NS)
+
+
+def qos_from_rclpy(profile: QoSProfile) -> QosProfile:
+    """An endpoint's rclpy QoS profile as a bag QoS profile (rmw policy names, ns)."""
+    return QosProfile(
+        history=_policy_name(profile.history), depth=profile.depth,
+        reliability=_policy_name(profile.reliability),
+        durability=_policy_name(profile.durability),
+        deadline_ns=_duration_ns(profile.deadline), lifespan_ns=_duration_ns(profile.lifespan),
+        liveliness=_policy_name(profile.liveliness),
+        liveliness_lease_duration_ns=_duration_ns(profile.liveliness_lease_duration),
+        avoid_ros_namespace_conventions=profile.avoid_ros_namespace_conventions)
+
+
+def _finite_duration(ns: int) -> Duration:
+    """Durations that are infinite or unspecified stay unspecified (0): always accepted."""
+    return Duration(nanoseconds=0 if ns >= DURATION_INFINITE_NS else ns)
+
+
+def qos_to_rclpy(profile: QosProfile) -> QoSProfile:
+    """A bag QoS profile as an rclpy QoSProfile for creating an endpoint."""
+    policies = {key: enum[getattr(profile, key).upper()] for key, enum in _POLICY_ENUMS.items()}
+    return QoSProfile(
+        depth=profile.depth, deadline=_finite_duration(profile.deadline_ns),
+        lifespan=_finite_duration(profile.lifespan_ns),
+        liveliness_lease_duration=_finite_duration(profile.liveliness_lease_duration_ns),
+        avoid_ros_namespace_conventions=profile.avoid_ros_namespace_conventions, **policies)
+
+
+def cli_args(argv: list[str] | None) -> tuple[list[str], list[str]]:
+    """Split a command line into (argv for rclpy.init, the tool's own arguments).
+
+    ROS arguments are those from ``--ros-args`` on; everything before belongs to the tool,
+    so tool options such as ``--remap /a:=/b`` are not mistaken for legacy ROS remap rules.
+    """
+    full = list(sys.argv if argv is None else argv)
+    split = full.index(ROS_ARGS_FLAG) if ROS_ARGS_FLAG in full else len(full)
+    return [full[0], *full[split:]], full[1:split]
+
+
+def number_type(kind: type, *, allow_zero: bool = False) -> Callable[[str], Any]:
+    """An argparse ``type``: a positive (or, with ``allow_zero``, non-negative) ``kind``."""
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if value < 0 or (value == 0 and not allow_zero):
+            bound = "non-negative" if allow_zero else "positive"
+            raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
+        return value
+    return parse

@@ -1,0 +1,196 @@
+"""em-record: record ROS 2 topics into a rosbag2-compatible MCAP file.
+
+The recorder polls the ROS graph and subscribes to every selected topic as soon as it has a
+publisher (topics that appear later are picked up at the next poll). Subscriptions are raw:
+the CDR bytes are written exactly as received, stamped with the node's ROS clock (sim time
+with ``use_sim_time:=true``) as log and publish time. Each subscription asks for a QoS every
+publisher can serve (reliable only if all publishers are, transient-local only if all are),
+with a deep keep-last queue. Chunks close at ``--chunk-size`` bytes or every
+``--chunk-interval`` seconds, whichever comes first, and go to the OS at once, so a killed
+recorder leaves a file whose chunks ``em-bag repair`` recovers. Ctrl-C or SIGTERM writes the
+summary, the rosbag2 metadata record and the footer.
+
+    em-record [-o FILE] [--topics T ...] [--regex RE] [--exclude RE]
+              [--compression zstd|lz4|none] [--chunk-size BYTES] [--chunk-interval S]
+              [--ros-args ...]
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from dataclasses import dataclass
+
+import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.topic_endpoint_info import TopicEndpointInfo
+
+from em_exploration_ros.bag_format.bag_writer import (
+    COMPRESSIONS, DEFAULT_CHUNK_SIZE, BagWriter)
+from em_exploration_ros.bag_format.interface_index import read_type_hash
+from em_exploration_ros.bag_format.mcap_ros2_schema import (
+    DefinitionNotFoundError, build_message_definition)
+from em_exploration_ros.bag_format.qos_yaml import request_for_offers
+from em_exploration_ros.bag_format.topic_selection import TopicSelection
+from em_exploration_ros.tools.bag_ros import (
+    MessageTypeError, cli_args, import_message_class, number_type, qos_from_rclpy, qos_to_rclpy)
+
+EXIT_USAGE = 2
+
+
+@dataclass(frozen=True)
+class RecordOptions:
+    """Command-line options of em-record (sizes in bytes, periods in seconds)."""
+
+    output: str
+    selection: TopicSelection
+    compression: str
+    chunk_size: int
+    chunk_interval_s: float
+    poll_interval_s: float
+    queue_depth: int
+
+
+def parse_options(args: list[str]) -> RecordOptions:
+    """Parse em-record arguments (ROS arguments removed); exits with status 2 on bad ones."""
+    parser = argparse.ArgumentParser(
+        prog="em-record", description="Record ROS 2 topics into an MCAP file (rosbag2 format).")
+    parser.add_argument("-o", "--output", default=None,
+                        help="output file (default: em_run_<date>_<time>.mcap); must not exist")
+    parser.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
+                        help="record these topics (default: all)")
+    parser.add_argument("--regex", default=None, metavar="RE",
+                        help="also record topics matching this regular expression")
+    parser.add_argument("--exclude", default=None, metavar="RE",
+                        help="never record topics matching this regular expression")
+    parser.add_argument("--compression", choices=sorted(COMPRESSIONS), default="zstd",
+                        help="chunk compression (default: zstd)")
+    parser.add_argument("--chunk-size", type=number_type(int), default=DEFAULT_CHUNK_SIZE,
+                        metavar="BYTES", help="close a chunk at this uncompressed size "
+                        f"(default: {DEFAULT_CHUNK_SIZE})")
+    parser.add_argument("--chunk-interval", type=number_type(float), default=1.0, metavar="S",
+                        help="close the chunk in progress every S seconds (default: 1.0)")
+    parser.add_argument("--poll-interval", type=number_type(float), default=0.5, metavar="S",
+                        help="look for new topics every S seconds (default: 0.5)")
+    parser.add_argument("--queue-depth", type=number_type(int), default=1000, metavar="N",
+                        help="keep-last depth of each subscription (default: 1000)")
+    options = parser.parse_args(args)
+    for name in ("regex", "exclude"):
+        pattern = getattr(options, name)
+        if pattern is not None:
+            try:
+                re.compile(pattern)
+            except re.error as error:
+                parser.error(f"--{name}: invalid regular expression {pattern!r}: {error}")
+    for topic in options.topics:
+        if not topic.startswith("/"):
+            parser.error(f"--topics: {topic!r} is not an absolute topic name (starts with /)")
+    output = options.output or time.strftime("em_run_%Y%m%d_%H%M%S.mcap")
+    return RecordOptions(
+        output=output,
+        selection=TopicSelection.from_strings(options.topics, options.regex, options.exclude),
+        compression=options.compression, chunk_size=options.chunk_size,
+        chunk_interval_s=options.chunk_interval, poll_interval_s=options.poll_interval,
+        queue_depth=options.queue_depth)
+
+
+class Recorder(Node):
+    """Subscribes to the selected topics as they appear and writes what arrives."""
+
+    def __init__(self, writer: BagWriter, options: RecordOptions) -> None:
+        # No /rosout: the recorder would record its own log, and its last line is written
+        # after a signal has already shut the context down.
+        super().__init__("em_record", enable_rosout=False)
+        self._writer = writer
+        self._options = options
+        self._recorded: dict[str, str] = {}
+        self._skipped: set[str] = set()
+        # Wall-clock timers: with use_sim_time the ROS clock may stand still (no /clock yet).
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(options.poll_interval_s, self._discover, clock=steady)
+        self.create_timer(options.chunk_interval_s, self._writer.flush, clock=steady)
+        self._discover()
+
+    def _discover(self) -> None:
+        """Subscribe to every selected topic that has publishers and is not recorded yet."""
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._recorded or topic in self._skipped:
+                continue
+            if not self._options.selection.matches(topic):
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if publishers:
+                self._subscribe(topic, types, publishers)
+
+    def _skip(self, topic: str, reason: str) -> None:
+        self._skipped.add(topic)
+        self.get_logger().warning(f"not recording {topic}: {reason}")
+
+    def _subscribe(self, topic: str, types: list[str],
+                   publishers: list[TopicEndpointInfo]) -> None:
+        type_name = types[0]
+        if len(types) > 1:
+            self.get_logger().warning(f"{topic} has several types {types}; recording {type_name}")
+        try:
+            message_class = import_message_class(type_name)
+            definition = build_message_definition(type_name)
+        except (MessageTypeError, DefinitionNotFoundError) as error:
+            self._skip(topic, str(error))
+            return
+        offers = tuple(qos_from_rclpy(p.qos_profile) for p in publishers)
+        type_hash = next((str(p.topic_type_hash) for p in publishers
+                          if str(p.topic_type_hash).startswith("RIHS")), "")
+        channel_id = self._writer.add_topic(topic, definition, offers,
+                                            type_hash or read_type_hash(type_name))
+        request = request_for_offers(offers, self._options.queue_depth)
+        clock = self.get_clock()
+        write = self._writer.write
+
+        def on_message(data: bytes) -> None:
+            stamp = clock.now().nanoseconds
+            write(channel_id, stamp, data, stamp)
+
+        self.create_subscription(message_class, topic, on_message, qos_to_rclpy(request),
+                                 raw=True)
+        self._recorded[topic] = type_name
+        self.get_logger().info(f"recording {topic} [{type_name}] "
+                               f"({request.reliability}, {request.durability})")
+
+    def finish(self) -> None:
+        """Close the file: summary, rosbag2 metadata and footer. Safe to call twice."""
+        self._writer.close()
+        counts = self._writer.topic_counts()
+        self.get_logger().info(f"wrote {sum(counts.values())} messages on {len(counts)} topics "
+                               f"to {self._writer.path}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of em-record."""
+    full_args, tool_args = cli_args(argv)
+    options = parse_options(tool_args)
+    try:
+        writer = BagWriter(options.output, compression=options.compression,
+                           chunk_size=options.chunk_size)
+    except OSError as error:
+        sys.stderr.write(f"em-record: cannot create {options.output}: {error.strerror}\n")
+        sys.exit(EXIT_USAGE)
+    rclpy.init(args=full_args)
+    recorder = None
+    try:
+        recorder = Recorder(writer, options)
+        rclpy.spin(recorder)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if recorder is not None:
+            recorder.finish()
+            recorder.destroy_node()
+        writer.close()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

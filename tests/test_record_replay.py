@@ -1,0 +1,478 @@
+"""Process-level tests of em-record, em-replay and em-bag repair over real DDS.
+
+A publisher process sends a known sequence on several topics (one transient-local topic
+published before the recorder exists, and /clock, which the recorder follows as sim time);
+em-record runs as a separate process; files are read back with readers other than the
+writer. Replays go into a subscriber process that reports what it received. Every process
+is bounded in time and killed (whole process group) when its test ends.
+
+Run as a script, this file is the helper node: ``publish`` or ``subscribe``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Iterator
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PYTHON = sys.executable
+
+STREAM_COUNT = 150
+LATCHED_COUNT = 3
+CLOCK_START_NS = 100 * 10**9
+CLOCK_STEP_NS = 10**7
+TOPIC_TYPES = {
+    "/clock": "rosgraph_msgs/msg/Clock",
+    "/em_test/chatter": "std_msgs/msg/String",
+    "/em_test/odom": "nav_msgs/msg/Odometry",
+    "/em_test/latched": "std_msgs/msg/String",
+    "/em_test/ignored": "std_msgs/msg/String",
+}
+LATCHED = "/em_test/latched"
+IGNORED = "/em_test/ignored"
+RECORDED = [t for t in TOPIC_TYPES if t != IGNORED]
+RECORD_FILTER = ["--regex", r"^/(clock|em_test/.*)$", "--exclude", "ignored"]
+
+
+# ----- the known sequence -----------------------------------------------------------------
+def message_class(type_name: str) -> type:
+    """Python class of a ROS message type name."""
+    package, namespace, name = type_name.split("/")
+    module = __import__(f"{package}.{namespace}", fromlist=[name])
+    return getattr(module, name)
+
+
+def make_message(topic: str, k: int) -> object:
+    """The k-th message the publisher sends on ``topic``."""
+    cls = message_class(TOPIC_TYPES[topic])
+    message = cls()
+    if topic == "/clock":
+        stamp = CLOCK_START_NS + k * CLOCK_STEP_NS
+        message.clock.sec, message.clock.nanosec = divmod(stamp, 10**9)
+    elif topic == "/em_test/odom":
+        message.header.frame_id = "map"
+        message.child_frame_id = f"robot_{k % 3}/base_link"
+        message.pose.pose.position.x = 0.5 * k
+        message.twist.covariance[35] = float(k)
+    else:
+        message.data = f"{topic} #{k}"
+    return message
+
+
+def expected_count(topic: str) -> int:
+    return LATCHED_COUNT if topic == LATCHED else STREAM_COUNT
+
+
+# ----- helper nodes (run as a script) -----------------------------------------------------
+def _qos(reliable: bool = True, latched: bool = False, depth: int = 1000):
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    return QoSProfile(
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+def _wait(predicate: Callable[[], bool], timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
+def run_publisher(args: argparse.Namespace) -> None:
+    """Latched messages first; on "go" (stdin), the streams; then wait for acknowledgements."""
+    import rclpy
+    from rclpy.duration import Duration
+    rclpy.init()
+    node = rclpy.create_node("em_test_publisher")
+    publishers = {t: node.create_publisher(message_class(TOPIC_TYPES[t]), t,
+                                           _qos(latched=t == LATCHED))
+                  for t in TOPIC_TYPES}
+    for k in range(LATCHED_COUNT):
+        publishers[LATCHED].publish(make_message(LATCHED, k))
+    print("ready", flush=True)
+    sys.stdin.readline()
+    streams = [t for t in TOPIC_TYPES if t != LATCHED]
+    minimum = {t: 1 for t in TOPIC_TYPES}
+    minimum["/clock"] = args.clock_subscribers
+    if not _wait(lambda: all(publishers[t].get_subscription_count() >= minimum[t]
+                             for t in RECORDED), 15.0):
+        print("subscribers missing", flush=True)
+    time.sleep(0.3)
+    for k in range(STREAM_COUNT):
+        for topic in streams:
+            publishers[topic].publish(make_message(topic, k))
+        time.sleep(0.002)
+    for publisher in publishers.values():
+        publisher.wait_for_all_acked(Duration(seconds=5.0))
+    print("done", flush=True)
+    sys.stdin.readline()
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def run_subscriber(args: argparse.Namespace) -> None:
+    """Subscribe raw; exit once every expected count is reached (or at the timeout)."""
+    import rclpy
+    rclpy.init()
+    node = rclpy.create_node("em_test_subscriber")
+    received: dict[str, list[str]] = {}
+    expected = dict(item.split("=") for item in args.expect)
+    for spec in args.topic:
+        topic, type_name, qos = spec.split(",")
+        received[topic] = []
+        node.create_subscription(
+            message_class(type_name), topic,
+            lambda data, topic=topic: received[topic].append(data.hex()),
+            _qos(reliable="reliable" in qos, latched="latched" in qos, depth=10000), raw=True)
+    print("ready", flush=True)
+    deadline = time.monotonic() + args.timeout
+    while time.monotonic() < deadline and not all(
+            len(received[t]) >= int(n) for t, n in expected.items()):
+        rclpy.spin_once(node, timeout_sec=0.05)
+    end = time.monotonic() + args.settle
+    while time.monotonic() < end:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    Path(args.out).write_text(json.dumps(received))
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def helper_main() -> None:
+    parser = argparse.ArgumentParser()
+    modes = parser.add_subparsers(dest="mode", required=True)
+    publish = modes.add_parser("publish")
+    publish.add_argument("--clock-subscribers", type=int, default=2)
+    subscribe = modes.add_parser("subscribe")
+    subscribe.add_argument("--out", required=True)
+    subscribe.add_argument("--topic", action="append", default=[], help="topic,type,qos")
+    subscribe.add_argument("--expect", action="append", default=[], help="topic=count")
+    subscribe.add_argument("--timeout", type=float, default=30.0)
+    subscribe.add_argument("--settle", type=float, default=0.3)
+    args = parser.parse_args()
+    run_publisher(args) if args.mode == "publish" else run_subscriber(args)
+
+
+# ----- process handling -------------------------------------------------------------------
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault("ROS_DOMAIN_ID", str(os.getpid() % 100 + 1))
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+@contextmanager
+def spawn(args: list[str], log: Path, stdin: bool = False) -> Iterator[subprocess.Popen]:
+    """A process in its own group, output to ``log``; the group is killed on exit."""
+    with log.open("w") as out:
+        process = subprocess.Popen([PYTHON, *args], cwd=REPO, env=_env(), stdout=out,
+                                   stderr=subprocess.STDOUT, start_new_session=True,
+                                   stdin=subprocess.PIPE if stdin else subprocess.DEVNULL)
+        try:
+            yield process
+        finally:
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+            process.wait(timeout=10)
+            if process.stdin:
+                process.stdin.close()
+
+
+def wait_for_log(log: Path, pattern: str, timeout_s: float = 20.0) -> None:
+    if not _wait(lambda: re.search(pattern, log.read_text()) is not None, timeout_s):
+        raise AssertionError(f"{pattern!r} not in {log.name} after {timeout_s} s:\n"
+                             f"{log.read_text()}")
+
+
+def stop(process: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float = 15.0) -> int:
+    process.send_signal(sig)
+    return process.wait(timeout=timeout_s)
+
+
+def send_line(process: subprocess.Popen) -> None:
+    process.stdin.write(b"go\n")
+    process.stdin.flush()
+
+
+def wait_until_flushed(bag: Path, timeout_s: float = 20.0) -> None:
+    """Wait until the file's complete chunks hold the whole sequence (--chunk-interval)."""
+    from em_exploration_ros.bag_format.bag_reader import scan_bag
+    expected = {t: expected_count(t) for t in RECORDED}
+    if not _wait(lambda: scan_bag(bag, tolerant=True).topic_counts() == expected, timeout_s):
+        raise AssertionError(f"{bag.name} holds {scan_bag(bag, tolerant=True).topic_counts()}")
+
+
+def record_session(tmp: Path, name: str, extra: list[str],
+                   finish: Callable[[subprocess.Popen], None]) -> Path:
+    """Publisher + recorder (sim time); ``finish`` ends the recorder after the streams."""
+    bag = tmp / f"{name}.mcap"
+    recorder_log, publisher_log = tmp / f"{name}_record.log", tmp / f"{name}_publish.log"
+    with spawn([str(Path(__file__)), "publish"], publisher_log, stdin=True) as publisher:
+        wait_for_log(publisher_log, "ready")
+        with spawn(["-m", "em_exploration_ros.tools.record", "-o", str(bag), *RECORD_FILTER,
+                    "--poll-interval", "0.2", "--chunk-interval", "0.2", *extra, "--ros-args", "-p", "use_sim_time:=true"],
+                   recorder_log) as recorder:
+            for topic in RECORDED:
+                wait_for_log(recorder_log, f"recording {re.escape(topic)} ")
+            send_line(publisher)
+            wait_for_log(publisher_log, "done", timeout_s=30.0)
+            assert "subscribers missing" not in publisher_log.read_text()
+            wait_until_flushed(bag)
+            finish(recorder)
+        send_line(publisher)
+        publisher.wait(timeout=15)
+    return bag
+
+
+# ----- recording ----------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A recording closed by SIGINT after the whole sequence was published."""
+    def interrupt(recorder: subprocess.Popen) -> None:
+        assert stop(recorder, signal.SIGINT) == 0
+
+    return record_session(tmp_path_factory.mktemp("record"), "run", ["--chunk-size", "4096"],
+                          interrupt)
+
+
+def _file_order(bag: Path) -> list:
+    """(channel, message) pairs in file order, read by the validating scanner."""
+    from em_exploration_ros.bag_format.bag_reader import BagScanner
+    return list(BagScanner(bag).messages())
+
+
+def _read_all(bag: Path) -> dict[str, list]:
+    by_topic: dict[str, list] = {}
+    for channel, message in _file_order(bag):
+        by_topic.setdefault(channel.topic, []).append(message)
+    return by_topic
+
+
+def test_recording_holds_exactly_what_was_published(recording: Path) -> None:
+    from mcap.reader import make_reader
+    from mcap.stream_reader import StreamReader
+    from mcap_ros2.decoder import DecoderFactory
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from em_exploration_ros.bag_format.bag_reader import scan_bag
+    from em_exploration_ros.bag_format.interface_index import read_type_hash
+
+    with recording.open("rb") as stream:
+        records = list(StreamReader(stream, validate_crcs=True).records)
+    assert type(records[0]).__name__ == "Header" and records[0].profile == "ros2"
+    info = scan_bag(recording)
+    assert info.complete and info.crc_checked_chunks == info.chunk_count > 3
+    assert info.topic_counts() == {t: expected_count(t) for t in RECORDED}
+
+    by_topic = _read_all(recording)
+    for topic in RECORDED:
+        cls = message_class(TOPIC_TYPES[topic])
+        stored = [deserialize_message(m.data, cls) for m in by_topic[topic]]
+        assert stored == [make_message(topic, k) for k in range(expected_count(topic))], topic
+        assert [m.sequence for m in by_topic[topic]] == list(range(1, len(stored) + 1))
+
+    # Log time is the recorder's ROS clock, which follows /clock (sim time), in file order.
+    log_times = [m.log_time_ns for _c, m in _file_order(recording)]
+    assert log_times == sorted(log_times)
+    last_clock = CLOCK_START_NS + (STREAM_COUNT - 1) * CLOCK_STEP_NS
+    assert CLOCK_START_NS <= log_times[-1] <= last_clock
+
+    channels = {c.topic: c for c in info.channels.values()}
+    for topic in RECORDED:
+        assert channels[topic].type_hash == read_type_hash(TOPIC_TYPES[topic])
+        assert channels[topic].type_hash.startswith("RIHS01_")
+        [offer] = channels[topic].offered_qos
+        assert offer.reliability == "reliable"
+        assert offer.durability == ("transient_local" if topic == LATCHED else "volatile")
+
+    metadata = info.rosbag2_metadata()
+    assert metadata.message_count == info.message_count
+    assert {t.name: t.message_count for t in metadata.topics} == info.topic_counts()
+    assert metadata.ros_distro == "jazzy" and metadata.storage_identifier == "mcap"
+
+    with recording.open("rb") as stream:
+        decoded = list(make_reader(stream, decoder_factories=[DecoderFactory()])
+                       .iter_decoded_messages())
+    assert len(decoded) == info.message_count
+    odometry = [d for _s, c, _m, d in decoded if c.topic == "/em_test/odom"]
+    assert odometry[-1].pose.pose.position.x == 0.5 * (STREAM_COUNT - 1)
+
+
+def test_killed_recording_is_repaired(tmp_path: Path) -> None:
+    def kill(recorder: subprocess.Popen) -> None:
+        os.killpg(recorder.pid, signal.SIGKILL)
+        recorder.wait(timeout=10)
+
+    bag = record_session(tmp_path, "killed", [], kill)
+    info = subprocess.run([PYTHON, "-m", "em_exploration_ros.tools.bag", "info", str(bag)],
+                          cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert info.returncode == 2 and "truncated" in info.stderr
+    assert "Traceback" not in info.stderr
+
+    fixed = tmp_path / "fixed.mcap"
+    result = subprocess.run(
+        [PYTHON, "-m", "em_exploration_ros.tools.bag", "repair", str(bag), str(fixed)],
+        cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    from em_exploration_ros.bag_format.bag_reader import scan_bag
+    repaired = scan_bag(fixed)
+    assert repaired.complete
+    assert repaired.topic_counts() == {t: expected_count(t) for t in RECORDED}
+    by_topic = _read_all(fixed)
+    from rclpy.serialization import deserialize_message
+    for topic in RECORDED:
+        cls = message_class(TOPIC_TYPES[topic])
+        assert [deserialize_message(m.data, cls) for m in by_topic[topic]] == [
+            make_message(topic, k) for k in range(expected_count(topic))]
+    assert {c.topic: c.offered_qos for c in repaired.channels.values()}[LATCHED][0].durability \
+        == "transient_local"
+
+
+# ----- replay ---------------------------------------------------------------------------------
+def replay_into_subscriber(tmp: Path, bag: Path, topics: list[str], expect: dict[str, int],
+                           replay_args: list[str], timeout_s: float = 40.0) -> tuple[dict, str]:
+    """Start a subscriber, replay ``bag``; returns (received hex per topic, replay log)."""
+    out, sub_log, replay_log = tmp / "received.json", tmp / "subscriber.log", tmp / "replay.log"
+    sub_args = [str(Path(__file__)), "subscribe", "--out", str(out), "--timeout", str(timeout_s)]
+    sub_args += [f"--topic={t}" for t in topics] + [f"--expect={t}={n}" for t, n in expect.items()]
+    with spawn(sub_args, sub_log) as subscriber:
+        wait_for_log(sub_log, "ready")
+        with spawn(["-m", "em_exploration_ros.tools.replay", str(bag), *replay_args],
+                   replay_log) as replay:
+            assert replay.wait(timeout=timeout_s) == 0, replay_log.read_text()
+        assert subscriber.wait(timeout=timeout_s) == 0, sub_log.read_text()
+    return json.loads(out.read_text()), replay_log.read_text()
+
+
+def test_replay_reproduces_the_recording(recording: Path, tmp_path: Path) -> None:
+    recorded = _read_all(recording)
+    topics = [f"{t},{TOPIC_TYPES[t]},reliable{'+latched' if t == LATCHED else ''}"
+              for t in RECORDED]
+    received, log = replay_into_subscriber(
+        tmp_path, recording, topics, {t: expected_count(t) for t in RECORDED},
+        ["--rate", "0", "--delay", "0", "--wait-for-subscribers", "30", "--topics", *RECORDED])
+    for topic in RECORDED:
+        # Same messages, same order, same bytes; /clock comes from the recording only.
+        assert received[topic] == [m.data.hex() for m in recorded[topic]], topic
+    assert f"played {sum(expected_count(t) for t in RECORDED)} messages" in log
+
+
+def _synthetic_bag(path: Path, count: int, period_ns: int, start_ns: int) -> None:
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import String
+
+    from em_exploration_ros.bag_format.bag_writer import BagWriter
+    from em_exploration_ros.bag_format.mcap_ros2_schema import build_message_definition
+    definition = build_message_definition("std_msgs/msg/String")
+    with BagWriter(path) as writer:
+        kept = writer.add_topic("/a", definition)
+        skipped = writer.add_topic("/skip", definition)
+        for k in range(count):
+            writer.write(kept, start_ns + k * period_ns, serialize_message(String(data=f"a{k}")))
+            writer.write(skipped, start_ns + k * period_ns, serialize_message(String(data="s")))
+
+
+def _played_wall_s(log: str) -> float:
+    return float(re.search(r"played \d+ messages in ([0-9.]+) s", log).group(1))
+
+
+def test_replay_timing_clock_remap_and_filters(tmp_path: Path) -> None:
+    bag = tmp_path / "timed.mcap"
+    _synthetic_bag(bag, count=16, period_ns=10**8, start_ns=10 * 10**9)  # 10.0 s .. 11.5 s
+    received, log = replay_into_subscriber(
+        tmp_path, bag, ["/b,std_msgs/msg/String,reliable",
+                        "/clock,rosgraph_msgs/msg/Clock,best_effort",
+                        "/skip,std_msgs/msg/String,reliable"],
+        {"/b": 11}, ["--rate", "2", "--start-offset", "0.5", "--remap", "/a:=/b",
+                     "--exclude", "^/skip$", "--delay", "0", "--wait-for-subscribers", "30"])
+    from rclpy.serialization import deserialize_message
+    from rosgraph_msgs.msg import Clock
+    from std_msgs.msg import String
+    assert [deserialize_message(bytes.fromhex(h), String).data for h in received["/b"]] == [
+        f"a{k}" for k in range(5, 16)]
+    assert received["/skip"] == []
+    clock = [deserialize_message(bytes.fromhex(h), Clock).clock for h in received["/clock"]]
+    stamps = [c.sec * 10**9 + c.nanosec for c in clock]
+    assert len(stamps) > 5 and stamps == sorted(stamps)
+    assert 10_500_000_000 <= stamps[0] and stamps[-1] <= 11_500_000_000
+    # 1.0 s of recording at rate 2: the schedule cannot finish in less than 0.5 s.
+    assert _played_wall_s(log) >= 0.5 - 1e-3
+
+
+def test_replay_rate_zero_is_much_faster_than_real_time(tmp_path: Path) -> None:
+    bag = tmp_path / "long.mcap"
+    _synthetic_bag(bag, count=101, period_ns=10 * 10**9, start_ns=0)  # 1000 s of recording
+    log = tmp_path / "fast.log"
+    started = time.monotonic()
+    with spawn(["-m", "em_exploration_ros.tools.replay", str(bag), "--rate", "0",
+                "--delay", "0"], log) as replay:
+        assert replay.wait(timeout=60) == 0, log.read_text()
+    assert time.monotonic() - started < 60
+    assert "played 202 messages" in log.read_text()
+    assert _played_wall_s(log.read_text()) < 10.0
+
+
+# ----- bad input --------------------------------------------------------------------------------
+def _tool(module: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([PYTHON, "-m", f"em_exploration_ros.tools.{module}", *args],
+                          cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
+
+
+def test_bad_files_give_one_line_errors(tmp_path: Path) -> None:
+    from em_exploration_ros.bag_format.bag_writer import BagWriter
+    from em_exploration_ros.bag_format.mcap_ros2_schema import MessageDefinition
+
+    good = tmp_path / "good.mcap"
+    _synthetic_bag(good, count=50, period_ns=10**6, start_ns=0)
+    truncated = tmp_path / "truncated.mcap"
+    truncated.write_bytes(good.read_bytes()[:-100])
+    text = tmp_path / "text.mcap"
+    text.write_text("not a recording")
+    unknown = tmp_path / "unknown.mcap"
+    with BagWriter(unknown) as writer:
+        channel = writer.add_topic("/x", MessageDefinition("ghost_msgs/msg/Ghost", "ros2msg",
+                                                           "int32 boo\n"))
+        writer.write(channel, 1, b"\x00\x01\x00\x00\x07\x00\x00\x00")
+    cases = {truncated: "truncated", text: "not an MCAP file",
+             tmp_path / "missing.mcap": "no such file",
+             unknown: "ghost_msgs/msg/Ghost, which is not installed"}
+    for path, phrase in cases.items():
+        result = _tool("replay", str(path))
+        assert result.returncode == 2, result.stderr
+        assert phrase in result.stderr and "Traceback" not in result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+def test_record_rejects_bad_arguments(tmp_path: Path) -> None:
+    existing = tmp_path / "exists.mcap"
+    existing.write_bytes(b"keep")
+    cases = [(["--compression", "bzip9"], "invalid choice"),
+             (["--regex", "("], "invalid regular expression"),
+             (["--chunk-size", "-5"], "must be positive"),
+             (["--topics", "no_slash"], "not an absolute topic name"),
+             (["-o", str(existing)], "File exists")]
+    for args, phrase in cases:
+        result = _tool("record", *args)
+        assert result.returncode == 2, (args, result.stderr)
+        assert phrase in result.stderr and "Traceback" not in result.stderr
+    assert existing.read_bytes() == b"keep"
+    replay = _tool("replay", str(existing), "--remap", "a-b")
+    assert replay.returncode == 2 and "expected /OLD:=/NEW" in replay.stderr
+
+
+if __name__ == "__main__":
+    helper_main()
