@@ -17,7 +17,7 @@ setup(
         (f"share/{PACKAGE_NAME}", ["package.xml"]),
         (f"share/{PACKAGE_NAME}/config", ["config/exploration.yaml"]),
     ],
-    install_requires=["numpy", "gtsam", "mcap", "mcap-ros2-support", "PyYAML"],
+    install_requires=["numpy", "gtsam", "mcap", "mcap-ros2-support", "PyYAML", "matplotlib"],
     python_requires=">=3.11",
     zip_safe=False,
     maintainer="em_exploration_ros maintainers",

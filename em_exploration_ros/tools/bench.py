@@ -1,0 +1,537 @@
+"""em-bench: benchmarks of the exploration system.
+
+``em-bench planners`` reproduces the paper's planner comparison: seeded trials of several
+planners on one or more map settings, each trial one ``TeamRunner`` run in its own worker
+process (so a crash costs only that trial). Trials with the same seed see the same world
+and noise draws under every planner (paired comparison). Results are kept per trial as
+they finish, so a rerun with the same arguments only runs what is missing (failed trials
+are retried). Layout of ``--out``::
+
+    trials/<setting>/<planner>/seed_<n>.json   one record per trial (status, params, summary)
+    results.csv       one row per trial and metrics sample (the curves against distance)
+    summary.json      per setting and planner: trials done/failed, final values with 95% CI
+    <setting>_<metric>.png, results.md          see bench_plots.py
+
+``em-bench plot --out DIR`` re-makes the plots and results.md from results.csv and
+summary.json. Examples::
+
+    em-bench planners --out benchmarks/results --map-size 100 200 --trials 20 --jobs 2
+    em-bench planners --out /tmp/b --planners NF CE --map-size 40 --landmarks 4 --trials 2
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import logging
+import math
+import multiprocessing
+import os
+import sys
+import time
+import traceback
+from collections import defaultdict, deque
+from dataclasses import dataclass
+from itertools import combinations
+from multiprocessing.connection import wait
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence, TextIO
+
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.params_yaml import ParamsFileError
+from em_exploration_ros.core.team_runner import TeamRunner
+from em_exploration_ros.core.trial_stats import mean_ci, paired_difference
+from em_exploration_ros.tools import bench_plots
+from em_exploration_ros.tools.sim_cli import PLANNER_NAMES, add_run_arguments, params_from_args
+
+_LOG = logging.getLogger("em-bench")
+
+#: The planners of the paper's comparison (the default of --planners).
+PAPER_PLANNERS = ("EM_2", "EM_3", "CE", "BSP")
+#: Final values reported per planner (keys of the run summary).
+FINAL_METRICS = ("explored_ratio", "distance_m", "loc_rmse_m", "landmark_rmse_m", "sim_time_s")
+#: Final values compared seed by seed between planners.
+PAIRED_METRICS = ("loc_rmse_m", "landmark_rmse_m", "distance_m")
+#: The progress line is redrawn this often on a terminal [s].
+TTY_REFRESH_S = 1.0
+#: Math libraries in the workers use one thread each: --jobs sets the parallelism.
+_SINGLE_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@dataclass(frozen=True)
+class TrialSpec:
+    """One trial: a planner on a map setting with one seed, and where its record goes."""
+
+    setting: str
+    planner: str
+    seed: int
+    params: ExplorationParams
+    path: Path
+
+    @property
+    def label(self) -> str:
+        """Short human-readable name."""
+        return f"{self.setting}/{self.planner}/seed {self.seed}"
+
+
+def paper_cell_size_m(map_size_m: float) -> float:
+    """Default virtual-map cell size [m]: map size / 50, the paper's 2 m (100 m) and 4 m (200 m)."""
+    return map_size_m / 50.0
+
+
+def setting_name(params: ExplorationParams) -> str:
+    """Folder and file name of a map setting, e.g. ``100m_cell2m``."""
+    world = params.world
+    size = (f"{world.width_m:g}m" if world.width_m == world.height_m
+            else f"{world.width_m:g}x{world.height_m:g}m")
+    return f"{size}_cell{params.map.cell_size_m:g}m"
+
+
+def trial_specs(args: argparse.Namespace, out_dir: Path) -> list[TrialSpec]:
+    """All trials asked for on the command line, seed-major (ValueError if inconsistent).
+
+    Ordering by seed first interleaves the planners, so partial results stay comparable.
+    """
+    planners = _planners(args)
+    seeds = _seeds(args)
+    map_sizes = args.map_size or [None]
+    if args.cell_size is not None and len(args.cell_size) != len(map_sizes):
+        raise ValueError(f"--cell-size needs one value per map size ({len(map_sizes)}), "
+                         f"got {len(args.cell_size)}")
+    specs = []
+    for index, map_size in enumerate(map_sizes):
+        base = params_from_args(_namespace(args, map_size=map_size, cell_size=None, planner=None))
+        cell = (args.cell_size[index] if args.cell_size is not None
+                else paper_cell_size_m(base.world.width_m))
+        run = {} if args.max_distance is None else {"max_distance_m": args.max_distance}
+        base = base.replace(map={"cell_size_m": cell}, run=run)
+        setting = setting_name(base)
+        for seed in seeds:
+            for planner in planners:
+                params = base.replace(planner={"name": planner}, run={"seed": seed})
+                path = out_dir / "trials" / setting / planner / f"seed_{seed}.json"
+                specs.append(TrialSpec(setting, planner, seed, params, path))
+    return specs
+
+
+def _namespace(args: argparse.Namespace, **changes: Any) -> argparse.Namespace:
+    return argparse.Namespace(**{**vars(args), **changes})
+
+
+def _planners(args: argparse.Namespace) -> list[str]:
+    if args.planner is not None and args.planners is not None:
+        raise ValueError("give either --planner or --planners")
+    if args.planner is not None:
+        return [args.planner]
+    return list(dict.fromkeys(args.planners or PAPER_PLANNERS))
+
+
+def _seeds(args: argparse.Namespace) -> list[int]:
+    if args.seeds is not None:
+        if args.trials is not None or args.seed_start is not None:
+            raise ValueError("--seeds replaces --trials and --seed-start")
+        return list(dict.fromkeys(args.seeds))
+    trials = 20 if args.trials is None else args.trials
+    start = 0 if args.seed_start is None else args.seed_start
+    return list(range(start, start + trials))
+
+
+def params_record(params: ExplorationParams) -> dict[str, Any]:
+    """Parameters as JSON data (tuples become lists), for storing and comparing."""
+    return json.loads(json.dumps(dataclasses.asdict(params)))
+
+
+def read_record(path: Path) -> dict[str, Any] | None:
+    """A trial record, or None if missing or unreadable (e.g. cut short by a crash)."""
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) and "status" in record else None
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    """Write JSON atomically (temporary file, then rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    os.replace(temporary, path)
+
+
+def _base_record(spec: TrialSpec) -> dict[str, Any]:
+    return {"setting": spec.setting, "planner": spec.planner, "seed": spec.seed,
+            "params": params_record(spec.params)}
+
+
+def run_trial(spec: TrialSpec) -> None:
+    """Worker entry: run one trial and write its record (status done or failed)."""
+    started = time.perf_counter()
+    record = _base_record(spec)
+    try:
+        summary = TeamRunner(spec.params).run()
+        record.update(status="done", summary=summary.to_dict())
+    except Exception:  # noqa: BLE001 - any failure of a trial is recorded, not raised
+        record.update(status="failed", error=traceback.format_exc())
+    record["wall_s"] = time.perf_counter() - started
+    _write_json(spec.path, record)
+
+
+def split_finished(specs: Iterable[TrialSpec]) -> tuple[list[TrialSpec], list[dict[str, Any]]]:
+    """Trials still to run, and the records of those finished earlier.
+
+    ValueError if a finished record was made with other parameters (another --out needed).
+    """
+    to_run, finished = [], []
+    for spec in specs:
+        record = read_record(spec.path)
+        if record is None or record["status"] != "done":
+            to_run.append(spec)
+            continue
+        if record.get("params") != params_record(spec.params):
+            raise ValueError(f"{spec.path} holds a trial with other parameters; "
+                             "use another --out or remove it")
+        finished.append(record)
+    return to_run, finished
+
+
+def _duration(seconds: float | None) -> str:
+    if seconds is None or not math.isfinite(seconds):
+        return "--:--:--"
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+class ProgressBar:
+    """Trial progress and estimated time left, on a text stream.
+
+    On a terminal one line is redrawn in place (``\\r``); otherwise one line is written per
+    finished trial. The time left assumes a pending trial takes as long as the mean of
+    the finished trials of its setting and planner (else of all finished trials).
+    """
+
+    WIDTH = 24
+
+    def __init__(self, total: int, jobs: int, stream: TextIO,
+                 earlier: Sequence[dict[str, Any]] = (),
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.total = total
+        self.jobs = max(jobs, 1)
+        self.stream = stream
+        self.interactive = stream.isatty()
+        self.clock = clock
+        self.started_at = clock()
+        self.done = 0
+        self.failed = 0
+        self.running: dict[str, tuple[TrialSpec, float]] = {}
+        self.pending: list[TrialSpec] = []
+        self._walls: dict[tuple[str, str], list[float]] = defaultdict(list)
+        for record in earlier:
+            self._walls[record["setting"], record["planner"]].append(record["wall_s"])
+
+    def queue(self, specs: Sequence[TrialSpec]) -> None:
+        """Trials waiting for a worker."""
+        self.pending = list(specs)
+
+    def started(self, spec: TrialSpec) -> None:
+        """A worker took ``spec``."""
+        self.pending.remove(spec)
+        self.running[spec.label] = (spec, self.clock())
+
+    def finished(self, spec: TrialSpec, record: dict[str, Any]) -> None:
+        """A trial ended with ``record``."""
+        self.running.pop(spec.label, None)
+        self._walls[spec.setting, spec.planner].append(record["wall_s"])
+        if record["status"] == "done":
+            self.done += 1
+            result = record["summary"]
+            outcome = (f"done in {record['wall_s']:.1f} s (explored "
+                       f"{result['explored_ratio']:.3f}, {result['distance_m']:.0f} m)")
+        else:
+            self.failed += 1
+            outcome = f"FAILED after {record['wall_s']:.1f} s: {_last_line(record['error'])}"
+        if self.interactive:
+            self.stream.write("\r\033[K")
+        count = self.done + self.failed
+        self.stream.write(f"[{count}/{self.total}] {spec.label}: {outcome} | "
+                          f"{self._times()}\n")
+        self.refresh()
+
+    def refresh(self) -> None:
+        """Redraw the status line (terminal only)."""
+        if not self.interactive:
+            return
+        count = self.done + self.failed
+        filled = self.WIDTH * count // max(self.total, 1)
+        bar = "#" * filled + "." * (self.WIDTH - filled)
+        self.stream.write(f"\r\033[K[{bar}] {count}/{self.total} trials, {self.failed} failed, "
+                          f"{len(self.running)} running | {self._times()}")
+        self.stream.flush()
+
+    def close(self) -> None:
+        """End the status line."""
+        if self.interactive:
+            self.stream.write("\n")
+        self.stream.flush()
+
+    def eta_s(self) -> float | None:
+        """Estimated wall time left [s], None while nothing has finished."""
+        everything = [wall for walls in self._walls.values() for wall in walls]
+        if not everything:
+            return None
+        overall = sum(everything) / len(everything)
+
+        def expected(spec: TrialSpec) -> float:
+            walls = self._walls.get((spec.setting, spec.planner))
+            return sum(walls) / len(walls) if walls else overall
+
+        now = self.clock()
+        work = sum(expected(spec) for spec in self.pending)
+        work += sum(max(expected(spec) - (now - since), 0.0)
+                    for spec, since in self.running.values())
+        return work / self.jobs
+
+    def _times(self) -> str:
+        return (f"elapsed {_duration(self.clock() - self.started_at)}, "
+                f"left ~{_duration(self.eta_s())}")
+
+
+def _last_line(text: str) -> str:
+    lines = [line for line in text.strip().splitlines() if line.strip()]
+    return lines[-1].strip() if lines else ""
+
+
+def run_trials(specs: Sequence[TrialSpec], jobs: int, progress: ProgressBar) -> None:
+    """Run ``specs`` in at most ``jobs`` worker processes at a time, each trial its own
+    process (spawned). A worker that dies without a record gets a failed record."""
+    context = multiprocessing.get_context("spawn")
+    for name in _SINGLE_THREAD_ENV:
+        os.environ.setdefault(name, "1")
+    pending = deque(specs)
+    progress.queue(specs)
+    running: dict[int, tuple[multiprocessing.process.BaseProcess, TrialSpec, float]] = {}
+    try:
+        while pending or running:
+            while pending and len(running) < jobs:
+                spec = pending.popleft()
+                spec.path.unlink(missing_ok=True)
+                process = context.Process(target=run_trial, args=(spec,), name=spec.label)
+                process.start()
+                running[process.sentinel] = (process, spec, time.perf_counter())
+                progress.started(spec)
+            timeout = TTY_REFRESH_S if progress.interactive else None
+            for sentinel in wait(list(running), timeout=timeout):
+                process, spec, since = running.pop(sentinel)
+                process.join()
+                progress.finished(spec, record_after_exit(spec, process.exitcode,
+                                                           time.perf_counter() - since))
+            progress.refresh()
+    finally:
+        for process, _, _ in running.values():
+            process.terminate()
+            process.join()
+        progress.close()
+
+
+def record_after_exit(spec: TrialSpec, exitcode: int | None, wall_s: float) -> dict[str, Any]:
+    """The record a finished worker wrote, or a failed record if it wrote none."""
+    record = read_record(spec.path)
+    if record is None:
+        record = _base_record(spec)
+        record.update(status="failed", wall_s=wall_s,
+                      error=f"worker process exited with code {exitcode} without a result")
+        _write_json(spec.path, record)
+    return record
+
+
+def load_records(out_dir: Path) -> list[dict[str, Any]]:
+    """Every trial record under ``out_dir/trials``, sorted by setting, planner and seed."""
+    records = [read_record(path) for path in (out_dir / "trials").glob("*/*/seed_*.json")]
+    return sorted((r for r in records if r is not None),
+                  key=lambda r: (r["setting"], r["planner"], r["seed"]))
+
+
+def write_results_csv(records: Sequence[dict[str, Any]], path: Path) -> int:
+    """One row per finished trial and history sample; missing values empty. Returns rows."""
+    rows = 0
+    with path.open("w", newline="", encoding="utf-8") as stream:
+        writer = csv.writer(stream)
+        writer.writerow(bench_plots.CSV_COLUMNS)
+        for record in records:
+            if record["status"] != "done":
+                continue
+            for sample in record["summary"]["history"]:
+                writer.writerow([record["setting"], record["planner"], record["seed"]]
+                                + [_csv_value(sample[key]) for key in bench_plots.CSV_COLUMNS[3:]])
+                rows += 1
+    return rows
+
+
+def _csv_value(value: float | None) -> str:
+    return "" if value is None else repr(float(value))
+
+
+def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The summary.json data: per setting, its parameters and per planner the trial counts,
+    final values (mean, 95% CI, n), wall times and failures; paired differences between
+    planners over common seeds."""
+    by_setting: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for record in records:
+        by_setting[record["setting"]].append(record)
+    settings = {}
+    for setting, group in sorted(by_setting.items(), key=lambda item: _setting_order(item[1])):
+        params = group[0]["params"]
+        planners: dict[str, list[dict[str, Any]]] = defaultdict(list)
+        for record in group:
+            planners[record["planner"]].append(record)
+        finals = {planner: {r["seed"]: r["summary"] for r in rows if r["status"] == "done"}
+                  for planner, rows in planners.items()}
+        order = [name for name in PLANNER_NAMES if name in planners]
+        settings[setting] = {
+            "map_size_m": [params["world"]["width_m"], params["world"]["height_m"]],
+            "cell_size_m": params["map"]["cell_size_m"],
+            "num_robots": params["world"]["num_robots"],
+            "num_landmarks": params["world"]["num_landmarks"],
+            "until_explored": params["run"]["until_explored"],
+            "max_distance_m": params["run"]["max_distance_m"],
+            "max_steps": params["run"]["max_steps"],
+            "planners": {name: _planner_summary(planners[name], finals[name],
+                                                params["run"]["until_explored"])
+                         for name in order},
+            "paired_differences": [
+                {"a": a, "b": b, "metric": metric,
+                 **paired_difference(_metric_by_seed(finals[a], metric),
+                                     _metric_by_seed(finals[b], metric)).to_dict()}
+                for a, b in combinations(order, 2) for metric in PAIRED_METRICS],
+        }
+    return {"metrics": list(FINAL_METRICS), "ci": "95% two-sided, Student t (see trial_stats)",
+            "settings": settings}
+
+
+def _setting_order(records: Sequence[dict[str, Any]]) -> tuple[float, float, float]:
+    """Settings sort by map width, height and cell size [m]."""
+    params = records[0]["params"]
+    return (params["world"]["width_m"], params["world"]["height_m"], params["map"]["cell_size_m"])
+
+
+def _metric_by_seed(finals: dict[int, dict[str, Any]], metric: str) -> dict[int, float]:
+    return {seed: math.nan if s[metric] is None else s[metric] for seed, s in finals.items()}
+
+
+def _planner_summary(records: Sequence[dict[str, Any]], finals: dict[int, dict[str, Any]],
+                     until_explored: float) -> dict[str, Any]:
+    walls = [r["wall_s"] for r in records if r["status"] == "done"]
+    return {
+        "trials_done": len(finals),
+        "trials_failed": len(records) - len(finals),
+        "reached_explored_target": sum(s["explored_ratio"] >= until_explored
+                                       for s in finals.values()),
+        "final": {metric: mean_ci(list(_metric_by_seed(finals, metric).values())).to_dict()
+                  for metric in FINAL_METRICS},
+        "wall_s_total": sum(walls),
+        "wall_s_mean": sum(walls) / len(walls) if walls else None,
+        "failures": [{"seed": r["seed"], "error": _last_line(r["error"])}
+                     for r in records if r["status"] != "done"],
+    }
+
+
+def write_outputs(out_dir: Path, last_invocation: dict[str, Any]) -> None:
+    """results.csv and summary.json from the trial records, then the plots and results.md."""
+    records = load_records(out_dir)
+    rows = write_results_csv(records, out_dir / "results.csv")
+    _write_json(out_dir / "summary.json",
+                {**summarize(records), "last_invocation": last_invocation})
+    made = bench_plots.make_all(out_dir)
+    _LOG.info("wrote %s (%d rows), %s, results.md and %d plots", out_dir / "results.csv",
+              rows, out_dir / "summary.json", len(made))
+
+
+def command_planners(args: argparse.Namespace) -> int:
+    """``em-bench planners``: run what is missing, then write all outputs."""
+    out_dir: Path = args.out
+    specs = trial_specs(args, out_dir)
+    to_run, earlier = split_finished(specs)
+    _LOG.info("%d trials: %d finished earlier, %d to run on %d worker(s)",
+              len(specs), len(earlier), len(to_run), args.jobs)
+    started = time.perf_counter()
+    if to_run:
+        progress = ProgressBar(len(to_run), args.jobs, sys.stderr, earlier)
+        run_trials(to_run, args.jobs, progress)
+    wall = time.perf_counter() - started
+    _LOG.info("ran %d trials in %s", len(to_run), _duration(wall))
+    write_outputs(out_dir, {"trials": len(specs), "finished_earlier": len(earlier),
+                            "ran": len(to_run), "jobs": args.jobs, "wall_s": wall})
+    return 0
+
+
+def command_plot(args: argparse.Namespace) -> int:
+    """``em-bench plot``: plots and results.md from saved results."""
+    made = bench_plots.make_all(args.out)
+    _LOG.info("wrote %s and %d plots", args.out / "results.md", len(made))
+    return 0
+
+
+def _widen_to_lists(parser: argparse.ArgumentParser, dests: Sequence[str]) -> None:
+    """Let the shared single-value options ``dests`` take one or more values.
+
+    add_run_arguments (shared with em-sim) defines one value per option; the benchmark
+    sweeps several, so it changes the arity of those options here instead of redefining
+    them. ``argparse`` has no public accessor for a parser's actions.
+    """
+    for action in parser._actions:  # noqa: SLF001 - see docstring
+        if action.dest in dests:
+            action.nargs = "+"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The em-bench argument parser, one subcommand per benchmark."""
+    parser = argparse.ArgumentParser(prog="em-bench", description="Benchmarks of the "
+                                     "multi-robot exploration system.")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    planners = commands.add_parser(
+        "planners", help="compare planners over seeded trials (the paper's comparison)",
+        description="Seeded trials of several planners on one or more map settings, in "
+        "parallel worker processes, resumable; writes CSV, JSON summary, plots, results.md.")
+    add_run_arguments(planners)
+    _widen_to_lists(planners, ("map_size", "cell_size"))
+    planners.add_argument("--planners", nargs="+", choices=PLANNER_NAMES,
+                          help=f"planners to compare (default {' '.join(PAPER_PLANNERS)})")
+    planners.add_argument("--trials", type=int, help="trials (seeds) per planner (default 20)")
+    planners.add_argument("--seed-start", type=int, help="first seed (default 0)")
+    planners.add_argument("--seeds", type=int, nargs="+", help="explicit seeds")
+    planners.add_argument("--max-distance", type=float, metavar="M",
+                          help="stop a trial when the team has travelled this far [m]")
+    planners.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                          help="parallel worker processes (default: number of CPUs)")
+    planners.add_argument("--out", type=Path, required=True, help="output folder")
+    planners.set_defaults(handler=command_planners)
+    planners.epilog = ("--map-size and --cell-size take one or more values (one cell size "
+                       "per map size; default map size / 50: 2 m for 100 m, 4 m for 200 m).")
+
+    plot = commands.add_parser("plot", help="re-make plots and results.md from saved results")
+    plot.add_argument("--out", type=Path, required=True,
+                      help="folder holding results.csv and summary.json")
+    plot.set_defaults(handler=command_plot)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of em-bench; returns the process exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    if getattr(args, "jobs", 1) < 1:
+        parser.error("--jobs must be at least 1")
+    try:
+        return args.handler(args)
+    except (ParamsFileError, ValueError, FileNotFoundError) as error:
+        _LOG.error("%s", error)
+        return 2
+    except KeyboardInterrupt:
+        _LOG.warning("interrupted; finished trials are kept, rerun to resume")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

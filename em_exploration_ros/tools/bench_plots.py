@@ -1,0 +1,185 @@
+"""Plots and the Markdown table of the planner comparison, from the files em-bench writes.
+
+Inputs, in the benchmark's output folder: ``results.csv`` (columns ``CSV_COLUMNS``, one row
+per trial and metrics sample, missing values empty) and ``summary.json`` (see bench.py).
+Outputs there: per setting the paper's three plots, ``<setting>_loc_rmse.png``,
+``<setting>_landmark_rmse.png`` and ``<setting>_explored_ratio.png`` (mean and 95%
+confidence band per planner against the team's distance travelled, see
+core/trial_stats.py), and ``results.md`` (final values with 95% CIs and paired differences).
+Matplotlib draws through its Agg renderer only (no display, no pyplot state).
+"""
+from __future__ import annotations
+
+import csv
+import json
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from em_exploration_ros.core.trial_stats import band, curve_on_grid, distance_grid
+
+#: Columns of results.csv.
+CSV_COLUMNS = ("setting", "planner", "seed", "distance_m", "explored_ratio", "loc_rmse_m",
+               "landmark_rmse_m", "sim_time_s")
+#: Plotted metrics: CSV column, file suffix, title, y-axis label.
+PLOTS = (("loc_rmse_m", "loc_rmse", "Robot localization RMSE", "localization RMSE [m]"),
+         ("landmark_rmse_m", "landmark_rmse", "Landmark position RMSE", "landmark RMSE [m]"),
+         ("explored_ratio", "explored_ratio", "Explored ratio", "explored ratio [-]"))
+#: Points of the common distance grid of a setting.
+GRID_POINTS = 201
+#: One colour per planner, the same in every plot.
+PLANNER_COLORS = {"EM_2": "tab:blue", "EM_3": "tab:green", "CE": "tab:orange",
+                  "BSP": "tab:red", "NF": "tab:gray"}
+#: Final values in the Markdown table: summary key, column title, decimals.
+TABLE_COLUMNS = (("explored_ratio", "explored ratio", 3), ("distance_m", "distance [m]", 0),
+                 ("loc_rmse_m", "robot loc. RMSE [m]", 3),
+                 ("landmark_rmse_m", "landmark RMSE [m]", 3))
+PAIRED_TITLES = {"loc_rmse_m": ("robot loc. RMSE [m]", 3),
+                 "landmark_rmse_m": ("landmark RMSE [m]", 3), "distance_m": ("distance [m]", 0)}
+
+
+@dataclass(frozen=True)
+class TrialCurve:
+    """One trial's metrics against the team's distance travelled [m]."""
+
+    seed: int
+    distance_m: np.ndarray
+    metrics: Mapping[str, np.ndarray]
+
+
+def read_curves(csv_path: Path) -> dict[str, dict[str, list[TrialCurve]]]:
+    """``{setting: {planner: [curves by seed]}}`` from results.csv (empty values are NaN)."""
+    columns: dict[tuple[str, str, int], list[list[float]]] = defaultdict(list)
+    with csv_path.open(newline="", encoding="utf-8") as stream:
+        reader = csv.reader(stream)
+        header = next(reader, None)
+        if header is None or tuple(header) != CSV_COLUMNS:
+            raise ValueError(f"{csv_path}: header {header} is not {list(CSV_COLUMNS)}")
+        for row in reader:
+            columns[row[0], row[1], int(row[2])].append(
+                [float(value) if value else np.nan for value in row[3:]])
+    curves: dict[str, dict[str, list[TrialCurve]]] = defaultdict(lambda: defaultdict(list))
+    for (setting, planner, seed), rows in sorted(columns.items()):
+        table = np.asarray(rows, dtype=float)
+        metrics = {name: table[:, i + 1] for i, name in enumerate(CSV_COLUMNS[4:])}
+        curves[setting][planner].append(TrialCurve(seed, table[:, 0], metrics))
+    return curves
+
+
+def plot_metric(curves: Mapping[str, Sequence[TrialCurve]], metric: str, title: str,
+                y_label: str, path: Path) -> None:
+    """Mean and 95% band of ``metric`` per planner against distance travelled, as PNG."""
+    # Imported here: the benchmark's worker processes import this module but never draw.
+    from matplotlib.figure import Figure  # pylint: disable=import-outside-toplevel
+
+    longest = max(float(np.nanmax(c.distance_m)) for trials in curves.values() for c in trials)
+    grid = distance_grid(longest, GRID_POINTS)
+    figure = Figure(figsize=(6.4, 4.4), dpi=110)
+    axes = figure.add_subplot()
+    for planner, trials in curves.items():
+        on_grid = np.array([curve_on_grid(c.distance_m, c.metrics[metric], grid) for c in trials])
+        stats = band(on_grid, grid)
+        color = PLANNER_COLORS.get(planner)
+        axes.plot(grid, stats.mean, color=color, label=f"{planner} (n={len(trials)})")
+        axes.fill_between(grid, stats.lower, stats.upper, color=color, alpha=0.2, linewidth=0)
+    axes.set_xlabel("distance travelled by the team [m]")
+    axes.set_ylabel(y_label)
+    axes.set_title(title, fontsize=10)
+    axes.set_xlim(0.0, grid[-1] if grid[-1] > 0 else 1.0)
+    axes.grid(alpha=0.3)
+    axes.legend(loc="best", fontsize=9)
+    figure.tight_layout()
+    figure.savefig(path, format="png")
+
+
+def setting_caption(info: Mapping[str, Any], trial_counts: Sequence[int]) -> str:
+    """E.g. ``100 m x 100 m, cell 2 m, 3 robots, 20 landmarks, 20 trials per planner``."""
+    width, height = info["map_size_m"]
+    low, high = min(trial_counts, default=0), max(trial_counts, default=0)
+    trials = f"{low}" if low == high else f"{low}-{high}"
+    return (f"{width:g} m x {height:g} m, cell {info['cell_size_m']:g} m, "
+            f"{info['num_robots']} robots, {info['num_landmarks']} landmarks, "
+            f"{trials} trials per planner")
+
+
+def _with_ci(stat: Mapping[str, Any], decimals: int) -> str:
+    if stat["mean"] is None:
+        return "n/a"
+    if stat["ci95"] is None:
+        return f"{stat['mean']:.{decimals}f}"
+    return f"{stat['mean']:.{decimals}f} ± {stat['ci95']:.{decimals}f}"
+
+
+def results_markdown(summary: Mapping[str, Any], plots: Mapping[str, Sequence[Path]]) -> str:
+    """results.md: per setting, final values (mean ± 95% CI half width), paired
+    differences over common seeds and the plots (``plots``: setting -> PNG paths)."""
+    lines = ["# Planner comparison", "",
+             "Made by `em-bench planners` (re-make with `em-bench plot --out <folder>`). "
+             "Values are the mean ± the half width of the two-sided 95% confidence interval "
+             "(Student t) over trials, at the end of each trial (explored-ratio target or "
+             "distance/step limit). Trials with the same seed share the world.", ""]
+    for setting, info in summary["settings"].items():
+        planners = info["planners"]
+        caption = setting_caption(info, [p["trials_done"] for p in planners.values()])
+        lines += [f"## {setting}: {caption}", "",
+                  "| planner | trials done (failed) | reached target "
+                  + "".join(f"| {title} " for _, title, _ in TABLE_COLUMNS)
+                  + "| wall per trial [s] |",
+                  "|---" * (4 + len(TABLE_COLUMNS)) + "|"]
+        for name, entry in planners.items():
+            wall = entry["wall_s_mean"]
+            lines.append(
+                f"| {name} | {entry['trials_done']} ({entry['trials_failed']}) "
+                f"| {entry['reached_explored_target']} "
+                + "".join(f"| {_with_ci(entry['final'][key], digits)} "
+                          for key, _, digits in TABLE_COLUMNS)
+                + f"| {'n/a' if wall is None else f'{wall:.1f}'} |")
+        lines += ["", f"Reached target: trials that ended at explored ratio "
+                  f"{info['until_explored']:g}.", ""]
+        if info["paired_differences"]:
+            metrics = list(dict.fromkeys(d["metric"] for d in info["paired_differences"]))
+            lines += ["Paired differences A − B of the final values over common seeds "
+                      "(negative: A lower):", "",
+                      "| A − B | " + " | ".join(PAIRED_TITLES[m][0] for m in metrics) + " |",
+                      "|---" * (1 + len(metrics)) + "|"]
+            pairs: dict[tuple[str, str], dict[str, Any]] = defaultdict(dict)
+            for diff in info["paired_differences"]:
+                pairs[diff["a"], diff["b"]][diff["metric"]] = diff
+            for (a, b), by_metric in pairs.items():
+                lines.append(f"| {a} − {b} | " + " | ".join(
+                    _with_ci(by_metric[m], PAIRED_TITLES[m][1]) for m in metrics) + " |")
+            lines.append("")
+        failures = [(name, f) for name, entry in planners.items() for f in entry["failures"]]
+        if failures:
+            lines += ["Failed trials:", ""]
+            lines += [f"- {name} seed {f['seed']}: `{f['error']}`" for name, f in failures]
+            lines.append("")
+        lines += [f"![{path.stem}]({path.name})" for path in plots.get(setting, ())]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def make_all(out_dir: Path) -> list[Path]:
+    """All plots and results.md from ``out_dir``'s results.csv and summary.json.
+
+    Returns the PNG paths written. FileNotFoundError if an input is missing.
+    """
+    summary = json.loads((out_dir / "summary.json").read_text(encoding="utf-8"))
+    curves = read_curves(out_dir / "results.csv")
+    plots: dict[str, list[Path]] = {}
+    for setting, info in summary["settings"].items():
+        by_planner = {name: curves[setting][name] for name in info["planners"]
+                      if name in curves.get(setting, {})}
+        if not by_planner:
+            continue
+        caption = setting_caption(info, [len(trials) for trials in by_planner.values()])
+        plots[setting] = []
+        for metric, suffix, title, y_label in PLOTS:
+            path = out_dir / f"{setting}_{suffix}.png"
+            plot_metric(by_planner, metric, f"{title}\n{caption}", y_label, path)
+            plots[setting].append(path)
+    (out_dir / "results.md").write_text(results_markdown(summary, plots), encoding="utf-8")
+    return [path for paths in plots.values() for path in paths]

@@ -1,0 +1,178 @@
+"""Tests of em-bench: a short planner comparison through the real CLI, resuming, re-plotting,
+failed trials, and the progress/ETA bookkeeping."""
+import csv
+import io
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.tools import bench, bench_plots
+
+REPO = Path(__file__).resolve().parents[1]
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# Two settings: a small map, and a 12 m map too small for the world generator (start poses
+# and 4 landmarks 10 m apart), so every trial of it fails while the others finish.
+SHORT_RUN = ["planners", "--planners", "NF", "CE", "--landmarks", "4", "--trials", "2",
+             "--jobs", "2", "--max-steps", "1500"]
+GOOD = ["--map-size", "40", "--cell-size", "2"]
+GOOD_AND_BAD = ["--map-size", "40", "12", "--cell-size", "2", "2"]
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.bench", *args],
+                          cwd=REPO, capture_output=True, text=True, timeout=300, check=False)
+
+
+@pytest.fixture(scope="module")
+def bench_out(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("bench")
+    result = run_cli(*SHORT_RUN, *GOOD_AND_BAD, "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    return out
+
+
+def test_every_trial_has_a_record(bench_out):
+    for setting, status in (("40m_cell2m", "done"), ("12m_cell2m", "failed")):
+        for planner in ("NF", "CE"):
+            for seed in (0, 1):
+                record = json.loads(
+                    (bench_out / "trials" / setting / planner / f"seed_{seed}.json").read_text())
+                assert record["status"] == status
+                assert (record["setting"], record["planner"], record["seed"]) == (
+                    setting, planner, seed)
+    failed = json.loads((bench_out / "trials/12m_cell2m/CE/seed_0.json").read_text())
+    assert failed["error"].splitlines()[-1].startswith("ValueError: ")
+
+
+def test_csv_has_one_row_per_history_sample(bench_out):
+    with (bench_out / "results.csv").open(newline="") as stream:
+        rows = list(csv.reader(stream))
+    assert tuple(rows[0]) == bench_plots.CSV_COLUMNS
+    expected = 0
+    for planner in ("NF", "CE"):
+        for seed in (0, 1):
+            record = json.loads(
+                (bench_out / "trials/40m_cell2m" / planner / f"seed_{seed}.json").read_text())
+            history = record["summary"]["history"]
+            trial_rows = [r for r in rows[1:] if r[1] == planner and r[2] == str(seed)]
+            assert len(trial_rows) == len(history) > 5
+            assert float(trial_rows[-1][3]) == pytest.approx(record["summary"]["distance_m"])
+            distances = [float(r[3]) for r in trial_rows]
+            assert distances == sorted(distances)
+            expected += len(history)
+    assert len(rows) - 1 == expected
+    assert {r[0] for r in rows[1:]} == {"40m_cell2m"}
+
+
+def test_summary_json_has_counts_finals_and_paired_differences(bench_out):
+    summary = json.loads((bench_out / "summary.json").read_text())
+    good, bad = summary["settings"]["40m_cell2m"], summary["settings"]["12m_cell2m"]
+    assert good["map_size_m"] == [40.0, 40.0] and good["cell_size_m"] == 2.0
+    assert good["num_landmarks"] == 4 and good["num_robots"] == 3
+    for planner in ("NF", "CE"):
+        entry = good["planners"][planner]
+        assert (entry["trials_done"], entry["trials_failed"]) == (2, 0)
+        assert set(entry["final"]) == set(bench.FINAL_METRICS)
+        explored = entry["final"]["explored_ratio"]
+        assert explored["n"] == 2 and 0.0 < explored["mean"] <= 1.0 and explored["ci95"] >= 0
+        assert entry["final"]["loc_rmse_m"]["mean"] > 0.0
+        assert entry["wall_s_total"] > 0.0
+        assert (bad["planners"][planner]["trials_done"],
+                bad["planners"][planner]["trials_failed"]) == (0, 2)
+    pairs = {(d["a"], d["b"], d["metric"]) for d in good["paired_differences"]}
+    assert pairs == {("CE", "NF", m) for m in bench.PAIRED_METRICS}
+    assert summary["last_invocation"]["ran"] == 8
+
+
+def test_plots_and_markdown_are_written(bench_out):
+    for suffix in ("loc_rmse", "landmark_rmse", "explored_ratio"):
+        png = (bench_out / f"40m_cell2m_{suffix}.png").read_bytes()
+        assert png.startswith(PNG_SIGNATURE) and len(png) > 10_000
+    assert not list(bench_out.glob("12m_cell2m_*.png"))
+    markdown = (bench_out / "results.md").read_text()
+    assert "| NF | 2 (0) |" in markdown and "| CE | 2 (0) |" in markdown
+    assert "| CE − NF |" in markdown
+    assert "![40m_cell2m_loc_rmse](40m_cell2m_loc_rmse.png)" in markdown
+    assert "NF seed 1: `ValueError" in markdown
+
+
+def test_rerun_skips_finished_trials_and_plot_remakes_outputs(bench_out):
+    csv_before = (bench_out / "results.csv").read_text()
+    result = run_cli(*SHORT_RUN, *GOOD, "--out", str(bench_out))
+    assert result.returncode == 0, result.stderr
+    assert "4 trials: 4 finished earlier, 0 to run" in result.stderr
+    summary = json.loads((bench_out / "summary.json").read_text())
+    assert summary["last_invocation"]["ran"] == 0
+    assert summary["last_invocation"]["finished_earlier"] == 4
+    assert (bench_out / "results.csv").read_text() == csv_before
+
+    for png in bench_out.glob("*.png"):
+        png.unlink()
+    (bench_out / "results.md").unlink()
+    result = run_cli("plot", "--out", str(bench_out))
+    assert result.returncode == 0, result.stderr
+    assert len(list(bench_out.glob("40m_cell2m_*.png"))) == 3
+    assert "| CE | 2 (0) |" in (bench_out / "results.md").read_text()
+
+
+def test_rerun_with_other_parameters_is_refused(bench_out):
+    result = run_cli(*SHORT_RUN, *GOOD, "--robots", "2", "--out", str(bench_out))
+    assert result.returncode == 2
+    assert "other parameters" in result.stderr
+
+
+def test_bad_arguments_are_rejected(tmp_path):
+    result = run_cli("planners", "--map-size", "40", "100", "--cell-size", "2",
+                     "--out", str(tmp_path))
+    assert result.returncode == 2 and "one value per map size" in result.stderr
+    result = run_cli("planners", "--planners", "XX", "--out", str(tmp_path))
+    assert result.returncode == 2 and "invalid choice" in result.stderr
+
+
+def test_trial_specs_follow_the_paper_defaults(tmp_path):
+    args = bench.build_parser().parse_args(
+        ["planners", "--map-size", "100", "200", "--trials", "3", "--seed-start", "5",
+         "--max-distance", "1400", "--out", str(tmp_path)])
+    specs = bench.trial_specs(args, tmp_path)
+    assert len(specs) == 2 * 3 * len(bench.PAPER_PLANNERS)
+    assert {s.setting for s in specs} == {"100m_cell2m", "200m_cell4m"}
+    assert {s.seed for s in specs} == {5, 6, 7}
+    first = specs[0].params
+    assert first.map.cell_size_m == 2.0 and first.run.max_distance_m == 1400.0
+    # same seed, same world under every planner; the seed is the only difference
+    same_seed = [s.params for s in specs if s.setting == "100m_cell2m" and s.seed == 6]
+    assert [p.planner.name for p in same_seed] == list(bench.PAPER_PLANNERS)
+    assert len({(p.world, p.sensors, p.run) for p in same_seed}) == 1
+
+
+def test_worker_that_dies_without_a_record_is_recorded_as_failed(tmp_path):
+    spec = bench.TrialSpec("s", "NF", 3, ExplorationParams(), tmp_path / "seed_3.json")
+    record = bench.record_after_exit(spec, -9, 12.5)
+    assert record["status"] == "failed" and "code -9" in record["error"]
+    assert bench.read_record(spec.path) == record
+
+
+def test_progress_reports_each_trial_and_estimates_time_left(tmp_path):
+    now = [0.0]
+    stream = io.StringIO()
+    specs = [bench.TrialSpec("s", planner, seed, ExplorationParams(), tmp_path / f"{seed}.json")
+             for seed in (0, 1) for planner in ("NF", "CE")]
+    progress = bench.ProgressBar(4, 2, stream, clock=lambda: now[0])
+    progress.queue(specs)
+    assert progress.eta_s() is None
+    progress.started(specs[0])
+    progress.started(specs[1])
+    now[0] = 10.0
+    progress.finished(specs[0], {"status": "done", "wall_s": 10.0,
+                                 "summary": {"explored_ratio": 0.85, "distance_m": 120.0}})
+    # pending NF 10 s + CE (overall mean 10 s) + running CE (10 s expected, 10 s spent)
+    assert progress.eta_s() == pytest.approx(10.0)
+    progress.finished(specs[1], {"status": "failed", "wall_s": 30.0, "error": "Boom\nKeyError: 1"})
+    lines = stream.getvalue().splitlines()
+    assert lines[0].startswith("[1/4] s/NF/seed 0: done in 10.0 s (explored 0.850, 120 m)")
+    assert lines[1].startswith("[2/4] s/CE/seed 0: FAILED after 30.0 s: KeyError: 1")
+    assert "left ~0:00:20" in lines[1]
