@@ -15,7 +15,6 @@ from pathlib import Path
 
 import pytest
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseStamped
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, Footer, Header, Message, Schema
 from mcap.stream_reader import StreamReader

@@ -23,6 +23,21 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 import pytest
+import rclpy
+from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
+from mcap_ros2.decoder import DecoderFactory
+from rclpy.duration import Duration
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import String
+
+from em_exploration_ros.bag_format.bag_reader import BagScanner, scan_bag
+from em_exploration_ros.bag_format.bag_writer import BagWriter
+from em_exploration_ros.bag_format.interface_index import read_type_hash
+from em_exploration_ros.bag_format.mcap_ros2_schema import (
+    MessageDefinition, build_message_definition)
 
 REPO = Path(__file__).resolve().parents[1]
 PYTHON = sys.executable
@@ -74,8 +89,7 @@ def expected_count(topic: str) -> int:
 
 
 # ----- helper nodes (run as a script) -----------------------------------------------------
-def _qos(reliable: bool = True, latched: bool = False, depth: int = 1000):
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+def _qos(reliable: bool = True, latched: bool = False, depth: int = 1000) -> QoSProfile:
     return QoSProfile(
         depth=depth,
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
@@ -93,8 +107,6 @@ def _wait(predicate: Callable[[], bool], timeout_s: float) -> bool:
 
 def run_publisher(args: argparse.Namespace) -> None:
     """Latched messages first; on "go" (stdin), the streams; then wait for acknowledgements."""
-    import rclpy
-    from rclpy.duration import Duration
     rclpy.init()
     node = rclpy.create_node("em_test_publisher")
     publishers = {t: node.create_publisher(message_class(TOPIC_TYPES[t]), t,
@@ -125,7 +137,6 @@ def run_publisher(args: argparse.Namespace) -> None:
 
 def run_subscriber(args: argparse.Namespace) -> None:
     """Subscribe raw; exit once every expected count is reached (or at the timeout)."""
-    import rclpy
     rclpy.init()
     node = rclpy.create_node("em_test_subscriber")
     received: dict[str, list[str]] = {}
@@ -151,6 +162,7 @@ def run_subscriber(args: argparse.Namespace) -> None:
 
 
 def helper_main() -> None:
+    """Command line of the helper nodes."""
     parser = argparse.ArgumentParser()
     modes = parser.add_subparsers(dest="mode", required=True)
     publish = modes.add_parser("publish")
@@ -162,7 +174,10 @@ def helper_main() -> None:
     subscribe.add_argument("--timeout", type=float, default=30.0)
     subscribe.add_argument("--settle", type=float, default=0.3)
     args = parser.parse_args()
-    run_publisher(args) if args.mode == "publish" else run_subscriber(args)
+    if args.mode == "publish":
+        run_publisher(args)
+    else:
+        run_subscriber(args)
 
 
 # ----- process handling -------------------------------------------------------------------
@@ -210,7 +225,6 @@ def send_line(process: subprocess.Popen) -> None:
 
 def wait_until_flushed(bag: Path, timeout_s: float = 20.0) -> None:
     """Wait until the file's complete chunks hold the whole sequence (--chunk-interval)."""
-    from em_exploration_ros.bag_format.bag_reader import scan_bag
     expected = {t: expected_count(t) for t in RECORDED}
     if not _wait(lambda: scan_bag(bag, tolerant=True).topic_counts() == expected, timeout_s):
         raise AssertionError(f"{bag.name} holds {scan_bag(bag, tolerant=True).topic_counts()}")
@@ -224,7 +238,8 @@ def record_session(tmp: Path, name: str, extra: list[str],
     with spawn([str(Path(__file__)), "publish"], publisher_log, stdin=True) as publisher:
         wait_for_log(publisher_log, "ready")
         with spawn(["-m", "em_exploration_ros.tools.record", "-o", str(bag), *RECORD_FILTER,
-                    "--poll-interval", "0.2", "--chunk-interval", "0.2", *extra, "--ros-args", "-p", "use_sim_time:=true"],
+                    "--poll-interval", "0.2", "--chunk-interval", "0.2", *extra,
+                    "--ros-args", "-p", "use_sim_time:=true"],
                    recorder_log) as recorder:
             for topic in RECORDED:
                 wait_for_log(recorder_log, f"recording {re.escape(topic)} ")
@@ -251,7 +266,6 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _file_order(bag: Path) -> list:
     """(channel, message) pairs in file order, read by the validating scanner."""
-    from em_exploration_ros.bag_format.bag_reader import BagScanner
     return list(BagScanner(bag).messages())
 
 
@@ -263,14 +277,6 @@ def _read_all(bag: Path) -> dict[str, list]:
 
 
 def test_recording_holds_exactly_what_was_published(recording: Path) -> None:
-    from mcap.reader import make_reader
-    from mcap.stream_reader import StreamReader
-    from mcap_ros2.decoder import DecoderFactory
-    from rclpy.serialization import deserialize_message, serialize_message
-
-    from em_exploration_ros.bag_format.bag_reader import scan_bag
-    from em_exploration_ros.bag_format.interface_index import read_type_hash
-
     with recording.open("rb") as stream:
         records = list(StreamReader(stream, validate_crcs=True).records)
     assert type(records[0]).__name__ == "Header" and records[0].profile == "ros2"
@@ -328,12 +334,10 @@ def test_killed_recording_is_repaired(tmp_path: Path) -> None:
         [PYTHON, "-m", "em_exploration_ros.tools.bag", "repair", str(bag), str(fixed)],
         cwd=REPO, capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
-    from em_exploration_ros.bag_format.bag_reader import scan_bag
     repaired = scan_bag(fixed)
     assert repaired.complete
     assert repaired.topic_counts() == {t: expected_count(t) for t in RECORDED}
     by_topic = _read_all(fixed)
-    from rclpy.serialization import deserialize_message
     for topic in RECORDED:
         cls = message_class(TOPIC_TYPES[topic])
         assert [deserialize_message(m.data, cls) for m in by_topic[topic]] == [
@@ -372,11 +376,6 @@ def test_replay_reproduces_the_recording(recording: Path, tmp_path: Path) -> Non
 
 
 def _synthetic_bag(path: Path, count: int, period_ns: int, start_ns: int) -> None:
-    from rclpy.serialization import serialize_message
-    from std_msgs.msg import String
-
-    from em_exploration_ros.bag_format.bag_writer import BagWriter
-    from em_exploration_ros.bag_format.mcap_ros2_schema import build_message_definition
     definition = build_message_definition("std_msgs/msg/String")
     with BagWriter(path) as writer:
         kept = writer.add_topic("/a", definition)
@@ -399,9 +398,6 @@ def test_replay_timing_clock_remap_and_filters(tmp_path: Path) -> None:
                         "/skip,std_msgs/msg/String,reliable"],
         {"/b": 11}, ["--rate", "2", "--start-offset", "0.5", "--remap", "/a:=/b",
                      "--exclude", "^/skip$", "--delay", "0", "--wait-for-subscribers", "30"])
-    from rclpy.serialization import deserialize_message
-    from rosgraph_msgs.msg import Clock
-    from std_msgs.msg import String
     assert [deserialize_message(bytes.fromhex(h), String).data for h in received["/b"]] == [
         f"a{k}" for k in range(5, 16)]
     assert received["/skip"] == []
@@ -433,9 +429,6 @@ def _tool(module: str, *args: str) -> subprocess.CompletedProcess:
 
 
 def test_bad_files_give_one_line_errors(tmp_path: Path) -> None:
-    from em_exploration_ros.bag_format.bag_writer import BagWriter
-    from em_exploration_ros.bag_format.mcap_ros2_schema import MessageDefinition
-
     good = tmp_path / "good.mcap"
     _synthetic_bag(good, count=50, period_ns=10**6, start_ns=0)
     truncated = tmp_path / "truncated.mcap"

@@ -108,6 +108,7 @@ def build_message_definition(type_name: str) -> MessageDefinition:
         text = _full_text(type_name, ".msg", "MSG", parse_msg_dependencies)
         return MessageDefinition(type_name, ENCODING_MSG, text)
     except DefinitionNotFoundError:
-        text = _full_text(type_name, ".idl", "IDL", lambda idl, _package: parse_idl_dependencies(idl))
+        text = _full_text(type_name, ".idl", "IDL",
+                          lambda idl, _package: parse_idl_dependencies(idl))
         return MessageDefinition(
             type_name, ENCODING_IDL, f"{DELIMITER_LINE}\nIDL: {type_name}\n{text}")
