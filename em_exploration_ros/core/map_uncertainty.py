@@ -212,13 +212,13 @@ class CellObservations:
         jacobian = hl_inverse @ hx
         if covariance_frame == "body":
             jacobian = jacobian @ _body_to_map_jacobian(pair_poses[:, 2])
-        coefficients = np.empty((len(pose_index), 3, 6))
-        for q, (a, b) in enumerate(_CELL_ENTRIES):
-            for u, (j, k) in enumerate(_POSE_ENTRIES):
-                term = jacobian[:, a, j] * jacobian[:, b, k]
-                if j != k:
-                    term = term + jacobian[:, a, k] * jacobian[:, b, j]
-                coefficients[:, q, u] = term
+        # Sigma_v[a, b] = sum_jk G[a, j] G[b, k] Sigma_x[j, k]; an off-diagonal pose entry
+        # (j < k) stands for both (j, k) and (k, j).
+        cell_a, cell_b = (np.array(side)[:, None] for side in zip(*_CELL_ENTRIES))
+        pose_j, pose_k = (np.array(side)[None, :] for side in zip(*_POSE_ENTRIES))
+        coefficients = (jacobian[:, cell_a, pose_j] * jacobian[:, cell_b, pose_k]
+                        + (pose_j != pose_k) * jacobian[:, cell_a, pose_k]
+                        * jacobian[:, cell_b, pose_j])
         variances = np.array([sensor_params.sonar_bearing_sigma_rad ** 2,
                               sensor_params.sonar_range_sigma_m ** 2])
         noise = (hl_inverse * variances[None, None, :]) @ np.swapaxes(hl_inverse, -1, -2)
@@ -245,8 +245,7 @@ class CellObservations:
     def _pair_entries(self, pose_covariances: ArrayLike) -> FloatArray:
         """Cell covariance entries ``(P, 3)`` (xx, xy, yy) [m^2] of every pair."""
         entries = _pose_entries(np.asarray(pose_covariances, dtype=float).reshape(-1, 3, 3))
-        spread = self.coefficients @ entries[self.pose_index][:, :, None]
-        return spread[:, :, 0] + self.noise
+        return np.einsum("pqu,pu->pq", self.coefficients, entries[self.pose_index]) + self.noise
 
     def pair_covariances(self, pose_covariances: ArrayLike) -> FloatArray:
         """Virtual landmark covariance ``(P, 2, 2)`` [m^2] of every pair, given the pose

@@ -46,6 +46,10 @@ FloatArray = NDArray[np.float64]
 
 _LOG = logging.getLogger(__name__)
 
+#: A history pose whose covariance trace shrinks by less than this fraction keeps its
+#: virtual map contribution (round-off of a candidate without loop closure).
+_UNCHANGED = 1e-12
+
 
 @dataclass(frozen=True)
 class PlanningContext:
@@ -131,12 +135,12 @@ def _recent_teammate_targets(context: PlanningContext, count: int) -> np.ndarray
 
 
 def _utility_terms(context: PlanningContext,
-                   params: PlannerParams) -> tuple[np.ndarray, FloatArray, FloatArray]:
-    """Candidate positions (C, 2), ``U_T`` (C,) and ``U_D`` (C,)."""
+                   params: PlannerParams) -> tuple[FloatArray, FloatArray]:
+    """``U_T`` (C,) and ``U_D`` (C,) of the candidates."""
     positions = np.array([c.position for c in context.candidates]).reshape(-1, 2)
-    u_t = allocation_utility(positions, _recent_teammate_targets(context, params.allocation_history),
-                             params.allocation_d_max_m)
-    return positions, u_t, distance_utility(context.robot_pose, context.candidates)
+    teammate_targets = _recent_teammate_targets(context, params.allocation_history)
+    u_t = allocation_utility(positions, teammate_targets, params.allocation_d_max_m)
+    return u_t, distance_utility(context.robot_pose, context.candidates)
 
 
 def _decide(context: PlanningContext, u_m: FloatArray, u_t: FloatArray, u_d: FloatArray,
@@ -174,7 +178,7 @@ class CoordinatedPlanner:
 
     def choose(self, context: PlanningContext) -> Decision:
         started = time.perf_counter()
-        _, u_t, u_d = _utility_terms(context, self.params)
+        u_t, u_d = _utility_terms(context, self.params)
         weight_d, weight_t = self.params.ce_lambdas
         return _decide(context, np.full(len(u_d), np.nan), u_t, u_d,
                        weight_d * u_d + weight_t * u_t, started)
@@ -217,7 +221,7 @@ class BspPlanner(_PropagationPlanner):
 
     def choose(self, context: PlanningContext) -> Decision:
         started = time.perf_counter()
-        _, u_t, u_d = _utility_terms(context, self.params.planner)
+        u_t, u_d = _utility_terms(context, self.params.planner)
         prepared = self._scenarios(context, with_history=False)
         if prepared is None:
             u_m = np.zeros(len(u_d))
@@ -253,7 +257,7 @@ class EmPlanner(_PropagationPlanner):
 
     def choose(self, context: PlanningContext) -> Decision:
         started = time.perf_counter()
-        _, u_t, u_d = _utility_terms(context, self.params.planner)
+        u_t, u_d = _utility_terms(context, self.params.planner)
         u_m = self.map_uncertainty(context)
         weight_m, weight_t, weight_d = self.weights(context.explored_ratio)
         return _decide(context, u_m, u_t, u_d,
@@ -272,6 +276,9 @@ class EmPlanner(_PropagationPlanner):
         history = CellObservations.from_poses(grid.geometry, snapshot.history_poses, sensors,
                                               "body")
         history_counts = np.bincount(history.flat_cell, minlength=num_cells)
+        current = factorization.tracked_covariances
+        current_sums = history.intersection_sums(current, num_cells)
+        current_traces = np.trace(current, axis1=1, axis2=2)
         bounds = np.cumsum([0] + [len(s.next.waypoints) for s in scenarios])
         new_poses = CellObservations.from_poses(
             grid.geometry, np.vstack([s.next.waypoints for s in scenarios]), sensors, "body")
@@ -280,8 +287,11 @@ class EmPlanner(_PropagationPlanner):
         for index, scenario in enumerate(scenarios):
             result = factorization.propagate(scenario)
             new = new_poses.pose_range(bounds[index], bounds[index + 1])
-            sums = (history.intersection_sums(result.history_covariances, num_cells)
-                    + new.intersection_sums(result.next_covariances, num_cells))
+            # Candidates without a loop closure leave the history untouched (to round-off).
+            reduction = current_traces - np.trace(result.history_covariances, axis1=1, axis2=2)
+            history_sums = (history.intersection_sums(result.history_covariances, num_cells)
+                            if np.any(reduction > _UNCHANGED * current_traces) else current_sums)
+            sums = history_sums + new.intersection_sums(result.next_covariances, num_cells)
             traces = sums.covariance_traces()
             if planner.utility_variant == "reference":
                 u_m[index] = np.sum(traces) + prior_trace * np.count_nonzero(~sums.observed)

@@ -68,8 +68,9 @@ _LANDMARK_CHAR = ord("L")
 
 
 def _key_dim(key: int) -> int:
-    """Tangent dimension of a team-graph variable: 2 for a landmark, 3 for a pose."""
-    return 2 if gtsam.Symbol(key).chr() == _LANDMARK_CHAR else 3
+    """Tangent dimension of a team-graph variable: 2 for a landmark, 3 for a pose (the
+    symbol character is the key's top byte)."""
+    return 2 if int(key) >> 56 == _LANDMARK_CHAR else 3
 
 
 def virtual_waypoints(start_pose: ArrayLike, target_xy: ArrayLike | None,
@@ -541,7 +542,8 @@ class DecisionFactorization:
             list(self.predicted_keys) if with_predicted else [])
         self.tracked_keys = tuple(tracked)
         graph, values = _with_virtual(snapshot, predicted)
-        reduced = self._marginalize_untracked(graph.linearize(values))
+        linear = graph.linearize(values)
+        reduced = self._marginalize_untracked(linear)
         ordering = gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(
             reduced, list(self.boundary_keys), True)
         bayes_net = reduced.eliminateSequential(ordering)
@@ -551,7 +553,7 @@ class DecisionFactorization:
         self.boundary_covariance = 0.5 * (covariance + covariance.T)
         #: ``Sigma_iB`` (T, 3, |B|) and ``Sigma_ii`` (T, 3, 3) of the tracked poses.
         self.tracked_cross = self._tracked_cross(bayes_net, reduced, inverse_root.T)
-        self.tracked_covariances = self._tracked_marginals(reduced)
+        self.tracked_covariances = self._tracked_marginals(linear)
 
     def _marginalize_untracked(self, linear: gtsam.GaussianFactorGraph
                                ) -> gtsam.GaussianFactorGraph:
@@ -595,18 +597,20 @@ class DecisionFactorization:
         zeros = gtsam.VectorValues()
         for key in sorted(set(reduced.keyVector()) - set(self.boundary_keys)):
             zeros.insert(key, np.zeros(_key_dim(key)))
-        tracked = list(self.tracked_keys)
-        columns = np.empty((3 * len(tracked), self.boundary_dim))
+        tracked = gtsam.KeyVector(list(self.tracked_keys))
+        columns = np.empty((3 * len(self.tracked_keys), self.boundary_dim))
         for b in range(self.boundary_dim):
             rhs = gtsam.VectorValues()
             for key, offset in self.boundary_offsets.items():
                 rhs.insert(key, boundary_rhs[offset:offset + _key_dim(key), b].copy())
             columns[:, b] = bayes_net.backSubstitute(gtsam.VectorValues(zeros, rhs)).vector(
                 tracked)
-        return columns.reshape(len(tracked), 3, self.boundary_dim)
+        return columns.reshape(len(self.tracked_keys), 3, self.boundary_dim)
 
     def _tracked_marginals(self, linear: gtsam.GaussianFactorGraph) -> FloatArray:
-        """Marginal covariances (T, 3, 3) of the tracked poses."""
+        """Marginal covariances (T, 3, 3) of the tracked poses, from a Bayes tree of the
+        whole graph (COLAMD): that of the graph without teammates is deep and slow to query
+        once many meetings have connected alpha's poses."""
         if not self.tracked_keys:
             return np.zeros((0, 3, 3))
         bayes_tree = linear.eliminateMultifrontal()
