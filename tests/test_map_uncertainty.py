@@ -7,8 +7,8 @@ from em_exploration_ros.core.map_uncertainty import (CellObservations, VirtualMa
                                                      cell_covariances_from_poses,
                                                      covariance_intersection, inverse_2x2,
                                                      information_to_covariance,
-                                                     observation_confidence,
-                                                     observation_jacobians)
+                                                     inverse_sensor_model,
+                                                     observation_confidence)
 from em_exploration_ros.core.occupancy_grid import GridGeometry, predicted_observed_mask
 from em_exploration_ros.core.params import MapParams, SensorParams
 
@@ -24,25 +24,41 @@ def _measure(pose: np.ndarray, point: np.ndarray) -> np.ndarray:
     return np.array([bearing, distance])
 
 
-def test_jacobians_match_numerical_derivatives() -> None:
+def _numerical_jacobians(pose: np.ndarray, point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Central differences of (bearing, range) w.r.t. additive pose and point coordinates."""
+    step = 1e-6
+
+    def column(shift_pose: np.ndarray, shift_point: np.ndarray) -> np.ndarray:
+        diff = (_measure(pose + shift_pose, point + shift_point)
+                - _measure(pose - shift_pose, point - shift_point))
+        diff[0] = (diff[0] + np.pi) % (2 * np.pi) - np.pi
+        return diff / (2 * step)
+
+    hx = np.column_stack([column(step * np.eye(3)[i], np.zeros(2)) for i in range(3)])
+    hl = np.column_stack([column(np.zeros(3), step * np.eye(2)[i]) for i in range(2)])
+    return hx, hl
+
+
+def test_inverse_sensor_model_is_the_pseudo_inverse_formula() -> None:
+    # Sigma_v = Hl^+ (Hx Sigma_x Hx^T + R) Hl^+^T with numerically differentiated Jacobians.
     rng = np.random.default_rng(3)
     poses = np.column_stack([rng.uniform(-5, 5, (20, 2)), rng.uniform(-3, 3, 20)])
     points = rng.uniform(-8, 8, (20, 2))
-    hx, hl = observation_jacobians(poses, points)
-    step = 1e-6
-    for pose, point, jx, jl in zip(poses, points, hx, hl):
-        for i in range(3):
-            delta = np.zeros(3)
-            delta[i] = step
-            diff = _measure(pose + delta, point) - _measure(pose - delta, point)
-            diff[0] = (diff[0] + np.pi) % (2 * np.pi) - np.pi
-            np.testing.assert_allclose(jx[:, i], diff / (2 * step), atol=1e-6)
-        for i in range(2):
-            delta = np.zeros(2)
-            delta[i] = step
-            diff = _measure(pose, point + delta) - _measure(pose, point - delta)
-            diff[0] = (diff[0] + np.pi) % (2 * np.pi) - np.pi
-            np.testing.assert_allclose(jl[:, i], diff / (2 * step), atol=1e-6)
+    roots = rng.normal(scale=0.2, size=(20, 3, 3))
+    covs = roots @ np.swapaxes(roots, 1, 2)
+    noise = np.diag([SB2, SR2])
+    gain, model_noise = inverse_sensor_model(poses, points, SENSORS)
+    body_gain, _ = inverse_sensor_model(poses, points, SENSORS, "body")
+    for i, (pose, point, cov) in enumerate(zip(poses, points, covs)):
+        hx, hl = _numerical_jacobians(pose, point)
+        pseudo = np.linalg.pinv(hl)
+        expected = pseudo @ (hx @ cov @ hx.T + noise) @ pseudo.T
+        np.testing.assert_allclose(gain[i] @ cov @ gain[i].T + model_noise[i], expected,
+                                   rtol=1e-6, atol=1e-12)
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        to_map = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+        np.testing.assert_allclose(body_gain[i] @ cov @ body_gain[i].T,
+                                   gain[i] @ to_map @ cov @ to_map.T @ gain[i].T, atol=1e-12)
 
 
 def test_inverse_2x2_closed_form() -> None:

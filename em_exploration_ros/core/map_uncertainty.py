@@ -15,8 +15,13 @@ rows ordered (bearing, range), and ``Hl^+`` the pseudo-inverse of ``Hl`` (its in
 ``det Hl = -1/range``). The paper writes ``H Sigma_x H^T``; like the authors' reference
 implementation we add the sonar noise ``R`` and map the result into the point's
 coordinates through ``Hl^+``, so ``Sigma_v`` is a (2x2, [m^2]) map-frame position
-covariance. A cell centre closer than :data:`MIN_RANGE_M` to the pose is evaluated at that
-distance along the map x axis (the bearing is undefined at zero range).
+covariance. In closed form, with ``d = (dx, dy) = v - (x, y)`` and ``r = |d|``::
+
+    Hl^+ Hx        = -[[1, 0, -dy], [0, 1, dx]]      (additive map-frame pose errors)
+    Hl^+ R Hl^+^T  = sigma_bearing^2 (-dy, dx)(-dy, dx)^T + sigma_range^2 d d^T / r^2
+
+(for body-frame pose errors the first two columns are rotated by the heading). At a
+distance below :data:`MIN_RANGE_M` the range direction is taken along the map x axis.
 
 Several observations of one cell are fused by covariance intersection (Julier and
 Uhlmann): ``I = sum_k w_k I_k`` with ``I_k = Sigma_k^-1`` and convex weights ``w_k``. Any
@@ -26,7 +31,7 @@ weights ``w_k = det(I_k) / sum_j det(I_j)`` (a closed form for any number of inp
 no per-cell optimisation): the more certain observations dominate. Cells never observed
 keep the prior ``sigma0^2 I`` (``MapParams.virtual_landmark_prior_sigma_m``).
 
-Everything is vectorized over (pose, cell) pairs with closed-form 2x2 inverses; pose
+Everything is vectorized over (pose, cell) pairs with closed-form 2x2 algebra; pose
 covariances may be given in the map frame (additive ``(x, y, theta)`` errors) or in the
 GTSAM ``Pose2`` tangent (body) frame.
 """
@@ -48,8 +53,12 @@ IntArray = NDArray[np.int64]
 #: ``Pose2`` tangent space, x and y along the pose's own axes).
 CovarianceFrame = Literal["map", "body"]
 
-#: Smallest pose-to-cell distance [m] at which the bearing-range model is evaluated.
+#: Below this pose-to-cell distance [m] the range direction is taken along map x.
 MIN_RANGE_M = 1e-3
+
+#: Upper-triangle entries ``(j, k)`` of a 3x3 pose covariance, and of a 2x2 cell covariance.
+_POSE_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_CELL_ENTRIES = ((0, 0), (0, 1), (1, 1))
 
 
 def inverse_2x2(matrices: ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -64,45 +73,37 @@ def inverse_2x2(matrices: ArrayLike) -> tuple[FloatArray, FloatArray]:
     return inverse / det[..., None, None], det
 
 
-def observation_jacobians(poses: ArrayLike, points: ArrayLike) -> tuple[FloatArray, FloatArray]:
-    """Jacobians of the bearing-range model of points ``(N, 2)`` seen from poses ``(N, 3)``.
-
-    Returns ``(Hx (N, 2, 3), Hl (N, 2, 2))``: rows are (bearing [rad], range [m]); ``Hx``
-    is w.r.t. the additive map-frame pose coordinates ``(x, y, theta)``, ``Hl`` w.r.t. the
-    map-frame point. Points closer than :data:`MIN_RANGE_M` are moved to that distance.
-    """
+def inverse_sensor_model(poses: ArrayLike, points: ArrayLike,
+                         sensor_params: SensorParams,
+                         covariance_frame: CovarianceFrame = "map"
+                         ) -> tuple[FloatArray, FloatArray]:
+    """``(G, N)`` of the observation of points ``(P, 2)`` from poses ``(P, 3)`` (map frame):
+    ``Sigma_v = G Sigma_x G^T + N`` with ``G = Hl^+ Hx`` ``(P, 2, 3)`` for pose covariances
+    in ``covariance_frame`` and ``N = Hl^+ R Hl^+^T`` ``(P, 2, 2)`` [m^2]."""
     poses = np.asarray(poses, dtype=float).reshape(-1, 3)
     points = np.asarray(points, dtype=float).reshape(-1, 2)
     dx = points[:, 0] - poses[:, 0]
     dy = points[:, 1] - poses[:, 1]
-    too_close = np.hypot(dx, dy) < MIN_RANGE_M
-    dx = np.where(too_close, MIN_RANGE_M, dx)
-    dy = np.where(too_close, 0.0, dy)
-    r2 = dx * dx + dy * dy
-    r = np.sqrt(r2)
-    zeros = np.zeros_like(r)
-    hx = np.stack([np.stack([dy / r2, -dx / r2, zeros - 1.0], axis=-1),
-                   np.stack([-dx / r, -dy / r, zeros], axis=-1)], axis=-2)
-    hl = np.stack([np.stack([-dy / r2, dx / r2], axis=-1),
-                   np.stack([dx / r, dy / r], axis=-1)], axis=-2)
-    return hx, hl
-
-
-def _body_to_map_jacobian(headings: FloatArray) -> FloatArray:
-    """``(N, 3, 3)`` maps from body-frame (GTSAM tangent) pose errors to map-frame ones."""
-    cos_t, sin_t = np.cos(headings), np.sin(headings)
-    rotation = np.zeros(headings.shape + (3, 3))
-    rotation[..., 0, 0] = cos_t
-    rotation[..., 0, 1] = -sin_t
-    rotation[..., 1, 0] = sin_t
-    rotation[..., 1, 1] = cos_t
-    rotation[..., 2, 2] = 1.0
-    return rotation
-
-
-#: Upper-triangle entries ``(j, k)`` of a 3x3 pose covariance, and of a 2x2 cell covariance.
-_POSE_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-_CELL_ENTRIES = ((0, 0), (0, 1), (1, 1))
+    gain = np.zeros((len(poses), 2, 3))
+    if covariance_frame == "body":
+        cos_t, sin_t = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        gain[:, 0, 0], gain[:, 0, 1] = -cos_t, sin_t
+        gain[:, 1, 0], gain[:, 1, 1] = -sin_t, -cos_t
+    else:
+        gain[:, 0, 0] = gain[:, 1, 1] = -1.0
+    gain[:, 0, 2] = dy
+    gain[:, 1, 2] = -dx
+    distance = np.hypot(dx, dy)
+    near = distance < MIN_RANGE_M
+    ux = np.where(near, 1.0, dx / np.where(near, 1.0, distance))
+    uy = np.where(near, 0.0, dy / np.where(near, 1.0, distance))
+    bearing_var = sensor_params.sonar_bearing_sigma_rad ** 2
+    range_var = sensor_params.sonar_range_sigma_m ** 2
+    noise = np.empty((len(poses), 2, 2))
+    noise[:, 0, 0] = bearing_var * dy * dy + range_var * ux * ux
+    noise[:, 0, 1] = noise[:, 1, 0] = -bearing_var * dx * dy + range_var * ux * uy
+    noise[:, 1, 1] = bearing_var * dx * dx + range_var * uy * uy
+    return gain, noise
 
 
 def _pose_entries(covariances: FloatArray) -> FloatArray:
@@ -115,6 +116,19 @@ def _cell_matrices(entries: FloatArray) -> FloatArray:
     """Symmetric 2x2 matrices ``(..., 2, 2)`` from their entries ``(..., 3)`` (xx, xy, yy)."""
     xx, xy, yy = entries[..., 0], entries[..., 1], entries[..., 2]
     return np.stack([np.stack([xx, xy], axis=-1), np.stack([xy, yy], axis=-1)], axis=-2)
+
+
+def _quadratic_form_coefficients(gain: FloatArray) -> FloatArray:
+    """``(P, 3, 6)`` linear map from the pose covariance entries (``_POSE_ENTRIES``) to the
+    entries (xx, xy, yy) of ``G Sigma_x G^T`` for gains ``G`` ``(P, 2, 3)``: an
+    off-diagonal pose entry ``(j, k)`` stands for both ``(j, k)`` and ``(k, j)``."""
+    rows = [[np.ascontiguousarray(gain[:, a, j]) for j in range(3)] for a in range(2)]
+    columns = []
+    for a, b in _CELL_ENTRIES:
+        for j, k in _POSE_ENTRIES:
+            term = rows[a][j] * rows[b][k]
+            columns.append(term + rows[a][k] * rows[b][j] if j != k else term)
+    return np.stack(columns, axis=-1).reshape(-1, 3, 6)
 
 
 @dataclass(frozen=True)
@@ -150,8 +164,8 @@ class CovarianceIntersectionSums:
         0 for unobserved cells."""
         info = self.information_entries()
         det = info[:, 0] * info[:, 2] - info[:, 1] ** 2
-        observed = self.observed
-        return np.divide(info[:, 0] + info[:, 2], det, out=np.zeros_like(det), where=observed)
+        return np.divide(info[:, 0] + info[:, 2], det, out=np.zeros_like(det),
+                         where=self.observed)
 
 
 def _intersection_sums(cell_index: IntArray, entries: FloatArray,
@@ -177,13 +191,12 @@ class CellObservations:
     """Pose-independent part of the (pose, cell) observations of a set of poses.
 
     For pair ``p`` (pose ``pose_index[p]`` observing cell ``flat_cell[p]``, flat index
-    ``row * cols + col``) the virtual landmark covariance is
-    ``G Sigma_x G^T + Hl^+ R Hl^+^T`` with ``G = Hl^+ Hx`` (2x3, in the pose covariance
-    frame chosen at construction). It is stored linearly in the pose covariance entries:
+    ``row * cols + col``) the virtual landmark covariance ``G Sigma_x G^T + N`` (see
+    :func:`inverse_sensor_model`) is stored linearly in the pose covariance entries:
     ``coefficients`` ``(P, 3, 6)`` maps the 6 upper-triangle entries of ``Sigma_x`` to the 3
-    entries (xx, xy, yy) of the cell covariance, ``noise`` ``(P, 3)`` holds those of
-    ``Hl^+ R Hl^+^T`` [m^2]. Built once per set of poses, so that many pose covariance
-    hypotheses (EM candidates) are evaluated with array algebra only.
+    entries (xx, xy, yy) of the cell covariance, ``noise`` ``(P, 3)`` holds those of ``N``
+    [m^2]. Built once per set of poses, so that many pose covariance hypotheses (EM
+    candidates) are evaluated with array algebra only.
     """
 
     pose_index: IntArray
@@ -205,24 +218,10 @@ class CellObservations:
         """
         poses = np.asarray(poses, dtype=float).reshape(-1, 3)
         pose_index, flat_cell = observation_pairs(geometry, poses, sensor_params.sonar_max_range_m)
-        cells = np.stack(np.divmod(flat_cell, geometry.cols), axis=-1)
-        pair_poses = poses[pose_index]
-        hx, hl = observation_jacobians(pair_poses, geometry.cell_center(cells))
-        hl_inverse, _ = inverse_2x2(hl)
-        jacobian = hl_inverse @ hx
-        if covariance_frame == "body":
-            jacobian = jacobian @ _body_to_map_jacobian(pair_poses[:, 2])
-        # Sigma_v[a, b] = sum_jk G[a, j] G[b, k] Sigma_x[j, k]; an off-diagonal pose entry
-        # (j < k) stands for both (j, k) and (k, j).
-        cell_a, cell_b = (np.array(side)[:, None] for side in zip(*_CELL_ENTRIES))
-        pose_j, pose_k = (np.array(side)[None, :] for side in zip(*_POSE_ENTRIES))
-        coefficients = (jacobian[:, cell_a, pose_j] * jacobian[:, cell_b, pose_k]
-                        + (pose_j != pose_k) * jacobian[:, cell_a, pose_k]
-                        * jacobian[:, cell_b, pose_j])
-        variances = np.array([sensor_params.sonar_bearing_sigma_rad ** 2,
-                              sensor_params.sonar_range_sigma_m ** 2])
-        noise = (hl_inverse * variances[None, None, :]) @ np.swapaxes(hl_inverse, -1, -2)
-        return cls(pose_index, flat_cell, coefficients,
+        centres = geometry.cell_center(np.stack(np.divmod(flat_cell, geometry.cols), axis=-1))
+        gain, noise = inverse_sensor_model(poses[pose_index], centres, sensor_params,
+                                           covariance_frame)
+        return cls(pose_index, flat_cell, _quadratic_form_coefficients(gain),
                    noise[:, [0, 0, 1], [0, 1, 1]], len(poses))
 
     def concatenate(self, other: "CellObservations") -> "CellObservations":

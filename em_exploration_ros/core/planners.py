@@ -55,9 +55,12 @@ _UNCHANGED = 1e-12
 class PlanningContext:
     """Everything a planner may use for one decision of robot ``robot_id``.
 
-    ``robot_pose``: (3,) current map-frame pose; ``teammates``: ``{id: (position (2,),
-    current target (2,) or None)}``; ``target_history``: ``{robot id: targets (2,) in
-    chronological order}`` (alpha's own entry is ignored); ``explored_ratio`` in [0, 1].
+    ``slam``: the robot's team SLAM (virtual paths start at every robot's latest keyframe
+    in it); ``grid``: the team occupancy grid (the inter-robot map's probability of being
+    observed, and the virtual map layout); ``robot_pose``: (3,) current map-frame pose
+    (``U_D``); ``teammates``: ``{id: (position (2,), current target (2,) or None)}``;
+    ``target_history``: ``{robot id: targets (2,) in chronological order}`` (alpha's own
+    entry is ignored); ``explored_ratio`` in [0, 1].
     """
 
     robot_id: int
