@@ -1,0 +1,451 @@
+"""em-world: the world simulator node, a thin shell around ``core.simulation.WorldSimulation``.
+
+It is the system's clock and its only source of ground truth. Topics (QoS from nodes/qos.py):
+
+- ``/clock`` (rosgraph_msgs/Clock): the simulation time of the current step;
+- ``/mission/anchor_pose`` (PoseStamped, latched, frame ``map``): robot 0's launch pose;
+- per robot i: ``/robot_i/sonar`` (SonarScan), ``/robot_i/odom`` (Odometry, REP-105
+  ``robot_i/odom`` -> ``robot_i/base_link``), subscribes ``/robot_i/motion_command``;
+- ground truth, under ``/world`` only: ``/world/ground_truth/robot_i`` (Odometry, frame
+  ``world``, every step), ``/world/landmarks`` (LandmarkArray, latched) and
+  ``/world/markers`` (MarkerArray, latched: landmarks and the map border).
+
+Lockstep mode (default): once every robot is connected, for ``startup_settle_s`` (or
+``startup_timeout_s`` passed),
+step k publishes /clock, every robot's sonar (with the barrier ``team_sequences``) and
+odometry, and the ground truth; it then waits until every live robot has answered step k
+with a MotionCommand, or ``robot_timeout_s`` wall seconds passed for a robot (which is then
+treated as stopped: zero motion from then on). The commands are applied in robot id order
+and the world advances: the same order as ``core.team_runner.TeamRunner.step_once``, so em-sim
+and the ROS system draw the same noise.
+
+Real-time mode: a wall timer advances the world every ``time_step_s / realtime_factor``
+seconds with each robot's latest command (none yet: stand still); no barrier.
+
+Stepping ends at the run's final step (``final_step``) or when every robot finished or
+stopped; the node keeps spinning so late subscribers still get the latched topics.
+
+Run: ``python -m em_exploration_ros.nodes.world_node --ros-args --params-file
+config/exploration.yaml -p world.num_robots:=3``
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import rclpy
+from em_exploration_msgs.msg import LandmarkArray, MotionCommand, SonarScan
+from geometry_msgs.msg import Point, PoseStamped
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, MarkerArray
+
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.simulation import WorldSimulation
+from em_exploration_ros.core.team_data import LandmarkEstimate
+from em_exploration_ros.core.world import World
+from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
+                                                  dead_reckoning_to_msg, landmark_array_to_msg,
+                                                  odometry_to_msg, robot_namespace,
+                                                  seconds_to_time, sonar_scan_to_msg,
+                                                  yaw_to_quaternion)
+from em_exploration_ros.nodes.qos import CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS
+from em_exploration_ros.nodes.ros_params import declare_exploration_params
+
+LOCKSTEP, REALTIME = "lockstep", "realtime"
+#: Wall period of the timer that checks start-up connections and robot timeouts [s].
+_POLL_PERIOD_S = 0.05
+#: A progress line every this many steps.
+_LOG_EVERY_STEPS = 500
+#: Height of the landmark cylinders drawn in /world/markers [m].
+_MARKER_HEIGHT_M = 1.0
+
+
+def declare_setting(node: Node, name: str, default: Any, description: str,
+                    low: float | None = None, high: float | None = None) -> Any:
+    """Declare a read-only node parameter (not an exploration parameter) and return its value.
+
+    ``low``/``high`` give a floating-point range (for float defaults only).
+    """
+    descriptor = ParameterDescriptor(name=name, description=description, read_only=True)
+    if low is not None and high is not None:
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float(low),
+                                                              to_value=float(high), step=0.0)]
+    return node.declare_parameter(name, default, descriptor).value
+
+
+def final_step(params: ExplorationParams, max_sim_time_s: float) -> int:
+    """Index of the last step a run publishes: ``run.max_steps`` (as em-sim), or earlier
+    when ``max_sim_time_s`` > 0 [s] ends it first (the last step with time <= the limit)."""
+    last = params.run.max_steps
+    if max_sim_time_s > 0.0:
+        last = min(last, int(math.floor(max_sim_time_s / params.motion.time_step_s + 1e-9)))
+    return last
+
+
+@dataclass(frozen=True)
+class StepAnswer:
+    """A robot's MotionCommand for one step: velocity (m/s, rad/s), barrier entry, finished."""
+
+    linear_x: float
+    angular_z: float
+    team_sequence: int
+    finished: bool
+
+
+#: What a robot that does not move answers.
+STAND_STILL = StepAnswer(0.0, 0.0, 0, False)
+
+
+class LockstepBarrier:
+    """Book-keeping of the lockstep protocol for one step at a time (no ROS, wall time given).
+
+    A step is complete when every live robot has answered it. A robot still silent at the
+    step's deadline (``robot_timeout_s`` after the step opened) is stopped for the rest of
+    the run: it moves no more and keeps its last barrier entry.
+    """
+
+    ACCEPTED, STALE, DUPLICATE, FUTURE, IGNORED = "accepted", "stale", "duplicate", "future", "ignored"
+
+    def __init__(self, num_robots: int, robot_timeout_s: float) -> None:
+        self.num_robots = num_robots
+        self.robot_timeout_s = robot_timeout_s
+        self.step = -1
+        self.stopped: set[int] = set()
+        self.finished = [False] * num_robots
+        self.team_sequences = [0] * num_robots
+        self._answers: dict[int, StepAnswer] = {}
+        self._deadline_s = math.inf
+
+    def open(self, step: int, now_s: float) -> None:
+        """Start waiting for the answers to ``step``; ``now_s`` is monotonic wall time [s]."""
+        self.step = step
+        self._answers = {}
+        self._deadline_s = now_s + self.robot_timeout_s
+
+    def answer(self, robot_id: int, step: int, answer: StepAnswer) -> str:
+        """File a robot's answer; returns how it was taken (ACCEPTED or why not)."""
+        if robot_id in self.stopped:
+            return self.IGNORED
+        if step < self.step:
+            return self.STALE
+        if step > self.step:
+            return self.FUTURE
+        if robot_id in self._answers:
+            return self.DUPLICATE
+        self._answers[robot_id] = answer
+        return self.ACCEPTED
+
+    def waiting_for(self) -> list[int]:
+        """Live robots that have not answered the current step, in id order."""
+        return [r for r in range(self.num_robots)
+                if r not in self.stopped and r not in self._answers]
+
+    def expire(self, now_s: float) -> list[int]:
+        """Stop the robots still silent at the deadline; returns those newly stopped."""
+        if now_s < self._deadline_s:
+            return []
+        late = self.waiting_for()
+        self.stopped.update(late)
+        return late
+
+    def stop(self, robot_ids: list[int]) -> None:
+        """Treat robots as stopped from now on (e.g. never connected)."""
+        self.stopped.update(robot_ids)
+
+    @property
+    def complete(self) -> bool:
+        """True when every live robot has answered the current step."""
+        return not self.waiting_for()
+
+    def close(self) -> list[StepAnswer]:
+        """The step's answers in robot id order (stopped robots stand still) and update the
+        barrier (team sequences) and finished flags for the next step."""
+        answers = []
+        for robot in range(self.num_robots):
+            answer = self._answers.get(robot)
+            if answer is None:
+                answers.append(STAND_STILL)
+                continue
+            answers.append(answer)
+            self.team_sequences[robot] = answer.team_sequence
+            self.finished[robot] = answer.finished
+        return answers
+
+    @property
+    def all_done(self) -> bool:
+        """True when every robot has finished or is stopped."""
+        return all(self.finished[r] or r in self.stopped for r in range(self.num_robots))
+
+
+def world_markers(world: World, stamp_s: float) -> MarkerArray:
+    """Landmarks as cylinders (true radius) and the mission border, frame ``world``."""
+    def marker(marker_id: int, marker_type: int, rgba: tuple[float, ...]) -> Marker:
+        m = Marker(ns="world", id=marker_id, type=marker_type, action=Marker.ADD)
+        m.header.stamp = seconds_to_time(stamp_s)
+        m.header.frame_id = WORLD_FRAME
+        m.color = ColorRGBA(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
+        m.pose.orientation.w = 1.0
+        return m
+
+    border = marker(0, Marker.LINE_STRIP, (0.2, 0.2, 0.2, 1.0))
+    border.scale.x = 0.2
+    corners = [(0.0, 0.0), (world.width_m, 0.0), (world.width_m, world.height_m),
+               (0.0, world.height_m), (0.0, 0.0)]
+    border.points = [Point(x=float(x), y=float(y), z=0.0) for x, y in corners]
+    markers = [border]
+    diameter = 2.0 * max(world.landmark_radius_m, 0.05)
+    for landmark_id, (x, y) in zip(world.landmark_ids, world.landmarks):
+        cylinder = marker(1 + int(landmark_id), Marker.CYLINDER, (0.45, 0.3, 0.15, 1.0))
+        cylinder.pose.position.x, cylinder.pose.position.y = float(x), float(y)
+        cylinder.pose.position.z = _MARKER_HEIGHT_M / 2.0
+        cylinder.scale.x = cylinder.scale.y = diameter
+        cylinder.scale.z = _MARKER_HEIGHT_M
+        markers.append(cylinder)
+    return MarkerArray(markers=markers)
+
+
+class WorldNode(Node):
+    """The world simulator (see module docstring)."""
+
+    def __init__(self) -> None:
+        super().__init__("em_world")
+        self.clock_mode = declare_setting(
+            self, "clock_mode", LOCKSTEP,
+            "lockstep: a step waits for every robot's command (deterministic); realtime: "
+            "steps at a fixed wall rate with the latest commands.")
+        if self.clock_mode not in (LOCKSTEP, REALTIME):
+            raise ValueError(f"clock_mode must be {LOCKSTEP} or {REALTIME}, "
+                             f"got {self.clock_mode!r}")
+        self.realtime_factor = declare_setting(
+            self, "realtime_factor", 1.0,
+            "Realtime mode: simulation seconds per wall second.", 0.01, 1000.0)
+        robot_timeout_s = declare_setting(
+            self, "robot_timeout_s", 30.0, "Lockstep: wall seconds a robot may stay silent on "
+            "a step before it is treated as stopped (zero motion from then on).", 0.01, 1e6)
+        self.startup_timeout_s = declare_setting(
+            self, "startup_timeout_s", 60.0, "Wall seconds to wait for every robot to connect "
+            "before the first step; robots not connected by then are treated as stopped.",
+            0.0, 1e6)
+        self.startup_settle_s = declare_setting(
+            self, "startup_settle_s", 1.0, "Wall seconds every connection must hold before the "
+            "first step, so the middleware has matched the robots' team-update streams too "
+            "(the graph shows a reader slightly before every writer delivers to it).", 0.0, 60.0)
+        max_sim_time_s = declare_setting(
+            self, "max_sim_time_s", 0.0, "Stop stepping after this simulation time [s] "
+            "(0: no limit besides run.max_steps).", 0.0, 1e9)
+        self.wait_for_evaluator = declare_setting(
+            self, "wait_for_evaluator", False, "Before the first step, also wait until an "
+            "evaluator listens to the ground truth and to every robot's team updates.")
+        self.params = declare_exploration_params(self)
+        self.num_robots = self.params.world.num_robots
+        self.final_step = final_step(self.params, max_sim_time_s)
+        self.sim = WorldSimulation(self.params)
+        self.barrier = LockstepBarrier(self.num_robots, robot_timeout_s)
+        self._latest = [STAND_STILL] * self.num_robots
+        self.running = False
+        self.stepping_over = False
+        self._started_wall_s = time.monotonic()
+        self._ready_since_s: float | None = None
+        self._create_interfaces()
+        self._publish_mission()
+        self._poll_timer = self.create_timer(_POLL_PERIOD_S, self._poll)
+        self._tick_timer = None
+        self.get_logger().info(
+            f"world ready: {self.num_robots} robots, {self.sim.world.num_landmarks} landmarks, "
+            f"{self.params.world.width_m:g} m x {self.params.world.height_m:g} m, seed "
+            f"{self.params.run.seed}, {self.clock_mode}; waiting for the robots to connect")
+
+    def _create_interfaces(self) -> None:
+        self.clock_pub = self.create_publisher(Clock, "/clock", CLOCK_QOS)
+        self.anchor_pub = self.create_publisher(PoseStamped, "/mission/anchor_pose", LATCHED_QOS)
+        self.landmarks_pub = self.create_publisher(LandmarkArray, "/world/landmarks",
+                                                   LATCHED_QOS)
+        self.markers_pub = self.create_publisher(MarkerArray, "/world/markers", LATCHED_QOS)
+        self.sonar_pubs, self.odom_pubs, self.truth_pubs, self.command_subs = [], [], [], []
+        for robot in range(self.num_robots):
+            ns = robot_namespace(robot)
+            self.sonar_pubs.append(self.create_publisher(SonarScan, f"/{ns}/sonar", SENSOR_QOS))
+            self.odom_pubs.append(self.create_publisher(Odometry, f"/{ns}/odom", SENSOR_QOS))
+            self.truth_pubs.append(self.create_publisher(
+                Odometry, f"/world/ground_truth/{ns}", STREAM_QOS))
+            self.command_subs.append(self.create_subscription(
+                MotionCommand, f"/{ns}/motion_command",
+                lambda message, robot=robot: self._on_command(robot, message), SENSOR_QOS))
+
+    def _publish_mission(self) -> None:
+        """The latched mission set-up: robot 0's launch pose, the landmarks, the markers."""
+        world = self.sim.world
+        anchor = PoseStamped()
+        anchor.header.stamp = seconds_to_time(0.0)
+        anchor.header.frame_id = MAP_FRAME
+        start = world.start_poses[0]
+        anchor.pose.position.x, anchor.pose.position.y = float(start[0]), float(start[1])
+        anchor.pose.orientation = yaw_to_quaternion(float(start[2]))
+        self.anchor_pub.publish(anchor)
+        landmarks = [LandmarkEstimate(int(i), p, np.zeros((2, 2)))
+                     for i, p in zip(world.landmark_ids, world.landmarks)]
+        self.landmarks_pub.publish(landmark_array_to_msg(0.0, WORLD_FRAME, landmarks,
+                                                         world.landmark_radius_m))
+        self.markers_pub.publish(world_markers(world, 0.0))
+
+    # -- start-up ---------------------------------------------------------------------------
+
+    def robot_connected(self, robot: int) -> bool:
+        """True when robot ``robot``'s node listens to its sensors, commands, and its team
+        updates have their listeners (the teammates, plus the evaluator if required)."""
+        listeners = self.num_robots - 1 + (1 if self.wait_for_evaluator else 0)
+        ns = robot_namespace(robot)
+        return (self.sonar_pubs[robot].get_subscription_count() >= 1
+                and self.odom_pubs[robot].get_subscription_count() >= 1
+                and self.command_subs[robot].get_publisher_count() >= 1
+                and self.count_subscribers(f"/{ns}/team/updates") >= listeners)
+
+    def _evaluator_connected(self) -> bool:
+        return all(pub.get_subscription_count() >= 1 for pub in self.truth_pubs)
+
+    def _try_start(self) -> None:
+        connected = [self.robot_connected(r) for r in range(self.num_robots)]
+        ready = all(connected) and (not self.wait_for_evaluator or self._evaluator_connected())
+        now = time.monotonic()
+        if not ready:
+            self._ready_since_s = None
+        elif self._ready_since_s is None:
+            self._ready_since_s = now
+        waited = now - self._started_wall_s
+        settled = ready and now - self._ready_since_s >= self.startup_settle_s
+        if not settled and waited < self.startup_timeout_s:
+            return
+        missing = [r for r, ok in enumerate(connected) if not ok]
+        if missing:
+            self.get_logger().warn(f"robots {missing} not connected after "
+                                   f"{self.startup_timeout_s:g} s: treated as stopped")
+            self.barrier.stop(missing)
+        if self.wait_for_evaluator and not self._evaluator_connected():
+            self.get_logger().warn("no evaluator listens to the ground truth; starting anyway")
+        self.running = True
+        self.get_logger().info(f"all set after {waited:.1f} s: stepping ({self.clock_mode})")
+        self._publish_step()
+        if self.clock_mode == REALTIME:
+            period = self.params.motion.time_step_s / self.realtime_factor
+            self._tick_timer = self.create_timer(period, self._realtime_tick)
+        else:
+            self._check_step_complete()
+
+    # -- stepping ---------------------------------------------------------------------------
+
+    def _poll(self) -> None:
+        """Start-up: wait for the connections; lockstep: enforce the robot timeout."""
+        if not self.running:
+            self._try_start()
+            return
+        if self.stepping_over or self.clock_mode == REALTIME:
+            self._poll_timer.cancel()
+            return
+        for robot in self.barrier.expire(time.monotonic()):
+            self.get_logger().warn(
+                f"robot {robot} silent for {self.barrier.robot_timeout_s:g} s on step "
+                f"{self.barrier.step}: treated as stopped (zero motion from now on)")
+        self._check_step_complete()
+
+    def _on_command(self, robot: int, message: MotionCommand) -> None:
+        if message.robot_id != robot:
+            self.get_logger().warn(f"ignored a command of robot {message.robot_id} on "
+                                   f"/{robot_namespace(robot)}/motion_command")
+            return
+        answer = StepAnswer(float(message.twist.linear.x), float(message.twist.angular.z),
+                            int(message.team_sequence), bool(message.finished))
+        if self.clock_mode == REALTIME:
+            self._latest[robot] = answer
+            return
+        if not self.running or self.stepping_over:
+            return
+        outcome = self.barrier.answer(robot, int(message.step), answer)
+        if outcome in (LockstepBarrier.DUPLICATE, LockstepBarrier.FUTURE):
+            self.get_logger().warn(f"ignored a {outcome} command of robot {robot} for step "
+                                   f"{message.step} (current step {self.barrier.step})")
+        elif outcome != LockstepBarrier.ACCEPTED:
+            self.get_logger().debug(f"ignored a {outcome} command of robot {robot} for step "
+                                    f"{message.step}")
+        self._check_step_complete()
+
+    def _check_step_complete(self) -> None:
+        """Lockstep: advance as long as every live robot has answered the current step."""
+        while self.running and not self.stepping_over and self.barrier.complete:
+            answers = self.barrier.close()
+            self._advance(answers, self.barrier.all_done)
+
+    def _realtime_tick(self) -> None:
+        self._advance(self._latest, all(answer.finished for answer in self._latest))
+        if self.stepping_over:
+            self._tick_timer.cancel()
+
+    def _advance(self, answers: list[StepAnswer], everyone_done: bool) -> None:
+        """Apply one command per robot (id order), advance and publish the next step."""
+        if self.stepping_over:
+            return
+        if everyone_done:
+            self._end_stepping("every robot finished or stopped")
+            return
+        for robot, answer in enumerate(answers):
+            self.sim.apply_command(robot, answer.linear_x, answer.angular_z)
+        self.sim.advance()
+        self._publish_step()
+
+    def _end_stepping(self, reason: str) -> None:
+        self.stepping_over = True
+        self.get_logger().info(f"stepping over at step {self.sim.step} (t = {self.sim.stamp_s:g}"
+                               f" s): {reason}; still serving the latched topics until stopped")
+
+    def _publish_step(self) -> None:
+        """/clock, then every robot's sensors and ground truth for the current step."""
+        sim = self.sim
+        stamp = seconds_to_time(sim.stamp_s)
+        self.clock_pub.publish(Clock(clock=stamp))
+        lockstep = self.clock_mode == LOCKSTEP
+        sequences = list(self.barrier.team_sequences) if lockstep else []
+        max_range = self.params.sensors.sonar_max_range_m
+        for robot in range(self.num_robots):
+            frame = sim.sense(robot)
+            self.sonar_pubs[robot].publish(sonar_scan_to_msg(frame, max_range, sequences))
+            self.odom_pubs[robot].publish(dead_reckoning_to_msg(frame))
+            self.truth_pubs[robot].publish(odometry_to_msg(
+                robot, sim.stamp_s, sim.true_pose(robot), WORLD_FRAME,
+                f"{robot_namespace(robot)}/base_link"))
+        if sim.step % _LOG_EVERY_STEPS == 0:
+            self.get_logger().info(f"step {sim.step} (t = {sim.stamp_s:g} s)")
+        if sim.step >= self.final_step:
+            self._end_stepping(f"final step {self.final_step} reached")
+        elif lockstep:
+            self.barrier.open(sim.step, time.monotonic())
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of em-world; returns the exit code (2 for invalid parameters)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = WorldNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as error:
+        rclpy.logging.get_logger("em_world").fatal(f"cannot start: {error}")
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,195 @@
+"""Helpers for tests that start ROS 2 node processes: bounded in time, always cleaned up.
+
+Every process is started in its own session (so its own process group) with the test run's
+environment (ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE set by tests/conftest.py),
+its output in a log file. ``stop()`` sends SIGINT to the group, then SIGTERM, then SIGKILL,
+each after a grace period, so no process outlives its test::
+
+    with NodeProcess.start_module("em_exploration_ros.nodes.world_node",
+                                  ros_args(params={"world.num_robots": 2}),
+                                  log_path=tmp_path / "world.log") as world:
+        wait_until(lambda: "stepping" in world.output(), 20.0, "world start")
+
+``ProcessSet`` stops several processes together (a pytest fixture can yield one).
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def ros_value(value: Any) -> str:
+    """A Python value as a ``-p name:=value`` literal (floats keep a decimal point)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(ros_value(v) for v in value) + "]"
+    return str(value)
+
+
+def ros_args(params: Mapping[str, Any] | None = None, namespace: str | None = None,
+             params_file: str | Path | None = None, extra: Sequence[str] = ()) -> list[str]:
+    """``--ros-args`` arguments: optional namespace remap, parameter file, then ``-p``s."""
+    args = ["--ros-args"]
+    if namespace:
+        args += ["-r", f"__ns:={namespace}"]
+    if params_file is not None:
+        args += ["--params-file", str(params_file)]
+    for name, value in (params or {}).items():
+        args += ["-p", f"{name}:={ros_value(value)}"]
+    return args + list(extra)
+
+
+def wait_until(condition: Callable[[], bool], timeout_s: float, what: str,
+               poll_s: float = 0.05, while_waiting: Callable[[], None] | None = None) -> None:
+    """Poll ``condition`` until it holds; raise ``TimeoutError`` naming ``what`` after
+    ``timeout_s`` wall seconds. ``while_waiting`` runs between polls (e.g. spin a node)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out after {timeout_s:g} s waiting for {what}")
+        if while_waiting is not None:
+            while_waiting()
+        else:
+            time.sleep(poll_s)
+
+
+class NodeProcess:
+    """One child process in its own process group, output to ``log_path``."""
+
+    def __init__(self, command: Sequence[str], log_path: Path,
+                 env: Mapping[str, str] | None = None, cwd: Path = REPO_ROOT) -> None:
+        self.command = list(command)
+        self.log_path = Path(log_path)
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        environment = dict(os.environ)
+        environment.setdefault("PYTHONUNBUFFERED", "1")
+        environment.setdefault("RCUTILS_LOGGING_BUFFERED_STREAM", "1")
+        environment.update(env or {})
+        with open(self.log_path, "wb") as log:
+            self.process = subprocess.Popen(self.command, stdout=log, stderr=subprocess.STDOUT,
+                                            stdin=subprocess.DEVNULL, env=environment,
+                                            cwd=cwd, start_new_session=True)
+
+    @classmethod
+    def start_module(cls, module: str, args: Sequence[str] = (), log_path: Path | None = None,
+                     env: Mapping[str, str] | None = None) -> "NodeProcess":
+        """``python -m module args`` with this interpreter; log in ``log_path``."""
+        log = log_path or Path(REPO_ROOT / "build" / f"{module.rsplit('.', 1)[-1]}.log")
+        return cls([sys.executable, "-m", module, *args], log, env)
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def running(self) -> bool:
+        """True while the process has not exited."""
+        return self.process.poll() is None
+
+    def output(self) -> str:
+        """Everything the process has written so far."""
+        return self.log_path.read_text(encoding="utf-8", errors="replace")
+
+    def wait_for_output(self, text: str, timeout_s: float) -> None:
+        """Wait until ``text`` appears in the output; fail early if the process exits."""
+        def seen() -> bool:
+            if text in self.output():
+                return True
+            if not self.running():
+                raise RuntimeError(f"{self.command[:3]} exited with {self.process.returncode} "
+                                   f"before printing {text!r}:\n{self.output()[-3000:]}")
+            return False
+        wait_until(seen, timeout_s, f"{text!r} in {self.log_path.name}")
+
+    def wait(self, timeout_s: float) -> int:
+        """Wait for the process to exit by itself; its exit code (TimeoutError if not)."""
+        try:
+            return self.process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            raise TimeoutError(f"{self.command[:3]} still running after {timeout_s:g} s") from None
+
+    def signal_group(self, signum: int) -> None:
+        """Send ``signum`` to the process group (ignored if it is gone)."""
+        try:
+            os.killpg(self.process.pid, signum)
+        except ProcessLookupError:
+            pass
+
+    def stop(self, grace_s: float = 5.0) -> int | None:
+        """SIGINT the group; after ``grace_s`` SIGTERM, then SIGKILL. Returns the exit code
+        of the process (None only if even SIGKILL did not end it in time)."""
+        for signum, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 2.0),
+                               (signal.SIGKILL, 2.0)):
+            if self.running():
+                self.signal_group(signum)
+            try:
+                self.process.wait(timeout=wait_s)
+                break
+            except subprocess.TimeoutExpired:
+                continue
+        # The leader may be gone while other members of its group live on.
+        self.signal_group(signal.SIGKILL)
+        return self.process.poll()
+
+    def __enter__(self) -> "NodeProcess":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+class ProcessSet:
+    """Several NodeProcess objects stopped together (in reverse start order)."""
+
+    def __init__(self) -> None:
+        self.processes: list[NodeProcess] = []
+
+    def add(self, process: NodeProcess) -> NodeProcess:
+        self.processes.append(process)
+        return process
+
+    def start_module(self, module: str, args: Sequence[str] = (), log_path: Path | None = None,
+                     env: Mapping[str, str] | None = None) -> NodeProcess:
+        return self.add(NodeProcess.start_module(module, args, log_path, env))
+
+    def stop_all(self, grace_s: float = 5.0) -> None:
+        for process in reversed(self.processes):
+            if process.running():
+                process.signal_group(signal.SIGINT)
+        for process in reversed(self.processes):
+            process.stop(grace_s)
+
+    def __enter__(self) -> "ProcessSet":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop_all()
+
+
+def processes_in_domain(pattern: str, domain_id: str | int,
+                        exclude: Iterable[int] = ()) -> list[int]:
+    """PIDs whose command line matches ``pattern`` (``pgrep -f``) and whose environment has
+    ``ROS_DOMAIN_ID=domain_id``: this test run's processes, not other runs' on the machine."""
+    found = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True).stdout
+    excluded = set(exclude) | {os.getpid()}
+    marker = f"ROS_DOMAIN_ID={domain_id}".encode()
+    pids = []
+    for pid in (int(p) for p in found.split()):
+        if pid in excluded:
+            continue
+        try:
+            environment = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if marker in environment:
+            pids.append(pid)
+    return pids
