@@ -346,6 +346,18 @@ def test_killed_recording_is_repaired(tmp_path: Path) -> None:
         == "transient_local"
 
 
+def test_sigterm_closes_the_recording(tmp_path: Path) -> None:
+    bag, log = tmp_path / "term.mcap", tmp_path / "term.log"
+    with spawn(["-m", "em_exploration_ros.tools.record", "-o", str(bag), "--topics",
+                "/em_test/nobody"], log) as recorder:
+        wait_for_log(log, "recording to ")
+        assert stop(recorder, signal.SIGTERM) == 0, log.read_text()
+    info = scan_bag(bag)
+    assert info.complete and info.message_count == 0
+    assert info.rosbag2_metadata().message_count == 0
+    assert "wrote 0 messages on 0 topics" in log.read_text()
+
+
 # ----- replay ---------------------------------------------------------------------------------
 def replay_into_subscriber(tmp: Path, bag: Path, topics: list[str], expect: dict[str, int],
                            replay_args: list[str], timeout_s: float = 40.0) -> tuple[dict, str]:
@@ -420,6 +432,16 @@ def test_replay_rate_zero_is_much_faster_than_real_time(tmp_path: Path) -> None:
     assert time.monotonic() - started < 60
     assert "played 202 messages" in log.read_text()
     assert _played_wall_s(log.read_text()) < 10.0
+
+
+def test_looping_replay_stops_cleanly_on_ctrl_c(tmp_path: Path) -> None:
+    bag, log = tmp_path / "loop.mcap", tmp_path / "loop.log"
+    _synthetic_bag(bag, count=200, period_ns=10**6, start_ns=0)
+    with spawn(["-m", "em_exploration_ros.tools.replay", str(bag), "--loop", "--rate", "0",
+                "--delay", "0"], log) as replay:
+        wait_for_log(log, r"(played 400 messages.*\n.*){2}")
+        assert stop(replay, signal.SIGINT) == 0, log.read_text()
+    assert "Traceback" not in log.read_text()
 
 
 # ----- bad input --------------------------------------------------------------------------------

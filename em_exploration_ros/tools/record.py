@@ -112,6 +112,8 @@ class Recorder(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(options.poll_interval_s, self._discover, clock=steady)
         self.create_timer(options.chunk_interval_s, self._writer.flush, clock=steady)
+        self.get_logger().info(f"recording to {writer.path} ({options.compression}, chunks of "
+                               f"{options.chunk_size} B or {options.chunk_interval_s:g} s)")
         self._discover()
 
     def _discover(self) -> None:

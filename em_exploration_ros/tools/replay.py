@@ -28,7 +28,9 @@ import rclpy
 from builtin_interfaces.msg import Time
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
@@ -162,12 +164,25 @@ def _clock_message(ns: int) -> Clock:
     return Clock(clock=Time(sec=ns // _NS_PER_S, nanosec=ns % _NS_PER_S))
 
 
+def _publish(publisher: Publisher, message: object) -> bool:
+    """Publish; False if Ctrl-C shut the context down since the last ``rclpy.ok()`` check."""
+    try:
+        publisher.publish(message)
+    except rclpy_implementation.RCLError:
+        if rclpy.ok():
+            raise
+        return False
+    return True
+
+
 class Replayer(Node):
     """Publishers for the played topics and the timed playback loop."""
 
     def __init__(self, info: BagInfo, topics: dict[int, PlayableTopic],
                  options: ReplayOptions) -> None:
-        super().__init__("em_replay")
+        # No /rosout of its own: a replayed recording may carry /rosout, and the last log line
+        # comes after Ctrl-C has shut the context down.
+        super().__init__("em_replay", enable_rosout=False)
         self._info = info
         self._options = options
         self._topic_publishers = {}
@@ -183,10 +198,12 @@ class Replayer(Node):
                 Clock, CLOCK_TOPIC, QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self._clock_stamp_ns = -1
 
-    def _publish_clock(self, ns: int) -> None:
-        if self._clock_publisher is not None and ns > self._clock_stamp_ns:
-            self._clock_stamp_ns = ns
-            self._clock_publisher.publish(_clock_message(ns))
+    def _publish_clock(self, ns: int) -> bool:
+        """Publish /clock at ``ns`` if it advanced; False if the context was shut down."""
+        if self._clock_publisher is None or ns <= self._clock_stamp_ns:
+            return True
+        self._clock_stamp_ns = ns
+        return _publish(self._clock_publisher, _clock_message(ns))
 
     def _wait_until(self, due_wall_ns: int, start_log_ns: int, start_wall_ns: int) -> bool:
         """Sleep until ``due_wall_ns`` (monotonic), ticking /clock; False if shut down."""
@@ -195,7 +212,9 @@ class Replayer(Node):
             now = time.monotonic_ns()
             if now >= due_wall_ns:
                 return True
-            self._publish_clock(start_log_ns + int((now - start_wall_ns) * self._options.rate))
+            if not self._publish_clock(
+                    start_log_ns + int((now - start_wall_ns) * self._options.rate)):
+                return False
             time.sleep(min(due_wall_ns - now, tick_ns, int(_MAX_SLEEP_S * _NS_PER_S)) / _NS_PER_S)
         return False
 
@@ -218,14 +237,15 @@ class Replayer(Node):
                     break
             elif not rclpy.ok():
                 break
-            self._publish_clock(message.log_time_ns)
-            publisher.publish(message.data)
+            if not (self._publish_clock(message.log_time_ns)
+                    and _publish(publisher, message.data)):
+                break
             published += 1
             last_log_ns = message.log_time_ns
         return PlaybackStats(published, (time.monotonic_ns() - start_wall_ns) / _NS_PER_S,
                              (last_log_ns - start_log_ns) / _NS_PER_S)
 
-    def _all_publishers(self) -> list:
+    def _all_publishers(self) -> list[Publisher]:
         extra = [] if self._clock_publisher is None else [self._clock_publisher]
         return [*self._topic_publishers.values(), *extra]
 
