@@ -110,21 +110,29 @@ def test_virtual_waypoints_are_evenly_spaced_and_end_at_the_target() -> None:
     assert virtual_waypoints([1.0, 1.0, 0.0], [1.0, 1.0], 2.0).shape == (0, 3)
 
 
-def test_virtual_odometry_noise_matches_the_slam_keyframe_model() -> None:
+@pytest.mark.parametrize("length_m", [2.0, 3.45])
+def test_virtual_odometry_noise_matches_the_slam_keyframe_model(length_m: float) -> None:
+    # The SLAM accumulates per-step odometry noise over the steps of a keyframe; a virtual
+    # odometry over length_m gets the same covariance for as many 0.2 m steps.
     slam = TeamSlam(0, 1, PARAMS.slam, np.zeros(3))
     noise = VirtualNoise(slam.noise, PARAMS.sensors, PARAMS.motion)
+    steps = round(length_m / (PARAMS.motion.speed_mps * PARAMS.motion.time_step_s))
+    step = length_m / steps
     accumulator = OdometryAccumulator()
-    step = PARAMS.motion.speed_mps * PARAMS.motion.time_step_s
-    for _ in range(10):
+    for _ in range(steps):
         accumulator.add(OdometryReading(np.array([step, 0.0, 0.0]),
                                         odometry_covariance_per_step(step, False, PARAMS.sensors)))
     delta, covariance = accumulator.take()
     root = noise.odometry(delta)
     expected = slam.noise.odometry(delta, covariance).information()
-    np.testing.assert_allclose(root.T @ root, expected, rtol=1e-10)
-    # Twice the distance: twice the heading variance at least (errors accumulate).
-    longer = noise.odometry(np.array([2 * delta[0], 0.0, 0.0]))
-    assert np.linalg.inv(longer.T @ longer)[2, 2] > 1.9 * np.linalg.inv(root.T @ root)[2, 2]
+    np.testing.assert_allclose(root.T @ root, expected, rtol=1e-9)
+    # Twice the steps: twice the heading variance, more than twice the lateral variance
+    # (heading errors act through a growing lever arm).
+    longer = noise.odometry(np.array([2 * steps * step, 0.0, 0.0]))
+    short_cov, long_cov = np.linalg.inv(root.T @ root), np.linalg.inv(longer.T @ longer)
+    assert long_cov[2, 2] == pytest.approx(2 * short_cov[2, 2], rel=1e-6)
+    assert long_cov[0, 0] == pytest.approx(2 * short_cov[0, 0], rel=1e-6)
+    assert long_cov[1, 1] > 2.05 * short_cov[1, 1]
 
 
 def test_scenario_paths_measurements_and_keys(team: dict) -> None:

@@ -47,7 +47,6 @@ which is exact for the linearized problem. :func:`propagate_oracle` is the direc
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Callable, Mapping, Sequence
 
 import gtsam
@@ -56,10 +55,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from em_exploration_ros.core.geometry import between, range_bearing
 from em_exploration_ros.core.params import MotionParams, SensorParams
-from em_exploration_ros.core.sensors import (LandmarkReading, OdometryReading,
-                                             odometry_covariance_per_step)
-from em_exploration_ros.core.slam import (OdometryAccumulator, SlamNoise, TeamSlam,
-                                          landmark_key, pose_key)
+from em_exploration_ros.core.sensors import LandmarkReading, odometry_covariance_per_step
+from em_exploration_ros.core.slam import SlamNoise, TeamSlam, landmark_key, pose_key
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -92,17 +89,24 @@ def virtual_waypoints(start_pose: ArrayLike, target_xy: ArrayLike | None,
     return np.column_stack([xy, heading])
 
 
-@lru_cache(maxsize=256)
 def _straight_odometry_covariance(steps: int, step_length_m: float,
                                   sensor_params: SensorParams) -> FloatArray:
-    """Covariance ``(3, 3)`` of the odometry of ``steps`` straight steps of equal length."""
-    accumulator = OdometryAccumulator()
-    reading = OdometryReading(delta=np.array([step_length_m, 0.0, 0.0]),
-                              covariance=odometry_covariance_per_step(step_length_m, False,
-                                                                      sensor_params))
-    for _ in range(steps):
-        accumulator.add(reading)
-    return accumulator.take()[1]
+    """Covariance ``(3, 3)`` of the odometry of ``steps`` straight steps of equal length.
+
+    The :class:`~em_exploration_ros.core.slam.OdometryAccumulator` recursion
+    ``Sigma_k+1 = A Sigma_k A^T + Q`` in closed form: along a straight line the compose
+    Jacobian is ``A = [[1, 0, 0], [0, 1, s], [0, 0, 1]]`` (``s`` the step length) and the
+    per-step noise ``Q = diag(q_xy, q_xy, q_theta)``, so ``Sigma_n = sum_k A^k Q A^kT``.
+    """
+    step_noise = odometry_covariance_per_step(step_length_m, False, sensor_params)
+    translation, heading = step_noise[0, 0], step_noise[2, 2]
+    k = np.arange(steps)
+    lever = step_length_m * k
+    covariance = np.diag([steps * translation,
+                          steps * translation + heading * np.sum(lever ** 2),
+                          steps * heading])
+    covariance[1, 2] = covariance[2, 1] = heading * np.sum(lever)
+    return covariance
 
 
 class VirtualNoise:
