@@ -37,6 +37,7 @@ from em_exploration_ros.bag_format.rosbag2_metadata import (
     BagMetadata, TopicInformation, parse_bag_metadata, serialize_bag_metadata)
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.bag_format.yaml_emit import dump_block
+from em_exploration_ros.tools import bag
 from em_exploration_ros.tools.bag import format_info, repair
 
 REPO = Path(__file__).resolve().parents[1]
@@ -481,11 +482,23 @@ def _em_bag(*args: str) -> subprocess.CompletedProcess:
                           cwd=REPO, capture_output=True, text=True, timeout=60)
 
 
-def test_em_bag_cli_gives_one_line_errors(tmp_path: Path) -> None:
+def _em_bag_in_process(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of em-bag run in this process."""
+    try:
+        bag.main(list(args))
+        code = 0
+    except SystemExit as stopped:
+        code = stopped.code
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_em_bag_cli_gives_one_line_errors(tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
     good = tmp_path / "good.mcap"
     _write_bag(good, count=30)
-    ok = _em_bag("info", str(good))
-    assert ok.returncode == 0 and "Topic: /chatter" in ok.stdout
+    code, out, _err = _em_bag_in_process(capsys, "info", str(good))
+    assert code == 0 and "Topic: /chatter" in out
 
     truncated = tmp_path / "truncated.mcap"
     truncated.write_bytes(good.read_bytes()[:-200])
@@ -494,16 +507,20 @@ def test_em_bag_cli_gives_one_line_errors(tmp_path: Path) -> None:
     cases = {str(truncated): "truncated", str(not_mcap): "not an MCAP file",
              str(tmp_path / "missing.mcap"): "no such file"}
     for target, phrase in cases.items():
-        result = _em_bag("info", target)
-        assert result.returncode == 2, result.stderr
-        assert phrase in result.stderr and "Traceback" not in result.stderr
-        assert len(result.stderr.strip().splitlines()) == 1
+        code, _out, err = _em_bag_in_process(capsys, "info", target)
+        assert code == 2 and phrase in err and len(err.strip().splitlines()) == 1, err
 
     fixed = tmp_path / "fixed.mcap"
-    repaired = _em_bag("repair", str(truncated), str(fixed))
-    assert repaired.returncode == 0 and "recovered 90 messages" in repaired.stdout
+    code, out, _err = _em_bag_in_process(capsys, "repair", str(truncated), str(fixed))
+    assert code == 0 and "recovered 90 messages" in out
     assert scan_bag(fixed).message_count == 90
-    again = _em_bag("repair", str(truncated), str(fixed))
-    assert again.returncode == 2 and "already exists" in again.stderr
-    bad = _em_bag("repair", str(not_mcap), str(tmp_path / "never.mcap"))
-    assert bad.returncode == 2 and not (tmp_path / "never.mcap").exists()
+    code, _out, err = _em_bag_in_process(capsys, "repair", str(truncated), str(fixed))
+    assert code == 2 and "already exists" in err
+    code, _out, _err = _em_bag_in_process(capsys, "repair", str(not_mcap),
+                                          str(tmp_path / "never.mcap"))
+    assert code == 2 and not (tmp_path / "never.mcap").exists()
+
+    # End to end: the one-line error is all the user sees.
+    result = _em_bag("info", str(truncated))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1

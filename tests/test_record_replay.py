@@ -1,10 +1,11 @@
 """Process-level tests of em-record, em-replay and em-bag repair over real DDS.
 
-A publisher process sends a known sequence on several topics (one transient-local topic
-published before the recorder exists, and /clock, which the recorder follows as sim time);
-em-record runs as a separate process; files are read back with readers other than the
-writer. Replays go into a subscriber process that reports what it received. Every process
-is bounded in time and killed (whole process group) when its test ends.
+A publisher process sends a known sequence on several topics (one of the project's own
+types, one transient-local topic published before the recorder exists, and /clock, which
+the recorder follows as sim time); em-record runs as a separate process; the files are read
+back with readers other than the writer. Replays go into a subscriber process that reports
+what it received. Every process is bounded in time and stopped (whole process group) when
+its test ends (tests/ros_process.py).
 
 Run as a script, this file is the helper node: ``publish`` or ``subscribe``.
 """
@@ -12,24 +13,24 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import signal
 import subprocess
 import sys
 import time
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 import pytest
 import rclpy
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
+from msg_samples import make_sample
 from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
+from ros_process import REPO_ROOT, NodeProcess, wait_until
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
@@ -38,9 +39,8 @@ from em_exploration_ros.bag_format.bag_writer import BagWriter
 from em_exploration_ros.bag_format.interface_index import read_type_hash
 from em_exploration_ros.bag_format.mcap_ros2_schema import (
     MessageDefinition, build_message_definition)
-
-REPO = Path(__file__).resolve().parents[1]
-PYTHON = sys.executable
+from em_exploration_ros.tools import record, replay
+from em_exploration_ros.tools.bag_ros import import_message_class
 
 STREAM_COUNT = 150
 LATCHED_COUNT = 3
@@ -50,6 +50,7 @@ TOPIC_TYPES = {
     "/clock": "rosgraph_msgs/msg/Clock",
     "/em_test/chatter": "std_msgs/msg/String",
     "/em_test/odom": "nav_msgs/msg/Odometry",
+    "/em_test/team": "em_exploration_msgs/msg/TeamUpdate",
     "/em_test/latched": "std_msgs/msg/String",
     "/em_test/ignored": "std_msgs/msg/String",
 }
@@ -57,19 +58,18 @@ LATCHED = "/em_test/latched"
 IGNORED = "/em_test/ignored"
 RECORDED = [t for t in TOPIC_TYPES if t != IGNORED]
 RECORD_FILTER = ["--regex", r"^/(clock|em_test/.*)$", "--exclude", "ignored"]
+# Script mode needs the package importable without an installed project.
+HELPER_ENV = {"PYTHONPATH": str(REPO_ROOT)}
 
 
 # ----- the known sequence -----------------------------------------------------------------
-def message_class(type_name: str) -> type:
-    """Python class of a ROS message type name."""
-    package, namespace, name = type_name.split("/")
-    module = __import__(f"{package}.{namespace}", fromlist=[name])
-    return getattr(module, name)
-
-
 def make_message(topic: str, k: int) -> object:
-    """The k-th message the publisher sends on ``topic``."""
-    cls = message_class(TOPIC_TYPES[topic])
+    """The k-th message the publisher sends on ``topic`` (equal in every process)."""
+    cls = import_message_class(TOPIC_TYPES[topic])
+    if topic == "/em_test/team":
+        message = make_sample(cls)
+        message.sequence = k
+        return message
     message = cls()
     if topic == "/clock":
         stamp = CLOCK_START_NS + k * CLOCK_STEP_NS
@@ -96,33 +96,33 @@ def _qos(reliable: bool = True, latched: bool = False, depth: int = 1000) -> QoS
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
-def _wait(predicate: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
+def _holds(condition: Callable[[], bool], timeout_s: float) -> bool:
+    try:
+        wait_until(condition, timeout_s, "condition", poll_s=0.02)
+    except TimeoutError:
+        return False
+    return True
 
 
 def run_publisher(args: argparse.Namespace) -> None:
-    """Latched messages first; on "go" (stdin), the streams; then wait for acknowledgements."""
+    """Latched messages first; once ``--go`` exists, the streams; then wait for acks."""
     rclpy.init()
     node = rclpy.create_node("em_test_publisher")
-    publishers = {t: node.create_publisher(message_class(TOPIC_TYPES[t]), t,
+    publishers = {t: node.create_publisher(import_message_class(TOPIC_TYPES[t]), t,
                                            _qos(latched=t == LATCHED))
                   for t in TOPIC_TYPES}
     for k in range(LATCHED_COUNT):
         publishers[LATCHED].publish(make_message(LATCHED, k))
     print("ready", flush=True)
-    sys.stdin.readline()
-    streams = [t for t in TOPIC_TYPES if t != LATCHED]
+    go = Path(args.go)
+    _holds(go.exists, 60.0)
     minimum = {t: 1 for t in TOPIC_TYPES}
-    minimum["/clock"] = args.clock_subscribers
-    if not _wait(lambda: all(publishers[t].get_subscription_count() >= minimum[t]
-                             for t in RECORDED), 15.0):
+    minimum["/clock"] = 2  # the recorder's time source and its recording subscription
+    if not _holds(lambda: all(publishers[t].get_subscription_count() >= minimum[t]
+                              for t in RECORDED), 15.0):
         print("subscribers missing", flush=True)
     time.sleep(0.3)
+    streams = [t for t in TOPIC_TYPES if t != LATCHED]
     for k in range(STREAM_COUNT):
         for topic in streams:
             publishers[topic].publish(make_message(topic, k))
@@ -130,7 +130,7 @@ def run_publisher(args: argparse.Namespace) -> None:
     for publisher in publishers.values():
         publisher.wait_for_all_acked(Duration(seconds=5.0))
     print("done", flush=True)
-    sys.stdin.readline()
+    _holds(lambda: not rclpy.ok(), 60.0)  # keep the latched history until stopped
     node.destroy_node()
     rclpy.try_shutdown()
 
@@ -145,7 +145,7 @@ def run_subscriber(args: argparse.Namespace) -> None:
         topic, type_name, qos = spec.split(",")
         received[topic] = []
         node.create_subscription(
-            message_class(type_name), topic,
+            import_message_class(type_name), topic,
             lambda data, topic=topic: received[topic].append(data.hex()),
             _qos(reliable="reliable" in qos, latched="latched" in qos, depth=10000), raw=True)
     print("ready", flush=True)
@@ -166,7 +166,7 @@ def helper_main() -> None:
     parser = argparse.ArgumentParser()
     modes = parser.add_subparsers(dest="mode", required=True)
     publish = modes.add_parser("publish")
-    publish.add_argument("--clock-subscribers", type=int, default=2)
+    publish.add_argument("--go", required=True, help="start streaming once this file exists")
     subscribe = modes.add_parser("subscribe")
     subscribe.add_argument("--out", required=True)
     subscribe.add_argument("--topic", action="append", default=[], help="topic,type,qos")
@@ -181,87 +181,38 @@ def helper_main() -> None:
 
 
 # ----- process handling -------------------------------------------------------------------
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env.setdefault("ROS_DOMAIN_ID", str(os.getpid() % 100 + 1))
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
+def helper(mode: str, args: list[str], log: Path) -> NodeProcess:
+    return NodeProcess([sys.executable, str(Path(__file__)), mode, *args], log, HELPER_ENV)
 
 
-@contextmanager
-def spawn(args: list[str], log: Path, stdin: bool = False) -> Iterator[subprocess.Popen]:
-    """A process in its own group, output to ``log``; the group is killed on exit."""
-    with log.open("w") as out:
-        process = subprocess.Popen([PYTHON, *args], cwd=REPO, env=_env(), stdout=out,
-                                   stderr=subprocess.STDOUT, start_new_session=True,
-                                   stdin=subprocess.PIPE if stdin else subprocess.DEVNULL)
-        try:
-            yield process
-        finally:
-            if process.poll() is None:
-                os.killpg(process.pid, signal.SIGKILL)
-            process.wait(timeout=10)
-            if process.stdin:
-                process.stdin.close()
-
-
-def wait_for_log(log: Path, pattern: str, timeout_s: float = 20.0) -> None:
-    if not _wait(lambda: re.search(pattern, log.read_text()) is not None, timeout_s):
-        raise AssertionError(f"{pattern!r} not in {log.name} after {timeout_s} s:\n"
-                             f"{log.read_text()}")
-
-
-def stop(process: subprocess.Popen, sig: int = signal.SIGINT, timeout_s: float = 15.0) -> int:
-    process.send_signal(sig)
-    return process.wait(timeout=timeout_s)
-
-
-def send_line(process: subprocess.Popen) -> None:
-    process.stdin.write(b"go\n")
-    process.stdin.flush()
+def tool(name: str, args: list[str], log: Path) -> NodeProcess:
+    return NodeProcess.start_module(f"em_exploration_ros.tools.{name}", args, log, HELPER_ENV)
 
 
 def wait_until_flushed(bag: Path, timeout_s: float = 20.0) -> None:
     """Wait until the file's complete chunks hold the whole sequence (--chunk-interval)."""
     expected = {t: expected_count(t) for t in RECORDED}
-    if not _wait(lambda: scan_bag(bag, tolerant=True).topic_counts() == expected, timeout_s):
-        raise AssertionError(f"{bag.name} holds {scan_bag(bag, tolerant=True).topic_counts()}")
+    wait_until(lambda: scan_bag(bag, tolerant=True).topic_counts() == expected, timeout_s,
+               f"{bag.name} to hold {expected}")
 
 
-def record_session(tmp: Path, name: str, extra: list[str],
-                   finish: Callable[[subprocess.Popen], None]) -> Path:
+def record_session(tmp: Path, name: str, finish: Callable[[NodeProcess], None]) -> Path:
     """Publisher + recorder (sim time); ``finish`` ends the recorder after the streams."""
-    bag = tmp / f"{name}.mcap"
-    recorder_log, publisher_log = tmp / f"{name}_record.log", tmp / f"{name}_publish.log"
-    with spawn([str(Path(__file__)), "publish"], publisher_log, stdin=True) as publisher:
-        wait_for_log(publisher_log, "ready")
-        with spawn(["-m", "em_exploration_ros.tools.record", "-o", str(bag), *RECORD_FILTER,
-                    "--poll-interval", "0.2", "--chunk-interval", "0.2", *extra,
-                    "--ros-args", "-p", "use_sim_time:=true"],
-                   recorder_log) as recorder:
+    bag, go = tmp / f"{name}.mcap", tmp / f"{name}.go"
+    with helper("publish", ["--go", str(go)], tmp / f"{name}_publish.log") as publisher:
+        publisher.wait_for_output("ready", 20.0)
+        with tool("record", ["-o", str(bag), *RECORD_FILTER, "--poll-interval", "0.2",
+                             "--chunk-interval", "0.2", "--chunk-size", "4096",
+                             "--ros-args", "-p", "use_sim_time:=true"],
+                  tmp / f"{name}_record.log") as recorder:
             for topic in RECORDED:
-                wait_for_log(recorder_log, f"recording {re.escape(topic)} ")
-            send_line(publisher)
-            wait_for_log(publisher_log, "done", timeout_s=30.0)
-            assert "subscribers missing" not in publisher_log.read_text()
+                recorder.wait_for_output(f"recording {topic} [", 20.0)
+            go.touch()
+            publisher.wait_for_output("done", 30.0)
+            assert "subscribers missing" not in publisher.output()
             wait_until_flushed(bag)
             finish(recorder)
-        send_line(publisher)
-        publisher.wait(timeout=15)
     return bag
-
-
-# ----- recording ----------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A recording closed by SIGINT after the whole sequence was published."""
-    def interrupt(recorder: subprocess.Popen) -> None:
-        assert stop(recorder, signal.SIGINT) == 0
-
-    return record_session(tmp_path_factory.mktemp("record"), "run", ["--chunk-size", "4096"],
-                          interrupt)
 
 
 def _file_order(bag: Path) -> list:
@@ -276,6 +227,26 @@ def _read_all(bag: Path) -> dict[str, list]:
     return by_topic
 
 
+def _assert_holds_the_sequence(bag: Path) -> None:
+    by_topic = _read_all(bag)
+    assert set(by_topic) == set(RECORDED)
+    for topic in RECORDED:
+        cls = import_message_class(TOPIC_TYPES[topic])
+        stored = [deserialize_message(m.data, cls) for m in by_topic[topic]]
+        assert stored == [make_message(topic, k) for k in range(expected_count(topic))], topic
+
+
+# ----- recording ----------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A recording closed by SIGINT after the whole sequence was published."""
+    def interrupt(recorder: NodeProcess) -> None:
+        assert recorder.stop() == 0, recorder.output()
+        assert "wrote " in recorder.output()
+
+    return record_session(tmp_path_factory.mktemp("record"), "run", interrupt)
+
+
 def test_recording_holds_exactly_what_was_published(recording: Path) -> None:
     with recording.open("rb") as stream:
         records = list(StreamReader(stream, validate_crcs=True).records)
@@ -283,13 +254,10 @@ def test_recording_holds_exactly_what_was_published(recording: Path) -> None:
     info = scan_bag(recording)
     assert info.complete and info.crc_checked_chunks == info.chunk_count > 3
     assert info.topic_counts() == {t: expected_count(t) for t in RECORDED}
-
+    _assert_holds_the_sequence(recording)
     by_topic = _read_all(recording)
-    for topic in RECORDED:
-        cls = message_class(TOPIC_TYPES[topic])
-        stored = [deserialize_message(m.data, cls) for m in by_topic[topic]]
-        assert stored == [make_message(topic, k) for k in range(expected_count(topic))], topic
-        assert [m.sequence for m in by_topic[topic]] == list(range(1, len(stored) + 1))
+    assert all([m.sequence for m in by_topic[t]] == list(range(1, expected_count(t) + 1))
+               for t in RECORDED)
 
     # Log time is the recorder's ROS clock, which follows /clock (sim time), in file order.
     log_times = [m.log_time_ns for _c, m in _file_order(recording)]
@@ -301,6 +269,7 @@ def test_recording_holds_exactly_what_was_published(recording: Path) -> None:
     for topic in RECORDED:
         assert channels[topic].type_hash == read_type_hash(TOPIC_TYPES[topic])
         assert channels[topic].type_hash.startswith("RIHS01_")
+        assert info.schema_of(channels[topic]).name == TOPIC_TYPES[topic]
         [offer] = channels[topic].offered_qos
         assert offer.reliability == "reliable"
         assert offer.durability == ("transient_local" if topic == LATCHED else "volatile")
@@ -310,68 +279,68 @@ def test_recording_holds_exactly_what_was_published(recording: Path) -> None:
     assert {t.name: t.message_count for t in metadata.topics} == info.topic_counts()
     assert metadata.ros_distro == "jazzy" and metadata.storage_identifier == "mcap"
 
+    # The schema text alone decodes every message, the project's own type included.
     with recording.open("rb") as stream:
         decoded = list(make_reader(stream, decoder_factories=[DecoderFactory()])
                        .iter_decoded_messages())
     assert len(decoded) == info.message_count
-    odometry = [d for _s, c, _m, d in decoded if c.topic == "/em_test/odom"]
-    assert odometry[-1].pose.pose.position.x == 0.5 * (STREAM_COUNT - 1)
+    team = [d for _s, c, _m, d in decoded if c.topic == "/em_test/team"]
+    assert [d.sequence for d in team] == list(range(STREAM_COUNT))
+    assert len(team[0].keyframes) == len(make_message("/em_test/team", 0).keyframes) > 0
+
+
+def test_sigterm_closes_the_recording(tmp_path: Path) -> None:
+    bag = tmp_path / "term.mcap"
+    with tool("record", ["-o", str(bag), "--topics", "/em_test/nobody"],
+              tmp_path / "term.log") as recorder:
+        recorder.wait_for_output("recording to ", 20.0)
+        recorder.signal_group(signal.SIGTERM)
+        assert recorder.wait(15.0) == 0, recorder.output()
+        assert "wrote 0 messages on 0 topics" in recorder.output()
+    info = scan_bag(bag)
+    assert info.complete and info.message_count == 0
+    assert info.rosbag2_metadata().message_count == 0
 
 
 def test_killed_recording_is_repaired(tmp_path: Path) -> None:
-    def kill(recorder: subprocess.Popen) -> None:
-        os.killpg(recorder.pid, signal.SIGKILL)
-        recorder.wait(timeout=10)
+    def kill(recorder: NodeProcess) -> None:
+        recorder.signal_group(signal.SIGKILL)
+        recorder.wait(10.0)
 
-    bag = record_session(tmp_path, "killed", [], kill)
-    info = subprocess.run([PYTHON, "-m", "em_exploration_ros.tools.bag", "info", str(bag)],
-                          cwd=REPO, capture_output=True, text=True, timeout=60)
+    bag = record_session(tmp_path, "killed", kill)
+    info = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.bag", "info",
+                           str(bag)], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
     assert info.returncode == 2 and "truncated" in info.stderr
     assert "Traceback" not in info.stderr
 
     fixed = tmp_path / "fixed.mcap"
     result = subprocess.run(
-        [PYTHON, "-m", "em_exploration_ros.tools.bag", "repair", str(bag), str(fixed)],
-        cwd=REPO, capture_output=True, text=True, timeout=60)
+        [sys.executable, "-m", "em_exploration_ros.tools.bag", "repair", str(bag), str(fixed)],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     repaired = scan_bag(fixed)
     assert repaired.complete
     assert repaired.topic_counts() == {t: expected_count(t) for t in RECORDED}
-    by_topic = _read_all(fixed)
-    for topic in RECORDED:
-        cls = message_class(TOPIC_TYPES[topic])
-        assert [deserialize_message(m.data, cls) for m in by_topic[topic]] == [
-            make_message(topic, k) for k in range(expected_count(topic))]
-    assert {c.topic: c.offered_qos for c in repaired.channels.values()}[LATCHED][0].durability \
-        == "transient_local"
-
-
-def test_sigterm_closes_the_recording(tmp_path: Path) -> None:
-    bag, log = tmp_path / "term.mcap", tmp_path / "term.log"
-    with spawn(["-m", "em_exploration_ros.tools.record", "-o", str(bag), "--topics",
-                "/em_test/nobody"], log) as recorder:
-        wait_for_log(log, "recording to ")
-        assert stop(recorder, signal.SIGTERM) == 0, log.read_text()
-    info = scan_bag(bag)
-    assert info.complete and info.message_count == 0
-    assert info.rosbag2_metadata().message_count == 0
-    assert "wrote 0 messages on 0 topics" in log.read_text()
+    _assert_holds_the_sequence(fixed)
+    latched = next(c for c in repaired.channels.values() if c.topic == LATCHED)
+    assert latched.offered_qos[0].durability == "transient_local"
 
 
 # ----- replay ---------------------------------------------------------------------------------
 def replay_into_subscriber(tmp: Path, bag: Path, topics: list[str], expect: dict[str, int],
                            replay_args: list[str], timeout_s: float = 40.0) -> tuple[dict, str]:
     """Start a subscriber, replay ``bag``; returns (received hex per topic, replay log)."""
-    out, sub_log, replay_log = tmp / "received.json", tmp / "subscriber.log", tmp / "replay.log"
-    sub_args = [str(Path(__file__)), "subscribe", "--out", str(out), "--timeout", str(timeout_s)]
+    out = tmp / "received.json"
+    sub_args = ["--out", str(out), "--timeout", str(timeout_s)]
     sub_args += [f"--topic={t}" for t in topics] + [f"--expect={t}={n}" for t, n in expect.items()]
-    with spawn(sub_args, sub_log) as subscriber:
-        wait_for_log(sub_log, "ready")
-        with spawn(["-m", "em_exploration_ros.tools.replay", str(bag), *replay_args],
-                   replay_log) as replay:
-            assert replay.wait(timeout=timeout_s) == 0, replay_log.read_text()
-        assert subscriber.wait(timeout=timeout_s) == 0, sub_log.read_text()
-    return json.loads(out.read_text()), replay_log.read_text()
+    with helper("subscribe", sub_args, tmp / "subscriber.log") as subscriber:
+        subscriber.wait_for_output("ready", 20.0)
+        with tool("replay", [str(bag), "--delay", "0", "--wait-for-subscribers", "30",
+                             *replay_args], tmp / "replay.log") as player:
+            assert player.wait(timeout_s) == 0, player.output()
+            log = player.output()
+        assert subscriber.wait(timeout_s) == 0, subscriber.output()
+    return json.loads(out.read_text()), log
 
 
 def test_replay_reproduces_the_recording(recording: Path, tmp_path: Path) -> None:
@@ -380,7 +349,7 @@ def test_replay_reproduces_the_recording(recording: Path, tmp_path: Path) -> Non
               for t in RECORDED]
     received, log = replay_into_subscriber(
         tmp_path, recording, topics, {t: expected_count(t) for t in RECORDED},
-        ["--rate", "0", "--delay", "0", "--wait-for-subscribers", "30", "--topics", *RECORDED])
+        ["--rate", "0", "--topics", *RECORDED])
     for topic in RECORDED:
         # Same messages, same order, same bytes; /clock comes from the recording only.
         assert received[topic] == [m.data.hex() for m in recorded[topic]], topic
@@ -409,7 +378,7 @@ def test_replay_timing_clock_remap_and_filters(tmp_path: Path) -> None:
                         "/clock,rosgraph_msgs/msg/Clock,best_effort",
                         "/skip,std_msgs/msg/String,reliable"],
         {"/b": 11}, ["--rate", "2", "--start-offset", "0.5", "--remap", "/a:=/b",
-                     "--exclude", "^/skip$", "--delay", "0", "--wait-for-subscribers", "30"])
+                     "--exclude", "^/skip$"])
     assert [deserialize_message(bytes.fromhex(h), String).data for h in received["/b"]] == [
         f"a{k}" for k in range(5, 16)]
     assert received["/skip"] == []
@@ -424,33 +393,35 @@ def test_replay_timing_clock_remap_and_filters(tmp_path: Path) -> None:
 def test_replay_rate_zero_is_much_faster_than_real_time(tmp_path: Path) -> None:
     bag = tmp_path / "long.mcap"
     _synthetic_bag(bag, count=101, period_ns=10 * 10**9, start_ns=0)  # 1000 s of recording
-    log = tmp_path / "fast.log"
     started = time.monotonic()
-    with spawn(["-m", "em_exploration_ros.tools.replay", str(bag), "--rate", "0",
-                "--delay", "0"], log) as replay:
-        assert replay.wait(timeout=60) == 0, log.read_text()
+    with tool("replay", [str(bag), "--rate", "0", "--delay", "0"], tmp_path / "fast.log") as fast:
+        assert fast.wait(60.0) == 0, fast.output()
+        log = fast.output()
     assert time.monotonic() - started < 60
-    assert "played 202 messages" in log.read_text()
-    assert _played_wall_s(log.read_text()) < 10.0
+    assert "played 202 messages" in log
+    assert _played_wall_s(log) < 10.0
 
 
 def test_looping_replay_stops_cleanly_on_ctrl_c(tmp_path: Path) -> None:
-    bag, log = tmp_path / "loop.mcap", tmp_path / "loop.log"
+    bag = tmp_path / "loop.mcap"
     _synthetic_bag(bag, count=200, period_ns=10**6, start_ns=0)
-    with spawn(["-m", "em_exploration_ros.tools.replay", str(bag), "--loop", "--rate", "0",
-                "--delay", "0"], log) as replay:
-        wait_for_log(log, r"(played 400 messages.*\n.*){2}")
-        assert stop(replay, signal.SIGINT) == 0, log.read_text()
-    assert "Traceback" not in log.read_text()
+    with tool("replay", [str(bag), "--loop", "--rate", "0", "--delay", "0"],
+              tmp_path / "loop.log") as player:
+        wait_until(lambda: player.output().count("played 400 messages") >= 2, 20.0,
+                   "two passes of the loop")
+        assert player.stop() == 0, player.output()
+        assert "Traceback" not in player.output()
 
 
 # ----- bad input --------------------------------------------------------------------------------
-def _tool(module: str, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([PYTHON, "-m", f"em_exploration_ros.tools.{module}", *args],
-                          cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
+def _exit_code(main: Callable[[list[str]], None], argv: list[str]) -> int:
+    with pytest.raises(SystemExit) as stopped:
+        main(argv)
+    return stopped.value.code
 
 
-def test_bad_files_give_one_line_errors(tmp_path: Path) -> None:
+def test_bad_files_give_one_line_errors(tmp_path: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
     good = tmp_path / "good.mcap"
     _synthetic_bag(good, count=50, period_ns=10**6, start_ns=0)
     truncated = tmp_path / "truncated.mcap"
@@ -466,13 +437,19 @@ def test_bad_files_give_one_line_errors(tmp_path: Path) -> None:
              tmp_path / "missing.mcap": "no such file",
              unknown: "ghost_msgs/msg/Ghost, which is not installed"}
     for path, phrase in cases.items():
-        result = _tool("replay", str(path))
-        assert result.returncode == 2, result.stderr
-        assert phrase in result.stderr and "Traceback" not in result.stderr
-        assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+        assert _exit_code(replay.main, ["em-replay", str(path)]) == 2
+        stderr = capsys.readouterr().err
+        assert phrase in stderr and len(stderr.strip().splitlines()) == 1, stderr
+    # End to end: the error is all the user sees.
+    result = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.replay",
+                             str(truncated)], cwd=REPO_ROOT, capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
 
 
-def test_record_rejects_bad_arguments(tmp_path: Path) -> None:
+def test_record_and_replay_reject_bad_arguments(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
     existing = tmp_path / "exists.mcap"
     existing.write_bytes(b"keep")
     cases = [(["--compression", "bzip9"], "invalid choice"),
@@ -481,12 +458,13 @@ def test_record_rejects_bad_arguments(tmp_path: Path) -> None:
              (["--topics", "no_slash"], "not an absolute topic name"),
              (["-o", str(existing)], "File exists")]
     for args, phrase in cases:
-        result = _tool("record", *args)
-        assert result.returncode == 2, (args, result.stderr)
-        assert phrase in result.stderr and "Traceback" not in result.stderr
+        assert _exit_code(record.main, ["em-record", *args]) == 2, args
+        assert phrase in capsys.readouterr().err, args
     assert existing.read_bytes() == b"keep"
-    replay = _tool("replay", str(existing), "--remap", "a-b")
-    assert replay.returncode == 2 and "expected /OLD:=/NEW" in replay.stderr
+    assert _exit_code(replay.main, ["em-replay", str(existing), "--remap", "a-b"]) == 2
+    assert "expected /OLD:=/NEW" in capsys.readouterr().err
+    assert _exit_code(replay.main, ["em-replay", str(existing), "--rate", "-1"]) == 2
+    assert "must be non-negative" in capsys.readouterr().err
 
 
 if __name__ == "__main__":
