@@ -45,7 +45,8 @@ def test_every_trial_has_a_record(bench_out):
                 assert (record["setting"], record["planner"], record["seed"]) == (
                     setting, planner, seed)
     failed = json.loads((bench_out / "trials/12m_cell2m/CE/seed_0.json").read_text())
-    assert failed["error"].splitlines()[-1].startswith("ValueError: ")
+    assert failed["error"].startswith("ValueError: cannot place 3 robots")
+    assert "Traceback" in failed["traceback"]
 
 
 def test_csv_has_one_row_per_history_sample(bench_out):
@@ -149,6 +150,13 @@ def test_trial_specs_follow_the_paper_defaults(tmp_path):
     assert len({(p.world, p.sensors, p.run) for p in same_seed}) == 1
 
 
+def test_error_description_is_one_short_line():
+    error = RuntimeError("\nIndeterminate linear system\n\nnear variable b62." + " x" * 200)
+    text = bench.describe_error(error)
+    assert text.startswith("RuntimeError: Indeterminate linear system near variable b62. x")
+    assert "\n" not in text and len(text) == bench.ERROR_CHARS and text.endswith("...")
+
+
 def test_worker_that_dies_without_a_record_is_recorded_as_failed(tmp_path):
     spec = bench.TrialSpec("s", "NF", 3, ExplorationParams(), tmp_path / "seed_3.json")
     record = bench.record_after_exit(spec, -9, 12.5)
@@ -171,7 +179,7 @@ def test_progress_reports_each_trial_and_estimates_time_left(tmp_path):
                                  "summary": {"explored_ratio": 0.85, "distance_m": 120.0}})
     # pending NF 10 s + CE (overall mean 10 s) + running CE (10 s expected, 10 s spent)
     assert progress.eta_s() == pytest.approx(10.0)
-    progress.finished(specs[1], {"status": "failed", "wall_s": 30.0, "error": "Boom\nKeyError: 1"})
+    progress.finished(specs[1], {"status": "failed", "wall_s": 30.0, "error": "KeyError: 1"})
     lines = stream.getvalue().splitlines()
     assert lines[0].startswith("[1/4] s/NF/seed 0: done in 10.0 s (explored 0.850, 120 m)")
     assert lines[1].startswith("[2/4] s/CE/seed 0: FAILED after 30.0 s: KeyError: 1")

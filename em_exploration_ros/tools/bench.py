@@ -55,6 +55,9 @@ FINAL_METRICS = ("explored_ratio", "distance_m", "loc_rmse_m", "landmark_rmse_m"
 PAIRED_METRICS = ("loc_rmse_m", "landmark_rmse_m", "distance_m")
 #: The progress line is redrawn this often on a terminal [s].
 TTY_REFRESH_S = 1.0
+#: A failed trial's error is summarized in at most this many characters (the record also
+#: keeps the traceback).
+ERROR_CHARS = 200
 #: Math libraries in the workers use one thread each: --jobs sets the parallelism.
 _SINGLE_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -171,10 +174,17 @@ def run_trial(spec: TrialSpec) -> None:
     try:
         summary = TeamRunner(spec.params).run()
         record.update(status="done", summary=summary.to_dict())
-    except Exception:  # noqa: BLE001 - any failure of a trial is recorded, not raised
-        record.update(status="failed", error=traceback.format_exc())
+    except Exception as error:  # noqa: BLE001 - any failure of a trial is recorded, not raised
+        record.update(status="failed", error=describe_error(error),
+                      traceback=traceback.format_exc())
     record["wall_s"] = time.perf_counter() - started
     _write_json(spec.path, record)
+
+
+def describe_error(error: BaseException) -> str:
+    """One line naming an exception: its type and message, whitespace collapsed, shortened."""
+    text = f"{type(error).__name__}: {' '.join(str(error).split())}"
+    return text if len(text) <= ERROR_CHARS else text[:ERROR_CHARS - 3] + "..."
 
 
 def split_finished(specs: Iterable[TrialSpec]) -> tuple[list[TrialSpec], list[dict[str, Any]]]:
@@ -249,7 +259,7 @@ class ProgressBar:
                        f"{result['explored_ratio']:.3f}, {result['distance_m']:.0f} m)")
         else:
             self.failed += 1
-            outcome = f"FAILED after {record['wall_s']:.1f} s: {_last_line(record['error'])}"
+            outcome = f"FAILED after {record['wall_s']:.1f} s: {record['error']}"
         if self.interactive:
             self.stream.write("\r\033[K")
         count = self.done + self.failed
@@ -294,11 +304,6 @@ class ProgressBar:
     def _times(self) -> str:
         return (f"elapsed {_duration(self.clock() - self.started_at)}, "
                 f"left ~{_duration(self.eta_s())}")
-
-
-def _last_line(text: str) -> str:
-    lines = [line for line in text.strip().splitlines() if line.strip()]
-    return lines[-1].strip() if lines else ""
 
 
 def run_trials(specs: Sequence[TrialSpec], jobs: int, progress: ProgressBar) -> None:
@@ -430,7 +435,7 @@ def _planner_summary(records: Sequence[dict[str, Any]], finals: dict[int, dict[s
                   for metric in FINAL_METRICS},
         "wall_s_total": sum(walls),
         "wall_s_mean": sum(walls) / len(walls) if walls else None,
-        "failures": [{"seed": r["seed"], "error": _last_line(r["error"])}
+        "failures": [{"seed": r["seed"], "error": r["error"]}
                      for r in records if r["status"] != "done"],
     }
 
