@@ -12,7 +12,8 @@ together with the oracle's time per candidate.
 BLAS runs single-threaded unless ``OPENBLAS_NUM_THREADS`` is set: on a small shared
 machine, threaded BLAS on these small matrices only adds contention.
 
-Usage: ``python benchmarks/bench_propagation.py [--repeats N] [--sizes 250 500 ...]``
+Usage (repository root, package importable: installed venv or ``PYTHONPATH=.``):
+``python benchmarks/bench_propagation.py [--repeats N] [--sizes 250 500 ...]``
 """
 from __future__ import annotations
 
