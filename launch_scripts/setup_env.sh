@@ -125,6 +125,10 @@ run_step() {
     set -e
     if (( rc != 0 )); then
         echo "FAILED"
+        # The log's end, for runs (CI) whose build/ folder is gone afterwards.
+        echo "---- last 25 lines of ${log#"$EM_REPO_ROOT"/} ----" >&2
+        tail -n 25 "$log" >&2
+        echo "----" >&2
         echo "setup step '$name' failed; see ${log#"$EM_REPO_ROOT"/}; fix: $fix" >&2
         exit 1
     fi
@@ -176,6 +180,16 @@ uninstall_previous_msgs() {
     local manifest="$STAMP_DIR/msgs_install_manifest.txt"
     if [[ -f $manifest ]]; then
         xargs -r -d '\n' rm -f <"$manifest"
+        # Folders named after the package (include/em_exploration_msgs/,
+        # share/em_exploration_msgs/, site-packages/em_exploration_msgs*/) go whole, with the
+        # bytecode caches Python wrote there: a leftover em_exploration_msgs/ in site-packages
+        # would still import, as a namespace package.
+        awk -v root="$EM_VENV/" '
+            index($0, root) == 1 {
+                rel = substr($0, length(root) + 1)
+                if (match(rel, "(^|/)em_exploration_msgs[^/]*/"))
+                    print root substr(rel, 1, RSTART + RLENGTH - 2)
+            }' "$manifest" | sort -u | xargs -r -d '\n' rm -rf
         rm -f "$manifest"
     fi
 }
