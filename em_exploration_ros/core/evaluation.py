@@ -24,7 +24,7 @@ import numpy as np
 
 from em_exploration_ros.core.metrics import landmark_rmse, localization_rmse
 from em_exploration_ros.core.occupancy_grid import OccupancyGrid
-from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.params import ExplorationParams, WorldParams
 from em_exploration_ros.core.world import World
 
 #: Stamps are matched on this resolution [ns] (sim time is a multiple of the step).
@@ -34,6 +34,21 @@ _STAMP_RESOLUTION_NS = 1000
 def stamp_key(stamp_s: float) -> int:
     """Integer key of a simulation time [s], robust to float round-off."""
     return int(round(stamp_s * 1e9 / _STAMP_RESOLUTION_NS))
+
+
+def landmark_truth(world_params: WorldParams, landmark_ids: np.ndarray,
+                   positions: np.ndarray, radius_m: float) -> World:
+    """The part of a ``World`` an evaluator needs, from published true landmarks.
+
+    ``landmark_ids`` (M,) and ``positions`` (M, 2) [m, world frame]; the start poses,
+    which evaluation never uses, are left empty. For evaluators that receive the truth
+    (e.g. /world/landmarks) instead of regenerating the world from the seed.
+    """
+    return World(width_m=world_params.width_m, height_m=world_params.height_m,
+                 landmarks=np.asarray(positions, dtype=float).reshape(-1, 2),
+                 landmark_ids=np.asarray(landmark_ids, dtype=np.int64).reshape(-1),
+                 landmark_radius_m=float(radius_m), robot_radius_m=world_params.robot_radius_m,
+                 start_poses=np.zeros((0, 3)))
 
 
 @dataclass(frozen=True)
@@ -63,6 +78,16 @@ class TeamEvaluator:
     def robot_distances_m(self) -> np.ndarray:
         """True distance travelled by each robot so far [m]."""
         return self._distance.copy()
+
+    @property
+    def grid(self) -> OccupancyGrid:
+        """The team virtual map of the last ``evaluate`` (read it, do not change it)."""
+        return self._grid
+
+    def true_trajectory(self, robot_id: int) -> np.ndarray:
+        """A robot's recorded true poses (K, 3) in time order (world frame)."""
+        truth = self._truth[robot_id]
+        return np.array([truth[key] for key in sorted(truth)]).reshape(-1, 3)
 
     def record_truth(self, robot_id: int, stamp_s: float, pose: np.ndarray) -> None:
         """Store a robot's true pose (world frame) at a simulation time [s]."""
