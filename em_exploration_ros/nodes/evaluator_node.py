@@ -1,0 +1,443 @@
+"""em-evaluator: the outside observer of a run; a thin shell around ``core.evaluation``.
+
+Subscribes to the ground truth (``/world/ground_truth/robot_i``, ``/world/landmarks``) and to
+what each robot publishes (``/robot_i/estimated_path``, ``/robot_i/landmarks``,
+``/robot_i/team/updates`` for the chosen targets, ``/robot_i/motion_command`` for the
+finished flags). It never publishes anything a robot reads.
+
+A simulation step is complete when the true poses of every robot at that step arrived; steps
+are recorded in order. Every ``metrics_interval_s`` of simulation time (default 2 s = em-sim's
+10 steps) the team metrics are evaluated from each robot's estimates as of the step before
+(waiting up to ``estimate_wait_s`` for those of the last keyframe), so a seeded lockstep run
+gives the same metrics every time, whatever the message timing. They are published on
+``/evaluation/metrics`` (ExplorationMetrics) and kept; a progress line is logged every
+``progress_interval_s``. The run ends, with the summary JSON (``core.summary.RunSummary``,
+em-sim's schema) and the final map PNG written, when:
+
+- the team explored ratio reaches ``run.until_explored``, the team distance reaches
+  ``run.max_distance_m``, or every robot reports ``finished``: exit code 0;
+- the run's final step (``run.max_steps`` or ``max_sim_time_s``, as the world) completed:
+  exit code 0, the stop reason says so;
+- no ground truth arrived for ``silence_timeout_s`` wall seconds (world or robots
+  stopped): exit code 3; Ctrl-C: the summary so far, exit code 130.
+
+Run (with the simulation clock): ``python -m em_exploration_ros.nodes.evaluator_node
+--ros-args -p use_sim_time:=true -p summary_path:=runs/x/summary.json``
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+from em_exploration_msgs.msg import ExplorationMetrics, LandmarkArray, MotionCommand, TeamUpdate
+from nav_msgs.msg import Odometry, Path as PathMsg
+from builtin_interfaces.msg import Time
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
+
+from em_exploration_ros.core.evaluation import (TeamEvaluator, TeamMetrics, landmark_truth,
+                                                stamp_key)
+from em_exploration_ros.core.map_render import TeamMapLayers, render_team_map
+from em_exploration_ros.core.summary import HistorySample, RobotSummary, RunSummary, TargetEntry
+from em_exploration_ros.core.team_data import InvalidTeamUpdate, TargetRecord
+from em_exploration_ros.core.team_runner import FRONTIER_TYPE_NAMES
+from em_exploration_ros.core.wire_model import sim_time_s
+from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_positions_from_msg,
+                                                  odometry_pose, path_from_msg, robot_namespace,
+                                                  seconds_to_time, target_from_msg,
+                                                  time_to_seconds)
+from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
+from em_exploration_ros.nodes.ros_params import declare_exploration_params
+from em_exploration_ros.nodes.world_node import declare_setting, final_step
+
+EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
+#: Reader side of the robots' latched estimates (LATCHED_QOS writers): the same durability and
+#: reliability, with a queue, so no keyframe's estimate is overwritten before it is filed.
+ESTIMATE_HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
+                                  reliability=ReliabilityPolicy.RELIABLE,
+                                  durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: Wall period of the silence check [s].
+_WATCH_PERIOD_S = 1.0
+
+
+class StampedEstimates:
+    """What each robot published over time (paths, landmark sets), keyed by their stamps,
+    so that an evaluation reads every robot's estimate as of a given simulation time."""
+
+    def __init__(self) -> None:
+        self._items: dict[int, dict[int, Any]] = {}
+
+    def add(self, robot: int, stamp_s: float, value: Any) -> None:
+        self._items.setdefault(robot, {})[stamp_key(stamp_s)] = value
+
+    def newest_key(self, robot: int) -> int | None:
+        """Stamp key of the newest value of ``robot`` (None if nothing arrived)."""
+        items = self._items.get(robot)
+        return max(items) if items else None
+
+    def as_of(self, stamp_s: float) -> dict[int, Any]:
+        """Each robot's newest value stamped at or before ``stamp_s`` [s], in robot id order
+        (so pooled sums add up the same way every run); older values, no longer needed by
+        later evaluations, are dropped."""
+        limit = stamp_key(stamp_s)
+        chosen = {}
+        for robot, items in sorted(self._items.items()):
+            keys = [key for key in items if key <= limit]
+            if keys:
+                newest = max(keys)
+                chosen[robot] = items[newest]
+                for key in keys:
+                    if key != newest:
+                        del items[key]
+        return chosen
+
+
+class EvaluatorNode(Node):
+    """Team metrics, the run's stop rule and its summary (see module docstring)."""
+
+    def __init__(self) -> None:
+        super().__init__("em_evaluator")
+        self.summary_path = Path(declare_setting(
+            self, "summary_path", "summary.json", "Where the run summary JSON is written."))
+        png = declare_setting(self, "map_png_path", "", "Where the final map PNG is written "
+                              "(empty: next to the summary, <stem>_map.png).")
+        self.map_png_path = Path(png) if png else self.summary_path.with_name(
+            f"{self.summary_path.stem}_map.png")
+        metrics_interval_s = declare_setting(
+            self, "metrics_interval_s", 2.0, "Simulation seconds between two evaluations of "
+            "the team metrics.", 0.001, 1e6)
+        self.progress_interval_s = declare_setting(
+            self, "progress_interval_s", 20.0, "Simulation seconds between two progress lines "
+            "in the log.", 0.001, 1e9)
+        max_sim_time_s = declare_setting(
+            self, "max_sim_time_s", 0.0, "End the run at this simulation time [s] (0: no limit "
+            "besides run.max_steps); give the world the same value.", 0.0, 1e9)
+        self.estimate_wait_s = declare_setting(
+            self, "estimate_wait_s", 5.0, "Wall seconds an evaluation waits for every robot's "
+            "estimates of the latest keyframe before it goes on with older ones.", 0.0, 1e6)
+        self.silence_timeout_s = declare_setting(
+            self, "silence_timeout_s", 120.0, "End the run (exit code 3) when no ground truth "
+            "arrived for this many wall seconds.", 0.1, 1e6)
+        self.params = declare_exploration_params(self)
+        self.num_robots = self.params.world.num_robots
+        self.time_step_s = self.params.motion.time_step_s
+        self.interval_steps = max(1, round(metrics_interval_s / self.time_step_s))
+        self.final_step = final_step(self.params, max_sim_time_s)
+        self.evaluator: TeamEvaluator | None = None
+        self.history: list[TeamMetrics] = []
+        self.paths = StampedEstimates()
+        self.landmark_estimates = StampedEstimates()
+        self.targets: list[dict[int, TargetRecord]] = [{} for _ in range(self.num_robots)]
+        self.exit_code: int | None = None
+        self.done = Future()
+        self.recorded_step = -1
+        self._truth: dict[int, dict[int, np.ndarray]] = {}
+        self._complete_steps: deque[int] = deque()
+        self._pending: tuple[int, float] | None = None
+        self._last_command: list[MotionCommand | None] = [None] * self.num_robots
+        self._all_finished_step: int | None = None
+        self._evaluated: tuple[dict, dict] = ({}, {})
+        self._next_progress_s = self.progress_interval_s
+        self._first_step_wall_s: float | None = None
+        self._last_data_wall_s = time.monotonic()
+        self._create_interfaces()
+        self.get_logger().info(
+            f"evaluating {self.num_robots} robots every {self.interval_steps} steps; stop at "
+            f"explored ratio {self.params.run.until_explored:g} or step {self.final_step}; "
+            f"summary -> {self.summary_path}")
+
+    def _create_interfaces(self) -> None:
+        self.metrics_pub = self.create_publisher(ExplorationMetrics, "/evaluation/metrics",
+                                                 STREAM_QOS)
+        self.create_subscription(LandmarkArray, "/world/landmarks", self._on_true_landmarks,
+                                 LATCHED_QOS)
+        for robot in range(self.num_robots):
+            ns = robot_namespace(robot)
+            self.create_subscription(Odometry, f"/world/ground_truth/{ns}",
+                                     lambda m, r=robot: self._on_truth(r, m), STREAM_QOS)
+            self.create_subscription(
+                PathMsg, f"/{ns}/estimated_path", lambda m, r=robot: self._on_estimate(
+                    self.paths, r, m.header.stamp, path_from_msg(m)), ESTIMATE_HISTORY_QOS)
+            self.create_subscription(
+                LandmarkArray, f"/{ns}/landmarks", lambda m, r=robot: self._on_estimate(
+                    self.landmark_estimates, r, m.header.stamp, landmark_positions_from_msg(m)),
+                ESTIMATE_HISTORY_QOS)
+            self.create_subscription(TeamUpdate, f"/{ns}/team/updates",
+                                     lambda m, r=robot: self._on_team_update(r, m), TEAM_QOS)
+            self.create_subscription(MotionCommand, f"/{ns}/motion_command",
+                                     lambda m, r=robot: self._on_command(r, m), SENSOR_QOS)
+        self.create_timer(_WATCH_PERIOD_S, self._watch,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    # -- inputs ----------------------------------------------------------------------------
+
+    def _on_true_landmarks(self, message: LandmarkArray) -> None:
+        if self.evaluator is not None:
+            return
+        truth = landmark_positions_from_msg(message)
+        ids = np.array(sorted(truth), dtype=np.int64)
+        positions = np.array([truth[i] for i in ids]).reshape(-1, 2)
+        self.evaluator = TeamEvaluator(
+            landmark_truth(self.params.world, ids, positions, message.radius), self.params)
+        self._process()
+
+    def _on_truth(self, robot: int, message: Odometry) -> None:
+        self._last_data_wall_s = time.monotonic()
+        step = round(time_to_seconds(message.header.stamp) / self.time_step_s)
+        poses = self._truth.setdefault(step, {})
+        poses[robot] = odometry_pose(message)
+        if len(poses) == self.num_robots:
+            self._complete_steps.append(step)
+            if self._first_step_wall_s is None:
+                self._first_step_wall_s = time.monotonic()
+            self._process()
+
+    def _on_estimate(self, history: StampedEstimates, robot: int, stamp: Time,
+                     value: Any) -> None:
+        history.add(robot, time_to_seconds(stamp), value)
+        self._process()
+
+    def _on_team_update(self, robot: int, message: TeamUpdate) -> None:
+        for entry in message.targets:
+            try:
+                record = target_from_msg(entry)
+            except InvalidTeamUpdate as error:
+                self.get_logger().warn(f"ignored a target of robot {robot}: {error}")
+                continue
+            self.targets[robot][record.decision_index] = record
+
+    def _on_command(self, robot: int, message: MotionCommand) -> None:
+        self._last_command[robot] = message
+        if self._all_finished_step is None and all(
+                c is not None and c.finished for c in self._last_command):
+            self._all_finished_step = max(int(c.step) for c in self._last_command)
+            self._process()
+
+    def _watch(self) -> None:
+        if self.exit_code is not None:
+            return
+        self._process()
+        silent_s = time.monotonic() - self._last_data_wall_s
+        if self.exit_code is None and silent_s > self.silence_timeout_s:
+            self.finish(f"no ground truth for {silent_s:.0f} s (world or robots stopped)",
+                        EXIT_SILENCE)
+
+    # -- evaluation ------------------------------------------------------------------------
+
+    def _process(self) -> None:
+        """Record complete steps of ground truth in order and run the evaluations due.
+
+        An evaluation at step k reads each robot's estimates as of step k - 1 (the robots
+        publish them while answering their keyframe steps, before the world steps on), and
+        waits up to ``estimate_wait_s`` for those of the last keyframe before k to arrive,
+        so that the result does not depend on message timing.
+        """
+        while self.evaluator is not None and self.exit_code is None:
+            if self._pending is None:
+                if not self._complete_steps:
+                    return
+                step = self._complete_steps.popleft()
+                self._record_step(step)
+                if step >= self.final_step or step == self._all_finished_step or (
+                        step > 0 and step % self.interval_steps == 0):
+                    self._pending = (step, time.monotonic())
+                continue
+            step, queued_wall_s = self._pending
+            if (not self._estimates_ready(step)
+                    and time.monotonic() - queued_wall_s < self.estimate_wait_s):
+                return
+            self._pending = None
+            reason = self._stop_reason(step, self.evaluate(step))
+            if reason:
+                self.finish(reason, EXIT_OK)
+
+    def _record_step(self, step: int) -> None:
+        stamp_s = self._stamp_s(step)
+        for robot, pose in sorted(self._truth.pop(step).items()):
+            self.evaluator.record_truth(robot, stamp_s, pose)
+        self.recorded_step = step
+
+    def _estimates_ready(self, step: int) -> bool:
+        interval = self.params.slam.keyframe_interval_steps
+        needed = stamp_key(self._stamp_s(max(step - 1, 0) // interval * interval))
+        for robot in range(self.num_robots):
+            for history in (self.paths, self.landmark_estimates):
+                newest = history.newest_key(robot)
+                if newest is None or newest < needed:
+                    return False
+        return True
+
+    def _stop_reason(self, step: int, metrics: TeamMetrics) -> str:
+        run = self.params.run
+        if metrics.explored_ratio >= run.until_explored:
+            return f"explored ratio {metrics.explored_ratio:.3f} >= {run.until_explored}"
+        if metrics.distance_m >= run.max_distance_m:
+            return f"distance {metrics.distance_m:.0f} m >= {run.max_distance_m:.0f} m"
+        if step == self._all_finished_step:
+            return "every robot finished"
+        if step >= self.final_step:
+            return f"final step {self.final_step} (t = {self._stamp_s(step):g} s) reached"
+        return ""
+
+    def _stamp_s(self, step: int) -> float:
+        return sim_time_s(step, self.time_step_s)
+
+    def _targets_before(self, step: int) -> list[list[TargetRecord]]:
+        """Each robot's targets chosen before ``step`` (decisions of steps < step), in order."""
+        limit = stamp_key(self._stamp_s(step - 1))
+        return [[t for _, t in sorted(records.items()) if stamp_key(t.stamp_s) <= limit]
+                for records in self.targets]
+
+    def evaluate(self, step: int, publish: bool = True) -> TeamMetrics:
+        """Team metrics at ``step`` (its ground truth recorded), kept and published."""
+        stamp_s = self._stamp_s(step)
+        as_of_s = self._stamp_s(max(step - 1, 0))
+        self._evaluated = (self.paths.as_of(as_of_s), self.landmark_estimates.as_of(as_of_s))
+        metrics = self.evaluator.evaluate(stamp_s, *self._evaluated)
+        self.history.append(metrics)
+        decisions = sum(len(t) for t in self._targets_before(step))
+        if publish:
+            message = ExplorationMetrics(
+                explored_ratio=metrics.explored_ratio, distance_m=metrics.distance_m,
+                loc_rmse_m=metrics.loc_rmse_m, landmark_rmse_m=metrics.landmark_rmse_m,
+                decisions=decisions,
+                robot_distance_m=[float(d) for d in self.evaluator.robot_distances_m])
+            message.header.stamp = seconds_to_time(stamp_s)
+            message.header.frame_id = WORLD_FRAME
+            self.metrics_pub.publish(message)
+        if stamp_s >= self._next_progress_s:
+            self._next_progress_s += self.progress_interval_s * math.floor(
+                (stamp_s - self._next_progress_s) / self.progress_interval_s + 1.0)
+            self.get_logger().info(_progress_line(metrics, decisions))
+        return metrics
+
+    # -- the end ---------------------------------------------------------------------------
+
+    def finish(self, reason: str, exit_code: int, publish: bool = True) -> None:
+        """Final evaluation, summary JSON and map PNG; then ``done`` completes."""
+        if self.exit_code is not None:
+            return
+        self.exit_code = exit_code
+        if self.evaluator is not None:
+            while self._complete_steps:
+                self._record_step(self._complete_steps.popleft())
+            if self.recorded_step >= 0 and (not self.history or self.history[-1].stamp_s
+                                            != self._stamp_s(self.recorded_step)):
+                self.evaluate(self.recorded_step, publish)
+        summary = self.summary(reason)
+        summary.write(self.summary_path)
+        log = self.get_logger()
+        log.info(f"done ({reason}): explored {summary.explored_ratio:.3f}, distance "
+                 f"{summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, landmark "
+                 f"RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, sim "
+                 f"{summary.sim_time_s:.1f} s, wall {summary.wall_s:.1f} s")
+        log.info(f"summary: {self.summary_path}")
+        if self.evaluator is not None:
+            render_team_map(self.map_layers(reason), self.map_png_path)
+            log.info(f"map: {self.map_png_path}")
+        if not self.done.done():
+            self.done.set_result(exit_code)
+
+    def _final_targets(self) -> list[list[TargetRecord]]:
+        """Each robot's targets up to the last evaluation (all of them if none was made)."""
+        if not self.history:
+            return [[t for _, t in sorted(records.items())] for records in self.targets]
+        return self._targets_before(round(self.history[-1].stamp_s / self.time_step_s))
+
+    def summary(self, stop_reason: str) -> RunSummary:
+        """The run's summary in em-sim's schema (NaN where nothing was measured)."""
+        world = self.params.world
+        summary = RunSummary(seed=self.params.run.seed, planner=self.params.planner.name,
+                             num_robots=world.num_robots,
+                             map_size_m=(world.width_m, world.height_m),
+                             num_landmarks=world.num_landmarks, stop_reason=stop_reason)
+        targets = self._final_targets()
+        distances = (self.evaluator.robot_distances_m if self.evaluator is not None
+                     else np.zeros(self.num_robots))
+        summary.robots = [RobotSummary(
+            id=robot, distance_m=float(distances[robot]), decisions=len(chosen),
+            targets=[_target_entry(t) for t in chosen],
+            decision_times_s=[t.planning_time_s for t in chosen])
+            for robot, chosen in enumerate(targets)]
+        times = [t.planning_time_s for chosen in targets for t in chosen]
+        summary.decisions = len(times)
+        if times:
+            summary.decision_time_median_s = float(np.median(times))
+            summary.decision_time_max_s = float(np.max(times))
+        if self._first_step_wall_s is not None:
+            summary.wall_s = time.monotonic() - self._first_step_wall_s
+        if self.history:
+            final = self.history[-1]
+            summary.explored_ratio, summary.distance_m = final.explored_ratio, final.distance_m
+            summary.loc_rmse_m, summary.landmark_rmse_m = final.loc_rmse_m, final.landmark_rmse_m
+            summary.sim_time_s = final.stamp_s
+            summary.history = [HistorySample(m.stamp_s, m.distance_m, m.explored_ratio,
+                                             m.loc_rmse_m, m.landmark_rmse_m)
+                               for m in self.history]
+        return summary
+
+    def map_layers(self, title: str) -> TeamMapLayers:
+        """The final map's layers: the truth and the estimates of the last evaluation."""
+        evaluator = self.evaluator
+        world = evaluator.world
+        paths, landmarks = self._evaluated
+        return TeamMapLayers(
+            width_m=world.width_m, height_m=world.height_m,
+            cell_size_m=evaluator.grid.geometry.cell_size_m,
+            explored=evaluator.grid.explored_mask(), true_landmarks=world.landmarks,
+            landmark_radius_m=world.landmark_radius_m,
+            true_paths={r: evaluator.true_trajectory(r) for r in range(self.num_robots)},
+            estimated_paths={r: poses for r, (_, poses) in paths.items()},
+            estimated_landmarks={r: np.array(list(e.values())).reshape(-1, 2)
+                                 for r, e in landmarks.items()},
+            targets={r: [_target_entry(t) for t in chosen]
+                     for r, chosen in enumerate(self._final_targets())},
+            title=f"{self.params.planner.name}, {self.num_robots} robots, seed "
+                  f"{self.params.run.seed}: {title}")
+
+
+def _target_entry(target: TargetRecord) -> TargetEntry:
+    return TargetEntry(float(target.position[0]), float(target.position[1]),
+                       FRONTIER_TYPE_NAMES[target.kind])
+
+
+def _progress_line(metrics: TeamMetrics, decisions: int) -> str:
+    def metres(value: float) -> str:
+        return "n/a" if math.isnan(value) else f"{value:.3f} m"
+    return (f"t={metrics.stamp_s:7.1f} s  explored {metrics.explored_ratio:5.3f}  distance "
+            f"{metrics.distance_m:7.1f} m  loc RMSE {metres(metrics.loc_rmse_m)}  landmark RMSE "
+            f"{metres(metrics.landmark_rmse_m)}  decisions {decisions}")
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of em-evaluator; returns the exit code (see module docstring)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = EvaluatorNode()
+        rclpy.spin_until_future_complete(node, node.done)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as error:
+        rclpy.logging.get_logger("em_evaluator").fatal(f"cannot start: {error}")
+        return 2
+    finally:
+        if node is not None:
+            # Ctrl-C (rclpy's handler ends the spin) or SIGTERM: keep what was measured.
+            node.finish("interrupted", EXIT_INTERRUPTED, publish=False)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return node.exit_code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,313 @@
+#!/usr/bin/env bash
+# Run a team exploration over ROS 2: the world simulator, N robot processes and the evaluator,
+# each its own OS process talking over DDS. This is the project's main command.
+#
+#   launch_scripts/run_team.sh                       3 robots, EM_3, 100 m x 100 m, 20 landmarks,
+#                                                    until explored ratio 0.85, lockstep
+#   launch_scripts/run_team.sh --robots 2 --planner NF --map-size 40 --landmarks 4 --seed 3
+#
+# Run with --help for the options. Exit code: the evaluator's (0 done, 3 the robots or the world
+# stopped publishing), 1 if a process failed, 2 for bad arguments, 130 on Ctrl-C, 143 on SIGTERM.
+set -uo pipefail
+
+# shellcheck source=launch_scripts/_common.sh
+source "$(dirname "${BASH_SOURCE[0]}")/_common.sh"
+
+PROG=run_team.sh
+PLANNERS=(EM_2 EM_3 CE BSP NF)
+NODES=em_exploration_ros.nodes
+RECORD_MODULE=em_exploration_ros.tools.record
+# Grace periods [s] of a stop: after SIGINT (nodes write their results), after SIGTERM.
+STOP_GRACE_S=10
+KILL_GRACE_S=3
+
+usage() {
+    cat <<EOF
+usage: $PROG [options]
+
+Runs em-world, N em-robot and em-evaluator as separate processes in one ROS 2 domain and
+waits for the evaluator to end the run. Progress lines come from the evaluator; each process
+logs to <run dir>/logs/<name>.log. Flags override the parameter file for every node.
+
+options:
+  --robots N              number of robots, 1..26 (file default: 3)
+  --seed S                seed of the world and of every noise draw, >= 0 (default: 0)
+  --planner NAME          one of: ${PLANNERS[*]} (default: EM_3)
+  --map-size M            side of the square map [m], 10..2000 (default: 100)
+  --landmarks K           number of landmarks, 0..1000 (default: 20)
+  --until-explored R      stop at this team explored ratio, 0..1 (default: 0.85)
+  --max-sim-time S        stop after S seconds of simulation time (default: no limit)
+  --params FILE           ROS 2 parameter YAML (default: config/exploration.yaml)
+  --realtime [FACTOR]     step on a wall timer, FACTOR sim seconds per wall second
+                          (default 1.0) instead of lockstep
+  --summary FILE          summary JSON (default: runs/<date>_seed<S>_<planner>/summary.json);
+                          the map picture goes beside it (<stem>_map.png), logs in logs/
+  --domain-id ID          ROS_DOMAIN_ID, 0..232 (default: a free id in 1..101, held by a lock)
+  --record [PATH]         record every topic with em-record
+                          (default PATH: bags/<date>_seed<S>_<planner>.mcap)
+  -h, --help              show this help and exit
+EOF
+}
+
+usage_error() {
+    echo "$PROG: error: $*" >&2
+    echo "Try '$PROG --help'." >&2
+    exit 2
+}
+
+is_int() { [[ $1 =~ ^[0-9]+$ ]]; }
+is_number() { [[ $1 =~ ^([0-9]+([.][0-9]*)?|[.][0-9]+)([eE][-+]?[0-9]+)?$ ]]; }
+
+# check_number FLAG VALUE LOW HIGH [int]: refuse a value that is not a number in [LOW, HIGH].
+check_number() {
+    local flag=$1 value=$2 low=$3 high=$4 kind=${5:-float}
+    if [[ $kind == int ]]; then
+        is_int "$value" || usage_error "$flag expects a whole number, got '$value'"
+    else
+        is_number "$value" || usage_error "$flag expects a number, got '$value'"
+    fi
+    awk -v v="$value" -v lo="$low" -v hi="$high" 'BEGIN { exit !(v + 0 >= lo + 0 && v + 0 <= hi + 0) }' \
+        || usage_error "$flag must be in [$low, $high], got '$value'"
+}
+
+needs_value() {  # needs_value REST...: the flag in $arg must be followed by a value
+    if ! (( $# )) || [[ $inline_value == 0 && $1 == --* ]]; then usage_error "$arg needs a value"; fi
+}
+
+# A number as a ROS double literal (the nodes declare these parameters as doubles).
+as_double() { if [[ $1 =~ [.eE] ]]; then printf '%s' "$1"; else printf '%s.0' "$1"; fi; }
+
+# -- arguments -------------------------------------------------------------------------------
+ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME=""
+PARAMS_FILE="$EM_REPO_ROOT/config/exploration.yaml"
+REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH=""
+
+while (( $# )); do
+    arg=$1
+    shift
+    if [[ $arg == --*=* ]]; then
+        set -- "${arg#*=}" "$@"
+        arg=${arg%%=*}
+        inline_value=1
+    else
+        inline_value=0
+    fi
+    case $arg in
+        -h|--help) usage; exit 0 ;;
+        --robots) needs_value "$@"; check_number "$arg" "$1" 1 26 int; ROBOTS=$1; shift ;;
+        --seed) needs_value "$@"; check_number "$arg" "$1" 0 2147483647 int; SEED=$1; shift ;;
+        --planner)
+            needs_value "$@"
+            [[ " ${PLANNERS[*]} " == *" $1 "* ]] \
+                || usage_error "unknown planner '$1' (one of: ${PLANNERS[*]})"
+            PLANNER=$1; shift ;;
+        --map-size) needs_value "$@"; check_number "$arg" "$1" 10 2000; MAP_SIZE=$1; shift ;;
+        --landmarks) needs_value "$@"; check_number "$arg" "$1" 0 1000 int; LANDMARKS=$1; shift ;;
+        --until-explored) needs_value "$@"; check_number "$arg" "$1" 0 1; UNTIL=$1; shift ;;
+        --max-sim-time) needs_value "$@"; check_number "$arg" "$1" 0 1e9; MAX_SIM_TIME=$1; shift ;;
+        --params)
+            needs_value "$@"
+            [[ -f $1 && -r $1 ]] || usage_error "--params: no readable file '$1'"
+            PARAMS_FILE=$(cd "$(dirname "$1")" && pwd)/$(basename "$1"); shift ;;
+        --realtime)
+            REALTIME=1.0
+            if (( $# )) && { [[ $inline_value == 1 ]] || is_number "$1"; }; then
+                check_number "$arg" "$1" 0.01 1000; REALTIME=$1; shift
+            fi ;;
+        --summary) needs_value "$@"; SUMMARY=$1; shift ;;
+        --domain-id) needs_value "$@"; check_number "$arg" "$1" 0 232 int; DOMAIN_ID=$1; shift ;;
+        --record)
+            RECORD=1
+            if (( $# )) && [[ $inline_value == 1 || $1 != -* ]]; then RECORD_PATH=$1; shift; fi ;;
+        *) usage_error "unknown argument '$arg'" ;;
+    esac
+done
+
+if [[ -n $RECORD && ! -f "$EM_REPO_ROOT/${RECORD_MODULE//.//}.py" ]]; then
+    usage_error "--record needs em-record ($RECORD_MODULE), which this checkout does not have"
+fi
+if [[ ! -f "$EM_REPO_ROOT/${NODES//.//}/robot_node.py" ]]; then
+    echo "$PROG: error: the robot node ($NODES.robot_node) is missing from this checkout" >&2
+    exit 1
+fi
+
+# -- environment and effective parameters ------------------------------------------------------
+"$EM_REPO_ROOT/launch_scripts/setup_env.sh" || { echo "$PROG: error: set-up failed" >&2; exit 1; }
+em_activate
+PYTHON="$EM_VENV/bin/python"
+
+OVERRIDES=()
+[[ -n $ROBOTS ]] && OVERRIDES+=(-p "world.num_robots:=$ROBOTS")
+[[ -n $SEED ]] && OVERRIDES+=(-p "run.seed:=$SEED")
+[[ -n $PLANNER ]] && OVERRIDES+=(-p "planner.name:=$PLANNER")
+[[ -n $MAP_SIZE ]] && OVERRIDES+=(-p "world.width_m:=$(as_double "$MAP_SIZE")"
+                                  -p "world.height_m:=$(as_double "$MAP_SIZE")")
+[[ -n $LANDMARKS ]] && OVERRIDES+=(-p "world.num_landmarks:=$LANDMARKS")
+[[ -n $UNTIL ]] && OVERRIDES+=(-p "run.until_explored:=$(as_double "$UNTIL")")
+
+# Check the file with the overrides as the nodes will read them (and that the world can be
+# built), and learn the values the run's names need: "<robots> <seed> <planner>".
+if ! RESOLVED=$("$PYTHON" - "$PARAMS_FILE" "${OVERRIDES[@]}" 2>&1 <<'PY'
+import sys
+
+from em_exploration_ros.core.params_yaml import ParamsFileError, load_params, nest_dotted
+from em_exploration_ros.core.world import generate_world, run_seed_sequences
+
+path, args = sys.argv[1], sys.argv[2:]
+values = {}
+for flag, assignment in zip(args[::2], args[1::2]):
+    name, value = assignment.split(":=", 1)
+    values[name] = value if name == "planner.name" else float(value) if "." in value or "e" in value else int(value)
+try:
+    params = load_params(path)
+    params = params.replace(**nest_dotted(values)) if values else params
+    generate_world(params.world, params.sensors, run_seed_sequences(params.run.seed)[0])
+except (ParamsFileError, ValueError, RuntimeError) as error:
+    print(error)
+    sys.exit(1)
+print(params.world.num_robots, params.run.seed, params.planner.name)
+PY
+); then
+    echo "$PROG: error: invalid parameters: $RESOLVED" >&2
+    exit 2
+fi
+read -r NUM_ROBOTS RUN_SEED RUN_PLANNER <<<"$RESOLVED"
+
+STAMP=$(date +%Y%m%d-%H%M%S)
+RUN_NAME="${STAMP}_seed${RUN_SEED}_${RUN_PLANNER}"
+SUMMARY=${SUMMARY:-"$EM_REPO_ROOT/runs/$RUN_NAME/summary.json"}
+mkdir -p "$(dirname "$SUMMARY")" || usage_error "--summary: cannot create the folder of '$SUMMARY'"
+SUMMARY="$(cd "$(dirname "$SUMMARY")" && pwd)/$(basename "$SUMMARY")"
+SUMMARY_STEM=$(basename "$SUMMARY")
+MAP_PNG="$(dirname "$SUMMARY")/${SUMMARY_STEM%.*}_map.png"
+LOG_DIR="$(dirname "$SUMMARY")/logs"
+mkdir -p "$LOG_DIR"
+rm -f "$SUMMARY" "$MAP_PNG"
+[[ -n $RECORD ]] && RECORD_PATH=${RECORD_PATH:-"$EM_REPO_ROOT/bags/$RUN_NAME.mcap"}
+
+if [[ -n $DOMAIN_ID ]]; then
+    export ROS_DOMAIN_ID=$DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+else
+    em_pick_ros_domain || exit 1
+fi
+export ROS_LOG_DIR="$LOG_DIR/ros" PYTHONUNBUFFERED=1 RCUTILS_LOGGING_BUFFERED_STREAM=1 \
+    RCUTILS_COLORIZED_OUTPUT=0
+
+# -- processes -------------------------------------------------------------------------------
+PIDS=() NAMES=()
+
+# start NAME ARGS...: run "python ARGS" in its own session (so its own process group).
+start() {
+    local name=$1
+    shift
+    setsid "$PYTHON" "$@" >"$LOG_DIR/$name.log" 2>&1 </dev/null &
+    PIDS+=("$!")
+    NAMES+=("$name")
+}
+
+group_alive() { kill -0 -- "-$1" 2>/dev/null; }
+
+# Wait until no process group of ours is alive, at most $1 seconds; 0 if none is left.
+wait_groups() {
+    local deadline=$(( SECONDS + $1 )) pid alive
+    while :; do
+        alive=0
+        for pid in "${PIDS[@]}"; do group_alive "$pid" && alive=1; done
+        (( alive )) || return 0
+        (( SECONDS < deadline )) || return 1
+        sleep 0.2
+    done
+}
+
+# SIGINT every group (nodes finish their work), then SIGTERM, then SIGKILL what is left.
+stop_all() {
+    local pid signal
+    for signal in INT TERM KILL; do
+        for pid in "${PIDS[@]}"; do group_alive "$pid" && kill "-$signal" -- "-$pid" 2>/dev/null; done
+        case $signal in
+            INT) wait_groups "$STOP_GRACE_S" && break ;;
+            TERM) wait_groups "$KILL_GRACE_S" && break ;;
+            KILL) wait_groups "$KILL_GRACE_S" ;;
+        esac
+    done
+    wait 2>/dev/null
+}
+
+report_results() {
+    [[ -f $SUMMARY ]] && echo "$PROG: summary: $SUMMARY"
+    [[ -f $MAP_PNG ]] && echo "$PROG: map:     $MAP_PNG"
+    echo "$PROG: logs:    $LOG_DIR"
+    [[ -n $RECORD && -f $RECORD_PATH ]] && echo "$PROG: bag:     $RECORD_PATH"
+}
+
+# shellcheck disable=SC2317  # called through the traps below
+on_signal() {
+    trap - INT TERM
+    echo "$PROG: stopping ($1)" >&2
+    [[ -n ${TAIL_PID:-} ]] && kill "$TAIL_PID" 2>/dev/null
+    stop_all
+    report_results
+    exit "$2"
+}
+trap 'on_signal interrupted 130' INT
+trap 'on_signal terminated 143' TERM
+
+COMMON=(--ros-args --params-file "$PARAMS_FILE" "${OVERRIDES[@]}")
+SIM_LIMIT=()
+[[ -n $MAX_SIM_TIME ]] && SIM_LIMIT=(-p "max_sim_time_s:=$(as_double "$MAX_SIM_TIME")")
+if [[ -n $REALTIME ]]; then
+    CLOCK=(-p clock_mode:=realtime -p "realtime_factor:=$(as_double "$REALTIME")")
+    MODE="real time x$REALTIME"
+else
+    CLOCK=(-p clock_mode:=lockstep)
+    MODE=lockstep
+fi
+
+echo "$PROG: $NUM_ROBOTS robots, planner $RUN_PLANNER, seed $RUN_SEED, $MODE," \
+     "ROS_DOMAIN_ID=$ROS_DOMAIN_ID; logs in $LOG_DIR"
+if [[ -n $RECORD ]]; then
+    mkdir -p "$(dirname "$RECORD_PATH")"
+    start record -m "$RECORD_MODULE" -o "$RECORD_PATH" --ros-args -p use_sim_time:=true
+fi
+start evaluator -m "$NODES.evaluator_node" "${COMMON[@]}" -p use_sim_time:=true \
+    -p "summary_path:=$SUMMARY" -p "map_png_path:=$MAP_PNG" "${SIM_LIMIT[@]}"
+EVALUATOR_PID=${PIDS[-1]}
+start world -m "$NODES.world_node" "${COMMON[@]}" "${CLOCK[@]}" -p wait_for_evaluator:=true \
+    "${SIM_LIMIT[@]}"
+for (( robot = 0; robot < NUM_ROBOTS; robot++ )); do
+    start "robot_$robot" -m "$NODES.robot_node" --ros-args -r "__ns:=/robot_$robot" \
+        -p "robot_id:=$robot" -p use_sim_time:=true --params-file "$PARAMS_FILE" "${OVERRIDES[@]}"
+done
+
+# The evaluator's log on the terminal (progress lines) until it exits.
+tail -n +1 -F --pid="$EVALUATOR_PID" "$LOG_DIR/evaluator.log" 2>/dev/null &
+TAIL_PID=$!
+
+FAILED=""
+while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
+    for index in "${!PIDS[@]}"; do
+        pid=${PIDS[$index]}
+        [[ $pid == "$EVALUATOR_PID" ]] && continue
+        if ! kill -0 "$pid" 2>/dev/null; then
+            wait "$pid"
+            FAILED="${NAMES[$index]} exited early with code $? (see $LOG_DIR/${NAMES[$index]}.log)"
+            break 2
+        fi
+    done
+    sleep 0.5 &
+    wait $!
+done
+
+if [[ -n $FAILED ]]; then
+    echo "$PROG: error: $FAILED" >&2
+    stop_all
+    report_results
+    exit 1
+fi
+wait "$EVALUATOR_PID"
+CODE=$?
+wait "$TAIL_PID" 2>/dev/null
+trap - INT TERM
+stop_all
+report_results
+exit "$CODE"

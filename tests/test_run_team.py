@@ -1,0 +1,140 @@
+"""launch_scripts/run_team.sh: refuses bad arguments at once; runs a whole team end to end.
+
+The end-to-end run starts the real processes (em-world, three em-robot, em-evaluator) in
+this test run's ROS domain, on a small map with the cheap NF planner, and checks what the
+user gets: the summary JSON in em-sim's schema, the map picture, exit code 0, no process of
+the run left behind, and the same decisions as em-sim for the same seed.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+
+import pytest
+
+from em_exploration_ros.core.params_yaml import load_params
+from em_exploration_ros.core.summary import check_summary
+from em_exploration_ros.core.team_runner import TeamRunner
+from ros_process import REPO_ROOT, NodeProcess, processes_in_domain, wait_until
+
+RUN_TEAM = REPO_ROOT / "launch_scripts" / "run_team.sh"
+#: Bound of the end-to-end run (set-up check, start-up, exploration, shutdown) [s].
+RUN_TIMEOUT_S = 150.0
+#: The run's processes, as their command lines name them.
+RUN_PROCESS_PATTERN = r"em_exploration_ros\.(nodes|tools)\."
+
+
+def run_team(*args: str, timeout_s: float = 20.0) -> subprocess.CompletedProcess:
+    return subprocess.run(["bash", str(RUN_TEAM), *args], capture_output=True, text=True,
+                          timeout=timeout_s, stdin=subprocess.DEVNULL)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--bogus"], "unknown argument '--bogus'"),
+    (["--robots", "three"], "--robots expects a whole number"),
+    (["--robots", "0"], "--robots must be in [1, 26]"),
+    (["--seed", "-4"], "--seed expects a whole number, got '-4'"),
+    (["--seed", "1.5"], "--seed expects a whole number"),
+    (["--map-size", "5"], "--map-size must be in [10, 2000]"),
+    (["--until-explored=1.2"], "--until-explored must be in [0, 1]"),
+    (["--max-sim-time", "soon"], "--max-sim-time expects a number"),
+    (["--planner", "RANDOM"], "unknown planner 'RANDOM'"),
+    (["--params", "/nonexistent/exploration.yaml"], "no readable file"),
+    (["--realtime", "0"], "--realtime must be in [0.01, 1000]"),
+    (["--domain-id", "500"], "--domain-id must be in [0, 232]"),
+    (["--robots"], "--robots needs a value"),
+])
+def test_refuses_bad_arguments(args, message):
+    result = run_team(*args)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+    assert "--help" in result.stderr
+
+
+def test_help_lists_the_options():
+    result = run_team("--help")
+    assert result.returncode == 0
+    for flag in ("--robots", "--seed", "--planner", "--map-size", "--landmarks",
+                 "--until-explored", "--max-sim-time", "--params", "--realtime", "--summary",
+                 "--domain-id", "--record"):
+        assert flag in result.stdout
+
+
+def start_run(tmp_path, *args: str) -> tuple[NodeProcess, str]:
+    """run_team.sh with ``args`` in this test run's domain; waits until the world, the
+    evaluator and three robots run (which also shows the leftover check can see them)."""
+    domain = os.environ["ROS_DOMAIN_ID"]
+    run = NodeProcess(["bash", str(RUN_TEAM), *args, "--domain-id", domain],
+                      tmp_path / "run_team.out")
+    try:
+        wait_until(lambda: len(processes_in_domain(RUN_PROCESS_PATTERN, domain)) >= 5 or
+                   not run.running(), 60.0, "the run's five processes")
+    except TimeoutError:
+        run.stop()
+        raise
+    return run, domain
+
+
+def test_three_robots_explore_end_to_end(tmp_path):
+    summary_path = tmp_path / "run" / "summary.json"
+    until = 0.6
+    run, domain = start_run(tmp_path, "--robots", "3", "--planner", "NF", "--map-size", "40",
+                            "--landmarks", "4", "--seed", "2", "--until-explored", str(until),
+                            "--max-sim-time", "600", "--summary", str(summary_path))
+    with run:
+        try:
+            code = run.wait(RUN_TIMEOUT_S)
+        except TimeoutError:
+            pytest.fail(f"run_team.sh did not finish in {RUN_TIMEOUT_S} s:\n"
+                        f"{run.output()[-3000:]}")
+    output = run.output()
+    assert code == 0, output[-3000:]
+    assert f"summary: {summary_path}" in output and "explored" in output
+
+    summary = json.loads(summary_path.read_text())
+    assert check_summary(summary) == []
+    assert summary["num_robots"] == 3 and summary["planner"] == "NF" and summary["seed"] == 2
+    assert summary["explored_ratio"] >= until, summary["stop_reason"]
+    assert "explored ratio" in summary["stop_reason"] or "every robot finished" in \
+        summary["stop_reason"]
+    assert math.isfinite(summary["loc_rmse_m"]) and 0.0 <= summary["loc_rmse_m"] < 1.0
+    assert math.isfinite(summary["landmark_rmse_m"]) and summary["landmark_rmse_m"] < 1.0
+    assert summary["decisions"] >= 3 and summary["sim_time_s"] > 0.0
+    assert all(robot["distance_m"] > 1.0 for robot in summary["robots"])
+    assert summary["history"] and summary["history"][-1]["explored_ratio"] == \
+        summary["explored_ratio"]
+
+    # The ROS system in lockstep makes em-sim's decisions (same seed, same parameters).
+    reference = TeamRunner(load_params(REPO_ROOT / "config" / "exploration.yaml").replace(
+        world={"num_robots": 3, "width_m": 40.0, "height_m": 40.0, "num_landmarks": 4},
+        planner={"name": "NF"}, run={"seed": 2, "until_explored": until})).run().to_dict()
+    assert [r["targets"] for r in summary["robots"]] == [r["targets"] for r in
+                                                         reference["robots"]]
+    assert (summary["stop_reason"], summary["sim_time_s"]) == (reference["stop_reason"],
+                                                               reference["sim_time_s"])
+
+    picture = summary_path.with_name("summary_map.png")
+    assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    logs = summary_path.parent / "logs"
+    assert {"world.log", "evaluator.log", "robot_0.log", "robot_1.log",
+            "robot_2.log"} <= {p.name for p in logs.iterdir()}
+    # Nothing of the run is left: run_team.sh stopped every process it started.
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+
+
+def test_ctrl_c_stops_every_process_and_keeps_the_summary(tmp_path):
+    summary_path = tmp_path / "summary.json"
+    run, domain = start_run(tmp_path, "--robots", "3", "--planner", "NF", "--map-size", "100",
+                            "--until-explored", "0.95", "--summary", str(summary_path))
+    with run:
+        run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+        run.signal_group(signal.SIGINT)  # what a terminal's Ctrl-C does
+        code = run.wait(30.0)
+    assert code == 130, run.output()[-3000:]
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+    summary = json.loads(summary_path.read_text())
+    assert summary["stop_reason"] == "interrupted" and check_summary(summary) == []
+    assert summary["sim_time_s"] >= 20.0
