@@ -6,6 +6,13 @@ PACKAGE_NAME = "em_exploration_ros"
 # Console scripts: one per node and per tool (name -> module:function).
 CONSOLE_SCRIPTS = {
     "em-sim": "em_exploration_ros.tools.sim_cli:main",
+    "em-bench": "em_exploration_ros.tools.bench:main",
+    "em-world": "em_exploration_ros.nodes.world_node:main",
+    "em-robot": "em_exploration_ros.nodes.robot_node:main",
+    "em-evaluator": "em_exploration_ros.nodes.evaluator_node:main",
+    "em-record": "em_exploration_ros.tools.record:main",
+    "em-replay": "em_exploration_ros.tools.replay:main",
+    "em-bag": "em_exploration_ros.tools.bag:main",
 }
 
 setup(
