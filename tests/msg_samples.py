@@ -36,16 +36,15 @@ PACKAGE = "em_exploration_msgs"
 SEQUENCE_LENGTH = 3
 
 # Encoded size (= CDR alignment) of the basic types, in bytes.
-_CDR_SIZE = {"boolean": 1, "octet": 1, "char": 1, "int8": 1, "uint8": 1,
+_CDR_SIZE = {"boolean": 1, "octet": 1, "int8": 1, "uint8": 1,
              "int16": 2, "uint16": 2, "int32": 4, "uint32": 4, "float": 4,
              "int64": 8, "uint64": 8, "double": 8}
 # The 4-byte encapsulation header that starts every serialized ROS 2 message.
 _CDR_HEADER_SIZE = 4
 
+# Width of the integer types, in bits.
 _INT_BITS = {"int8": 8, "int16": 16, "int32": 32, "int64": 64,
-             "uint8": 8, "uint16": 16, "uint32": 32, "uint64": 64,
-             "short": 16, "long": 32, "long long": 64,
-             "unsigned short": 16, "unsigned long": 32, "unsigned long long": 64}
+             "uint8": 8, "uint16": 16, "uint32": 32, "uint64": 64}
 
 
 def message_type_names() -> list[str]:
@@ -170,20 +169,22 @@ def _make_value(slot_type: definition.AbstractType, counter: Iterator[int]) -> A
 
 
 def _basic_value(typename: str, k: int) -> Any:
-    """Return the k-th sample value (never the default) of a rosidl basic type."""
+    """Return the k-th sample value (never the default) of a basic type a .msg file can use.
+
+    (.msg char and byte map to uint8 and octet; IDL-only types such as wchar are not covered.)
+    """
     if typename == "boolean":
         return True
     if typename == "octet":
         return bytes([0x80 + k % 100])
-    if typename in ("char", "wchar"):
-        return chr(ord("A") + k % 26)
-    if typename in ("float", "double", "long double"):
+    if typename in ("float", "double"):
         # Quarter steps are exact in float32 too, so values survive a float32 field unchanged.
         return (-1) ** k * (k + 0.25)
+    # High bits set, in range even for 8-bit types: unsigned 2^(n-1)+0..63, signed -2^(n-2)-0..63.
     bits = _INT_BITS[typename]
     if typename.startswith("u"):
-        return 2 ** (bits - 1) + k % 100
-    return -(2 ** (bits - 2)) - k % 100
+        return 2 ** (bits - 1) + k % 64
+    return -(2 ** (bits - 2)) - k % 64
 
 
 def _default_element(slot_type: definition.AbstractNestedType) -> Any:
@@ -196,8 +197,6 @@ def _default_element(slot_type: definition.AbstractNestedType) -> Any:
         return False
     if typename == "octet":
         return b"\x00"
-    if typename in ("char", "wchar"):
-        return "\x00"
     return 0
 
 
