@@ -89,6 +89,7 @@ class NodeProcess:
 
     @property
     def pid(self) -> int:
+        """Process id, which is also the id of its process group."""
         return self.process.pid
 
     def running(self) -> bool:
@@ -154,14 +155,17 @@ class ProcessSet:
         self.processes: list[NodeProcess] = []
 
     def add(self, process: NodeProcess) -> NodeProcess:
+        """Track an already started process; returns it."""
         self.processes.append(process)
         return process
 
     def start_module(self, module: str, args: Sequence[str] = (), log_path: Path | None = None,
                      env: Mapping[str, str] | None = None) -> NodeProcess:
+        """Start and track ``python -m module args`` (see NodeProcess.start_module)."""
         return self.add(NodeProcess.start_module(module, args, log_path, env))
 
     def stop_all(self, grace_s: float = 5.0) -> None:
+        """SIGINT every group at once, then stop each as NodeProcess.stop does."""
         for process in reversed(self.processes):
             if process.running():
                 process.signal_group(signal.SIGINT)
