@@ -120,6 +120,9 @@ class TeamRunner:
         """Team metrics now, appended to the history."""
         interval = self.params.slam.keyframe_interval_steps
         time_step = self.params.motion.time_step_s
+        for agent in self.agents:  # the truth of this step (distance up to now)
+            self.evaluator.record_truth(agent.robot_id, self.simulation.stamp_s,
+                                        self.simulation.true_pose(agent.robot_id))
         trajectories, landmarks = {}, {}
         for agent in self.agents:
             indices, poses = agent.slam.trajectory(agent.robot_id)

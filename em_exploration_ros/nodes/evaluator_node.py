@@ -57,7 +57,8 @@ from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_position
                                                   time_to_seconds)
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
 from em_exploration_ros.nodes.ros_params import declare_exploration_params
-from em_exploration_ros.nodes.world_node import declare_setting, final_step
+from em_exploration_ros.nodes.ros_params import declare_setting
+from em_exploration_ros.nodes.world_node import final_step
 
 EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
 #: Reader side of the robots' latched estimates (LATCHED_QOS writers): the same durability and

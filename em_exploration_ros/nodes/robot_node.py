@@ -25,6 +25,7 @@ from em_exploration_msgs.msg import (LandmarkArray, MotionCommand, SonarScan, Te
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import OccupancyGrid, Odometry, Path
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
@@ -106,7 +107,8 @@ class RobotNode(Node):
                     TeamUpdate, f"/{robot_namespace(teammate)}/team/updates",
                     lambda message, sender=teammate: self._on_team_update(sender, message),
                     TEAM_QOS)
-        self.create_timer(0.1, self._maintain)
+        # Wall (steady) time: in lockstep the sim clock stands still while the world waits.
+        self.create_timer(0.1, self._maintain, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # -- callbacks -------------------------------------------------------------------------
 

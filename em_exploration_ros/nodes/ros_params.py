@@ -1,6 +1,7 @@
 """Declaring the exploration parameters on a node, with descriptions and ranges.
 
-Every field of ``ExplorationParams`` becomes a read-only ROS parameter ``<group>.<field>``
+``declare_setting`` declares a node's own settings (not exploration parameters) the same
+way. Every field of ``ExplorationParams`` becomes a read-only ROS parameter ``<group>.<field>``
 (e.g. ``planner.name``, ``world.width_m``) with its description, unit and range, so
 ``ros2 param describe`` documents it and ``--params-file config/exploration.yaml`` sets it.
 """
@@ -49,3 +50,16 @@ def declare_exploration_params(node: Node) -> ExplorationParams:
             parameter = node.declare_parameter(name, initial, _descriptor(name, f, default))
             values[name] = parameter.value
     return defaults.replace(**nest_dotted(values))
+
+
+def declare_setting(node: Node, name: str, default: Any, description: str,
+                    low: float | None = None, high: float | None = None) -> Any:
+    """Declare a read-only node parameter (not an exploration parameter) and return its value.
+
+    ``low``/``high`` give a floating-point range (for float defaults only).
+    """
+    descriptor = ParameterDescriptor(name=name, description=description, read_only=True)
+    if low is not None and high is not None:
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float(low),
+                                                              to_value=float(high), step=0.0)]
+    return node.declare_parameter(name, default, descriptor).value

@@ -41,7 +41,6 @@ import rclpy
 from em_exploration_msgs.msg import LandmarkArray, MotionCommand, SonarScan
 from geometry_msgs.msg import Point, PoseStamped
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -58,7 +57,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
                                                   seconds_to_time, sonar_scan_to_msg,
                                                   yaw_to_quaternion)
 from em_exploration_ros.nodes.qos import CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS
-from em_exploration_ros.nodes.ros_params import declare_exploration_params
+from em_exploration_ros.nodes.ros_params import declare_exploration_params, declare_setting
 
 LOCKSTEP, REALTIME = "lockstep", "realtime"
 #: Wall period of the timer that checks start-up connections and robot timeouts [s].
@@ -67,19 +66,6 @@ _POLL_PERIOD_S = 0.05
 _LOG_EVERY_STEPS = 500
 #: Height of the landmark cylinders drawn in /world/markers [m].
 _MARKER_HEIGHT_M = 1.0
-
-
-def declare_setting(node: Node, name: str, default: Any, description: str,
-                    low: float | None = None, high: float | None = None) -> Any:
-    """Declare a read-only node parameter (not an exploration parameter) and return its value.
-
-    ``low``/``high`` give a floating-point range (for float defaults only).
-    """
-    descriptor = ParameterDescriptor(name=name, description=description, read_only=True)
-    if low is not None and high is not None:
-        descriptor.floating_point_range = [FloatingPointRange(from_value=float(low),
-                                                              to_value=float(high), step=0.0)]
-    return node.declare_parameter(name, default, descriptor).value
 
 
 def final_step(params: ExplorationParams, max_sim_time_s: float) -> int:
