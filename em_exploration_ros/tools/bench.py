@@ -28,6 +28,7 @@ import logging
 import math
 import multiprocessing
 import os
+import subprocess
 import sys
 import time
 import traceback
@@ -71,6 +72,7 @@ class TrialSpec:
     seed: int
     params: ExplorationParams
     path: Path
+    code_version: str = "unknown"
 
     @property
     def label(self) -> str:
@@ -91,7 +93,20 @@ def setting_name(params: ExplorationParams) -> str:
     return f"{size}_cell{params.map.cell_size_m:g}m"
 
 
-def trial_specs(args: argparse.Namespace, out_dir: Path) -> list[TrialSpec]:
+def code_version() -> str:
+    """``git describe --always --dirty`` of the checkout this package runs from, else
+    ``unknown``. Stored with every trial, so results of different code stay visible."""
+    try:
+        result = subprocess.run(["git", "describe", "--always", "--dirty"],
+                                cwd=Path(__file__).resolve().parent, capture_output=True,
+                                text=True, timeout=30, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return result.stdout.strip() or "unknown"
+
+
+def trial_specs(args: argparse.Namespace, out_dir: Path, version: str = "unknown"
+                ) -> list[TrialSpec]:
     """All trials asked for on the command line, seed-major (ValueError if inconsistent).
 
     Ordering by seed first interleaves the planners, so partial results stay comparable.
@@ -114,7 +129,7 @@ def trial_specs(args: argparse.Namespace, out_dir: Path) -> list[TrialSpec]:
             for planner in planners:
                 params = base.replace(planner={"name": planner}, run={"seed": seed})
                 path = out_dir / "trials" / setting / planner / f"seed_{seed}.json"
-                specs.append(TrialSpec(setting, planner, seed, params, path))
+                specs.append(TrialSpec(setting, planner, seed, params, path, version))
     return specs
 
 
@@ -164,7 +179,7 @@ def _write_json(path: Path, data: dict[str, Any]) -> None:
 
 def _base_record(spec: TrialSpec) -> dict[str, Any]:
     return {"setting": spec.setting, "planner": spec.planner, "seed": spec.seed,
-            "params": params_record(spec.params)}
+            "code_version": spec.code_version, "params": params_record(spec.params)}
 
 
 def run_trial(spec: TrialSpec) -> None:
@@ -435,6 +450,8 @@ def _planner_summary(records: Sequence[dict[str, Any]], finals: dict[int, dict[s
                   for metric in FINAL_METRICS},
         "wall_s_total": sum(walls),
         "wall_s_mean": sum(walls) / len(walls) if walls else None,
+        "code_versions": sorted({r.get("code_version", "unknown") for r in records
+                                 if r["status"] == "done"}),
         "failures": [{"seed": r["seed"], "error": r["error"]}
                      for r in records if r["status"] != "done"],
     }
@@ -454,7 +471,7 @@ def write_outputs(out_dir: Path, last_invocation: dict[str, Any]) -> None:
 def command_planners(args: argparse.Namespace) -> int:
     """``em-bench planners``: run what is missing, then write all outputs."""
     out_dir: Path = args.out
-    specs = trial_specs(args, out_dir)
+    specs = trial_specs(args, out_dir, code_version())
     to_run, earlier = split_finished(specs)
     _LOG.info("%d trials: %d finished earlier, %d to run on %d worker(s)",
               len(specs), len(earlier), len(to_run), args.jobs)

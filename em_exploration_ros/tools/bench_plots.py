@@ -137,8 +137,11 @@ def results_markdown(summary: Mapping[str, Any], plots: Mapping[str, Sequence[Pa
                 + "".join(f"| {_with_ci(entry['final'][key], digits)} "
                           for key, _, digits in TABLE_COLUMNS)
                 + f"| {'n/a' if wall is None else f'{wall:.1f}'} |")
+        versions = "; ".join(f"{name}: {', '.join(entry['code_versions']) or 'n/a'}"
+                             for name, entry in planners.items())
         lines += ["", f"Reached target: trials that ended at explored ratio "
-                  f"{info['until_explored']:g}.", ""]
+                  f"{info['until_explored']:g}. Code version (git describe) of the finished "
+                  f"trials: {versions}.", ""]
         if info["paired_differences"]:
             metrics = list(dict.fromkeys(d["metric"] for d in info["paired_differences"]))
             lines += ["Paired differences A − B of the final values over common seeds "
