@@ -3,6 +3,9 @@
     em-bag info FILE        topics, types, counts, duration, size, compression, start/end
     em-bag repair IN OUT    rewrite the readable chunks of a damaged recording (e.g. one whose
                             recorder was killed) as a complete, valid file
+    em-bag render FILE --out PNG
+                            draw the final team map of a recorded run (tools/bag_render.py;
+                            needs the ROS message packages, not a ROS graph)
 
 A file that cannot be read gives a one-line error and exit status 2.
 """
@@ -147,6 +150,16 @@ def _repair_command(args: argparse.Namespace) -> None:
                      f"{args.output} ({state})\n")
 
 
+def _render_command(args: argparse.Namespace) -> None:
+    # Imported here: the other commands need no ROS message packages.
+    from em_exploration_ros.tools.bag_render import render_recording
+    try:
+        team_map = render_recording(args.file, args.out)
+    except OSError as error:
+        raise BagError(f"{args.out}: cannot write the picture: {error.strerror}") from None
+    sys.stdout.write(f"wrote {args.out}: {team_map.describe()}\n")
+
+
 def main(argv: list[str] | None = None) -> None:
     """Entry point of em-bag."""
     parser = argparse.ArgumentParser(prog="em-bag", description="Inspect MCAP recordings.")
@@ -158,12 +171,17 @@ def main(argv: list[str] | None = None) -> None:
     fix.add_argument("input", type=Path)
     fix.add_argument("output", type=Path)
     fix.set_defaults(run=_repair_command)
+    draw = commands.add_parser("render", help="draw the final team map of a recorded run")
+    draw.add_argument("file", type=Path)
+    draw.add_argument("--out", type=Path, required=True, metavar="PNG",
+                      help="the picture to write (PNG)")
+    draw.set_defaults(run=_render_command)
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     try:
         args.run(args)
     except BagError as error:
         hint = "; `em-bag repair IN OUT` recovers its complete chunks" if (
-            "truncated" in str(error) and args.command == "info") else ""
+            "truncated" in str(error) and args.command in ("info", "render")) else ""
         sys.stderr.write(f"em-bag: {error}{hint}\n")
         sys.exit(EXIT_BAD_INPUT)
 

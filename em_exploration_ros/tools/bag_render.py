@@ -1,0 +1,313 @@
+"""The ROS side of ``em-bag render``: the final team map of a recorded run, as a PNG.
+
+One validating pass over the recording (``BagScanner``) keeps the last message of every
+state topic and every message of the stream topics; only those are deserialized, with
+``rclpy.serialization`` (no ROS graph, no ``rclpy.init``), and converted with
+``nodes.conversions``. All positions are in the ``map`` frame, which is the ``world`` frame
+in simulation, in metres.
+
+What is read, per robot ``i`` (topics absent from the recording are simply left out):
+
+- ``/robot_i/estimated_path`` (last): the robot's estimated keyframe trajectory;
+- ``/robot_i/landmarks`` (last): its landmark estimates;
+- ``/robot_i/virtual_map`` (last): its virtual map; a cell is explored when its occupancy
+  lies outside [``MapParams.explored_free_below``, ``explored_occupied_above``] of the
+  default parameters (the recording does not hold the run's parameters); the team's
+  explored area is the union over robots;
+- ``/robot_i/team/updates`` (all): the targets it chose, in decision order (resent updates
+  are counted once);
+- ``/robot_i/markers`` (last): the virtual-map uncertainty ellipses as the robot drew them
+  (namespace ``virtual_map_covariance``: 3-sigma flat cylinders, taken as they are, not
+  recomputed) and the frontier candidates of its last decision by type
+  (``frontiers_<type>`` sphere lists);
+- ``/world/ground_truth/robot_i`` (all): its true trajectory;
+
+and ``/world/landmarks`` (last) for the true landmarks and their radius, ``/world/markers``
+(last) for the mission border. ``render_team_map`` draws the layers it supports (explored
+area, landmarks, paths, targets); the ellipses and frontiers are returned with the layers
+and summarized by ``describe``.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rclpy.serialization import deserialize_message
+from visualization_msgs.msg import Marker
+
+from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, ChannelInfo
+from em_exploration_ros.core.frontiers import FrontierType
+from em_exploration_ros.core.map_render import TeamMapLayers, render_team_map
+from em_exploration_ros.core.params import MapParams
+from em_exploration_ros.core.summary import TARGET_TYPES, TargetEntry
+from em_exploration_ros.core.wire_model import nanoseconds_to_seconds
+from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg, odometry_pose,
+                                                  path_from_msg, quaternion_to_yaw,
+                                                  target_from_msg)
+from em_exploration_ros.tools.bag_ros import MessageTypeError, import_message_class
+
+#: Message type of each topic kind this module reads.
+EXPECTED_TYPES = {
+    "estimated_path": "nav_msgs/msg/Path",
+    "landmarks": "em_exploration_msgs/msg/LandmarkArray",
+    "virtual_map": "nav_msgs/msg/OccupancyGrid",
+    "markers": "visualization_msgs/msg/MarkerArray",
+    "team/updates": "em_exploration_msgs/msg/TeamUpdate",
+    "ground_truth": "nav_msgs/msg/Odometry",
+    "world_landmarks": "em_exploration_msgs/msg/LandmarkArray",
+    "world_markers": "visualization_msgs/msg/MarkerArray",
+}
+_ROBOT_TOPIC = re.compile(r"^/robot_(\d+)/(estimated_path|landmarks|virtual_map|markers|"
+                          r"team/updates)$")
+_TRUTH_TOPIC = re.compile(r"^/world/ground_truth/robot_(\d+)$")
+_WORLD_TOPICS = {"/world/landmarks": "world_landmarks", "/world/markers": "world_markers"}
+#: Marker namespaces of nodes/visualization.py.
+ELLIPSE_NAMESPACE = "virtual_map_covariance"
+FRONTIER_NAMESPACES = {f"frontiers_{kind.name.lower()}": kind.name.lower()
+                       for kind in FrontierType}
+_WORLD_BORDER_NAMESPACE = "world"
+
+
+@dataclass(frozen=True)
+class UncertaintyEllipses:
+    """Virtual-map cell uncertainty ellipses of one robot, as drawn in its markers.
+
+    ``centres`` (K, 2) [m]; ``axes`` (K, 2) full lengths (major, minor) [m] at the markers'
+    sigma scale (3-sigma); ``angles`` (K,) [rad] of the major axis from map x.
+    """
+
+    centres: np.ndarray
+    axes: np.ndarray
+    angles: np.ndarray
+
+    @property
+    def count(self) -> int:
+        """Number of ellipses."""
+        return len(self.centres)
+
+
+@dataclass(frozen=True)
+class RecordedTeamMap:
+    """The final team map of a recording: the drawable layers plus what they cannot show.
+
+    ``frontiers``: each robot's frontier candidates at its last decision (``type`` is one of
+    ``TARGET_TYPES``); ``end_s``: log time [s] of the last message read (the recorder's
+    clock: sim time when it ran with ``use_sim_time``).
+    """
+
+    layers: TeamMapLayers
+    ellipses: dict[int, UncertaintyEllipses] = field(default_factory=dict)
+    frontiers: dict[int, list[TargetEntry]] = field(default_factory=dict)
+    end_s: float = 0.0
+
+    @property
+    def robots(self) -> list[int]:
+        """Ids of the robots with any recorded estimate."""
+        layers = self.layers
+        return sorted(set(layers.estimated_paths) | set(layers.estimated_landmarks)
+                      | set(layers.targets) | set(self.ellipses) | set(self.frontiers))
+
+    def describe(self) -> str:
+        """A few lines for the user: what each robot's final state holds."""
+        layers = self.layers
+        lines = [f"{len(self.robots)} robots, {len(layers.true_landmarks)} true landmarks, "
+                 f"{int(np.count_nonzero(layers.explored))} explored cells, "
+                 f"last message at t = {self.end_s:.1f} s"]
+        for robot in self.robots:
+            path = layers.estimated_paths.get(robot, np.zeros((0, 3)))
+            frontiers = self.frontiers.get(robot, [])
+            counts = ", ".join(f"{kind} {sum(f.type == kind for f in frontiers)}"
+                               for kind in TARGET_TYPES)
+            ellipses = self.ellipses.get(robot)
+            lines.append(
+                f"robot {robot}: {len(path)} keyframes, "
+                f"{len(layers.estimated_landmarks.get(robot, ()))} landmark estimates, "
+                f"{len(layers.targets.get(robot, ()))} targets, "
+                f"{0 if ellipses is None else ellipses.count} uncertainty ellipses, "
+                f"last frontiers: {counts}")
+        return "\n".join(lines)
+
+
+def _topic_kind(topic: str) -> tuple[int | None, str] | None:
+    """(robot id or None, kind) of a topic this module reads, else None."""
+    match = _ROBOT_TOPIC.match(topic)
+    if match:
+        return int(match.group(1)), match.group(2)
+    match = _TRUTH_TOPIC.match(topic)
+    if match:
+        return int(match.group(1)), "ground_truth"
+    kind = _WORLD_TOPICS.get(topic)
+    return None if kind is None else (None, kind)
+
+
+@dataclass
+class _Collected:
+    """Raw CDR of the messages kept by the walk, keyed by (robot or None, kind)."""
+
+    last: dict[tuple[int | None, str], bytes] = field(default_factory=dict)
+    streams: dict[tuple[int | None, str], list[bytes]] = field(default_factory=dict)
+    classes: dict[str, type] = field(default_factory=dict)
+    last_log_ns: int = 0
+
+
+def _register_class(path: Path, channel: ChannelInfo, type_name: str, kind: str,
+                    classes: dict[str, type]) -> None:
+    """Check a read topic's recorded type and import its message class into ``classes``."""
+    expected = EXPECTED_TYPES[kind]
+    if type_name != expected:
+        raise BagError(f"{path}: topic {channel.topic} has type {type_name}, expected {expected}")
+    if expected not in classes:
+        try:
+            classes[expected] = import_message_class(expected)
+        except MessageTypeError as error:
+            raise BagError(f"{path}: {error}") from None
+
+
+def _collect(path: Path) -> _Collected:
+    """Walk the recording once (validating it) and keep the messages this module reads."""
+    scanner = BagScanner(path)
+    collected = _Collected()
+    kinds: dict[int, tuple[int | None, str] | None] = {}
+    for channel, message in scanner.messages():
+        if channel.id not in kinds:
+            kinds[channel.id] = _topic_kind(channel.topic)
+            if kinds[channel.id] is not None:
+                _register_class(path, channel, scanner.info.schema_of(channel).name,
+                                kinds[channel.id][1], collected.classes)
+        key = kinds[channel.id]
+        if key is None:
+            continue
+        if key[1] in ("team/updates", "ground_truth"):
+            collected.streams.setdefault(key, []).append(message.data)
+        else:
+            collected.last[key] = message.data
+        collected.last_log_ns = max(collected.last_log_ns, message.log_time_ns)
+    return collected
+
+
+def _decode(path: Path, data: bytes, kind: str, collected: _Collected) -> Any:
+    try:
+        return deserialize_message(data, collected.classes[EXPECTED_TYPES[kind]])
+    except RuntimeError as error:
+        raise BagError(f"{path}: a {EXPECTED_TYPES[kind]} message does not deserialize: "
+                       f"{str(error).splitlines()[0]}") from None
+
+
+def _explored(grid: Any, map_params: MapParams) -> np.ndarray:
+    """Explored cells (rows, cols) of an OccupancyGrid message (see the module docstring)."""
+    percent = np.asarray(grid.data, dtype=np.int16).reshape(grid.info.height, grid.info.width)
+    known = percent >= 0
+    return known & ((percent < 100.0 * map_params.explored_free_below)
+                    | (percent > 100.0 * map_params.explored_occupied_above))
+
+
+def _marker_arrays(markers: list[Marker]) -> tuple[UncertaintyEllipses, list[TargetEntry]]:
+    """The ellipses and frontier candidates of one robot's MarkerArray."""
+    cylinders = [m for m in markers if m.ns == ELLIPSE_NAMESPACE and m.action == Marker.ADD]
+    centres = np.array([[m.pose.position.x, m.pose.position.y] for m in cylinders])
+    axes = np.array([[m.scale.x, m.scale.y] for m in cylinders])
+    angles = np.array([quaternion_to_yaw(m.pose.orientation) for m in cylinders])
+    ellipses = UncertaintyEllipses(centres.reshape(-1, 2), axes.reshape(-1, 2),
+                                   angles.reshape(-1))
+    frontiers = [TargetEntry(float(p.x), float(p.y), FRONTIER_NAMESPACES[m.ns])
+                 for m in markers if m.ns in FRONTIER_NAMESPACES and m.action == Marker.ADD
+                 for p in m.points]
+    return ellipses, frontiers
+
+
+def _targets(path: Path, updates: list[bytes], collected: _Collected) -> list[TargetEntry]:
+    """A robot's chosen targets in decision order; a resent update counts once."""
+    by_decision = {}
+    for data in updates:
+        for record in _decode(path, data, "team/updates", collected).targets:
+            target = target_from_msg(record)
+            by_decision[target.decision_index] = TargetEntry(
+                float(target.position[0]), float(target.position[1]), target.kind.name.lower())
+    return [by_decision[index] for index in sorted(by_decision)]
+
+
+def _mission_size(world_markers: Any, grids: dict[int, Any],
+                  points: list[np.ndarray]) -> tuple[float, float]:
+    """Mission rectangle [m]: the world's border marker, else the virtual map's extent,
+    else the extent of everything drawn."""
+    if world_markers is not None:
+        border = [m for m in world_markers.markers
+                  if m.ns == _WORLD_BORDER_NAMESPACE and m.type == Marker.LINE_STRIP]
+        if border and border[0].points:
+            return (max(p.x for p in border[0].points), max(p.y for p in border[0].points))
+    if grids:
+        info = next(iter(grids.values())).info
+        return info.width * info.resolution, info.height * info.resolution
+    stacked = np.concatenate([p[:, :2] for p in points if len(p)] or [np.ones((1, 2))])
+    return float(max(stacked[:, 0].max(), 1.0)), float(max(stacked[:, 1].max(), 1.0))
+
+
+def read_team_map(path: str | Path, map_params: MapParams | None = None) -> RecordedTeamMap:
+    """The final team map of the recording at ``path`` (see the module docstring).
+
+    ``map_params`` gives the explored-cell thresholds (default: the paper's). Raises
+    BagError if the file cannot be read (not MCAP, truncated, corrupt), a read topic has an
+    unexpected type or does not deserialize, or the file holds no robot estimate topic.
+    """
+    path = Path(path)
+    map_params = map_params or MapParams()
+    collected = _collect(path)
+    robots = sorted({robot for (robot, kind) in [*collected.last, *collected.streams]
+                     if robot is not None and kind != "ground_truth"})
+    if not robots:
+        raise BagError(f"{path}: no robot topics (/robot_<i>/estimated_path, landmarks, "
+                       "virtual_map, markers or team/updates) with messages in the file")
+
+    def last(robot: int | None, kind: str) -> Any:
+        data = collected.last.get((robot, kind))
+        return None if data is None else _decode(path, data, kind, collected)
+
+    paths, landmarks, grids, ellipses, frontiers, targets = {}, {}, {}, {}, {}, {}
+    for robot in robots:
+        if (message := last(robot, "estimated_path")) is not None:
+            paths[robot] = path_from_msg(message)[1]
+        if (message := last(robot, "landmarks")) is not None:
+            positions = landmark_positions_from_msg(message)
+            landmarks[robot] = np.array([positions[k] for k in sorted(positions)]).reshape(-1, 2)
+        if (message := last(robot, "virtual_map")) is not None:
+            grids[robot] = message
+        if (message := last(robot, "markers")) is not None:
+            ellipses[robot], frontiers[robot] = _marker_arrays(list(message.markers))
+        if (robot, "team/updates") in collected.streams:
+            targets[robot] = _targets(path, collected.streams[(robot, "team/updates")],
+                                      collected)
+    true_paths = {robot: np.array([odometry_pose(_decode(path, data, kind, collected))
+                                   for data in stream]).reshape(-1, 3)
+                  for (robot, kind), stream in collected.streams.items() if kind == "ground_truth"}
+    world_landmarks = last(None, "world_landmarks")
+    true_landmarks = np.zeros((0, 2)) if world_landmarks is None else np.array(
+        [[lm.x, lm.y] for lm in world_landmarks.landmarks]).reshape(-1, 2)
+    radius = 0.0 if world_landmarks is None else float(world_landmarks.radius)
+
+    shapes = {(g.info.height, g.info.width, g.info.resolution) for g in grids.values()}
+    if len(shapes) > 1:
+        raise BagError(f"{path}: the robots' virtual maps differ in size: {sorted(shapes)}")
+    if grids:
+        explored = np.logical_or.reduce([_explored(g, map_params) for g in grids.values()])
+        cell_size = float(next(iter(grids.values())).info.resolution)
+    else:
+        explored, cell_size = np.zeros((1, 1), dtype=bool), 1.0
+    width, height = _mission_size(last(None, "world_markers"), grids,
+                                  [*paths.values(), *true_paths.values(), true_landmarks])
+    end_s = nanoseconds_to_seconds(collected.last_log_ns)
+    layers = TeamMapLayers(
+        width_m=width, height_m=height, cell_size_m=cell_size, explored=explored,
+        true_landmarks=true_landmarks, landmark_radius_m=radius, true_paths=true_paths,
+        estimated_paths=paths, estimated_landmarks=landmarks, targets=targets,
+        title=f"{path.name}: {len(robots)} robots, t = {end_s:.1f} s")
+    return RecordedTeamMap(layers, ellipses, frontiers, end_s)
+
+
+def render_recording(path: str | Path, png: str | Path) -> RecordedTeamMap:
+    """Read the final team map of the recording at ``path`` and draw it into ``png``."""
+    team_map = read_team_map(path)
+    render_team_map(team_map.layers, png)
+    return team_map
