@@ -283,14 +283,24 @@ done
 tail -n +1 -F --pid="$EVALUATOR_PID" "$LOG_DIR/evaluator.log" 2>/dev/null &
 TAIL_PID=$!
 
+# A robot that dies leaves its teammates to finish (the world stops waiting for it after
+# robot_timeout_s); the world or the recorder dying ends the run.
 FAILED=""
+declare -A REPORTED=()
 while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
     for index in "${!PIDS[@]}"; do
         pid=${PIDS[$index]}
-        [[ $pid == "$EVALUATOR_PID" ]] && continue
+        [[ $pid == "$EVALUATOR_PID" || -n ${REPORTED[$pid]:-} ]] && continue
         if ! kill -0 "$pid" 2>/dev/null; then
             wait "$pid"
-            FAILED="${NAMES[$index]} exited early with code $? (see $LOG_DIR/${NAMES[$index]}.log)"
+            status=$?
+            REPORTED[$pid]=1
+            if [[ ${NAMES[$index]} == robot_* ]]; then
+                echo "$PROG: warning: ${NAMES[$index]} exited with code $status; the team goes on" \
+                    "without it (see $LOG_DIR/${NAMES[$index]}.log)" >&2
+                continue
+            fi
+            FAILED="${NAMES[$index]} exited early with code $status (see $LOG_DIR/${NAMES[$index]}.log)"
             break 2
         fi
     done

@@ -197,3 +197,24 @@ def processes_in_domain(pattern: str, domain_id: str | int,
         if marker in environment:
             pids.append(pid)
     return pids
+
+
+#: launch_scripts/run_team.sh, the README's main command.
+RUN_TEAM = REPO_ROOT / "launch_scripts" / "run_team.sh"
+#: A run's processes, as their command lines name them.
+RUN_PROCESS_PATTERN = r"em_exploration_ros\.(nodes|tools)\."
+
+
+def start_team_run(tmp_path: Path, *args: str) -> tuple[NodeProcess, str]:
+    """run_team.sh with ``args`` in this test run's domain; waits until the world, the
+    evaluator and three robots run (which also shows the leftover check can see them)."""
+    domain = os.environ["ROS_DOMAIN_ID"]
+    run = NodeProcess(["bash", str(RUN_TEAM), *args, "--domain-id", domain],
+                      tmp_path / "run_team.out")
+    try:
+        wait_until(lambda: len(processes_in_domain(RUN_PROCESS_PATTERN, domain)) >= 5 or
+                   not run.running(), 60.0, "the run's five processes")
+    except TimeoutError:
+        run.stop()
+        raise
+    return run, domain

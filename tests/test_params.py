@@ -33,6 +33,18 @@ def test_dotted_names_and_node_sections_merge(tmp_path):
     assert params.planner.name == "CE" and params.world.num_robots == 2
 
 
+def test_node_settings_are_not_exploration_parameters(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n    planner.name: BSP\n"
+                    "/em_world:\n  ros__parameters:\n    robot_timeout_s: 3.0\n"
+                    "    world.num_robots: 4\n")
+    params = load_params(path)
+    assert params.planner.name == "BSP" and params.world.num_robots == 4
+    path.write_text("/**:\n  ros__parameters:\n    robot_timeout_s: 3.0\n")
+    with pytest.raises(ParamsFileError, match="has no group"):
+        load_params(path)
+
+
 @pytest.mark.parametrize("text, message", [
     ("/**:\n  ros__parameters:\n    bogus.x: 1\n", "unknown parameter group"),
     ("/**:\n  ros__parameters:\n    world.nope: 1\n", "unknown parameter"),

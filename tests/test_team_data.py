@@ -96,3 +96,13 @@ def test_validation_rejects_malformed_updates(corrupt, message):
     fields.update(corrupt(good))
     with pytest.raises(InvalidTeamUpdate, match=message):
         validate_team_update(type(good)(**fields), NUM_ROBOTS)
+
+
+def test_sender_must_match_and_observers_read_every_stream():
+    observer = TeamUpdateInbox(own_robot_id=None, num_robots=NUM_ROBOTS)
+    update = updates_from(2, 1)[0]
+    with pytest.raises(InvalidTeamUpdate, match="robot_id 2 on robot 1's topic"):
+        observer.receive(update, sender=1)
+    assert observer.receive(update, sender=2)
+    assert observer.receive(updates_from(0, 1)[0], sender=0)
+    assert [u.robot_id for u in observer.pop_ready()] == [0, 2]

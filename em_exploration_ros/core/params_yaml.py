@@ -23,6 +23,8 @@ import yaml
 from em_exploration_ros.core.params import ExplorationParams
 
 ROS_PARAMETERS_KEY = "ros__parameters"
+#: ROS parameters every node has; allowed in any section of a parameter file.
+NODE_SETTINGS_ANYWHERE = frozenset({"use_sim_time"})
 
 
 class ParamsFileError(ValueError):
@@ -49,26 +51,34 @@ def load_params(path: str | Path, base: ExplorationParams | None = None) -> Expl
 
 
 def parameter_section(document: Any) -> dict[str, Any]:
-    """The parameters of a parsed YAML document, merged over its ros__parameters sections."""
+    """The exploration parameters of a parsed YAML document (``{'group.field': value}``).
+
+    ``ros__parameters`` sections are merged, the ``/**`` wildcard first. Node settings
+    that are not exploration parameters are skipped: ``use_sim_time`` anywhere, and names
+    without a group (e.g. ``robot_timeout_s``) in node-specific sections such as
+    ``/em_world:``. Everything else must name an exploration parameter.
+    """
     if document is None:
         return {}
     if not isinstance(document, Mapping):
         raise ValueError("the top level must be a mapping")
-    sections = [value[ROS_PARAMETERS_KEY] for value in document.values()
+    sections = [key for key, value in document.items()
                 if isinstance(value, Mapping) and ROS_PARAMETERS_KEY in value]
     if not sections:
-        return dict(document)
-    wildcard_first = sorted(
-        (key for key, value in document.items()
-         if isinstance(value, Mapping) and ROS_PARAMETERS_KEY in value),
-        key=lambda key: key != "/**")
+        return _exploration_only(flatten(document), node_specific=False)
     merged: dict[str, Any] = {}
-    for key in wildcard_first:
+    for key in sorted(sections, key=lambda key: key != "/**"):
         section = document[key][ROS_PARAMETERS_KEY] or {}
         if not isinstance(section, Mapping):
             raise ValueError(f"{key}.{ROS_PARAMETERS_KEY} must be a mapping")
-        merged.update(flatten(section))
+        merged.update(_exploration_only(flatten(section), node_specific=key != "/**"))
     return merged
+
+
+def _exploration_only(values: dict[str, Any], node_specific: bool) -> dict[str, Any]:
+    """``values`` without the node settings described in ``parameter_section``."""
+    return {name: value for name, value in values.items()
+            if name not in NODE_SETTINGS_ANYWHERE and (not node_specific or "." in name)}
 
 
 def flatten(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

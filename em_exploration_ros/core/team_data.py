@@ -205,14 +205,22 @@ class TeamUpdateInbox:
     to request again.
     """
 
-    def __init__(self, own_robot_id: int, num_robots: int) -> None:
+    def __init__(self, own_robot_id: int | None, num_robots: int) -> None:
+        """``own_robot_id``: the receiving robot (its own stream is refused), or None for an
+        observer such as the evaluator that reads every robot's stream."""
         self._own = own_robot_id
         self._num_robots = num_robots
         self._streams = {robot: _PeerStream() for robot in range(num_robots)
                          if robot != own_robot_id}
 
-    def receive(self, update: TeamUpdate) -> bool:
-        """File one record. Returns False for a duplicate; raises InvalidTeamUpdate."""
+    def receive(self, update: TeamUpdate, sender: int | None = None) -> bool:
+        """File one record, which arrived on robot ``sender``'s topic (if known).
+
+        Returns False for a duplicate; raises InvalidTeamUpdate for a malformed record,
+        one claiming another sender, or one from this robot itself.
+        """
+        if sender is not None and update.robot_id != sender:
+            raise InvalidTeamUpdate(f"robot_id {update.robot_id} on robot {sender}'s topic")
         validate_team_update(update, self._num_robots)
         if update.robot_id == self._own:
             raise InvalidTeamUpdate(f"update claims to come from this robot ({self._own})")

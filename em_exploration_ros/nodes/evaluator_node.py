@@ -48,16 +48,15 @@ from em_exploration_ros.core.evaluation import (TeamEvaluator, TeamMetrics, land
                                                 stamp_key)
 from em_exploration_ros.core.map_render import TeamMapLayers, render_team_map
 from em_exploration_ros.core.summary import HistorySample, RobotSummary, RunSummary, TargetEntry
-from em_exploration_ros.core.team_data import InvalidTeamUpdate, TargetRecord
+from em_exploration_ros.core.team_data import InvalidTeamUpdate, TargetRecord, TeamUpdateInbox
 from em_exploration_ros.core.team_runner import FRONTIER_TYPE_NAMES
 from em_exploration_ros.core.wire_model import sim_time_s
 from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_positions_from_msg,
                                                   odometry_pose, path_from_msg, robot_namespace,
-                                                  seconds_to_time, target_from_msg,
+                                                  seconds_to_time, team_update_from_msg,
                                                   time_to_seconds)
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
-from em_exploration_ros.nodes.ros_params import declare_exploration_params
-from em_exploration_ros.nodes.ros_params import declare_setting
+from em_exploration_ros.nodes.ros_params import declare_exploration_params, declare_setting
 from em_exploration_ros.nodes.world_node import final_step
 
 EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
@@ -138,6 +137,7 @@ class EvaluatorNode(Node):
         self.paths = StampedEstimates()
         self.landmark_estimates = StampedEstimates()
         self.targets: list[dict[int, TargetRecord]] = [{} for _ in range(self.num_robots)]
+        self.team_updates = TeamUpdateInbox(None, self.num_robots)
         self.exit_code: int | None = None
         self.done = Future()
         self.recorded_step = -1
@@ -208,13 +208,16 @@ class EvaluatorNode(Node):
         self._process()
 
     def _on_team_update(self, robot: int, message: TeamUpdate) -> None:
-        for entry in message.targets:
-            try:
-                record = target_from_msg(entry)
-            except InvalidTeamUpdate as error:
-                self.get_logger().warn(f"ignored a target of robot {robot}: {error}")
-                continue
-            self.targets[robot][record.decision_index] = record
+        """Targets from the robots' update streams, validated and in sequence order exactly
+        as a robot reads them (malformed or impostor records are rejected)."""
+        try:
+            self.team_updates.receive(team_update_from_msg(message), robot)
+        except InvalidTeamUpdate as error:
+            self.get_logger().warn(f"rejected a team update from /robot_{robot}: {error}")
+            return
+        for update in self.team_updates.pop_ready():
+            for record in update.targets:
+                self.targets[update.robot_id][record.decision_index] = record
 
     def _on_command(self, robot: int, message: MotionCommand) -> None:
         self._last_command[robot] = message
@@ -271,11 +274,22 @@ class EvaluatorNode(Node):
         interval = self.params.slam.keyframe_interval_steps
         needed = stamp_key(self._stamp_s(max(step - 1, 0) // interval * interval))
         for robot in range(self.num_robots):
+            if self._gone(robot, step):
+                continue
             for history in (self.paths, self.landmark_estimates):
                 newest = history.newest_key(robot)
                 if newest is None or newest < needed:
                     return False
         return True
+
+    def _gone(self, robot: int, step: int) -> bool:
+        """Whether a robot stopped answering the world: its last motion command is more than
+        two keyframe intervals older than ``step`` (ground truth of a step is published only
+        after every live robot answered the step before, so a live robot is never that far
+        behind). Its estimates are then not waited for."""
+        last = self._last_command[robot]
+        last_step = -1 if last is None else int(last.step)
+        return last_step < step - 2 * self.params.slam.keyframe_interval_steps
 
     def _stop_reason(self, step: int, metrics: TeamMetrics) -> str:
         run = self.params.run

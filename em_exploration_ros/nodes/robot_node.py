@@ -143,9 +143,7 @@ class RobotNode(Node):
 
     def _on_team_update(self, sender: int, message: TeamUpdate) -> None:
         try:
-            if message.robot_id != sender:
-                raise InvalidTeamUpdate(f"robot_id {message.robot_id} on robot {sender}'s topic")
-            self.inbox.receive(team_update_from_msg(message))
+            self.inbox.receive(team_update_from_msg(message), sender)
         except InvalidTeamUpdate as error:
             self.rejected_updates += 1
             self.get_logger().warn(f"rejected a team update from /robot_{sender}: {error}")

@@ -1,0 +1,165 @@
+"""The running team over DDS: decentralization, robustness to hostile messages and to a
+robot that dies.
+
+- The ROS graph of a running team shows that no robot node subscribes to any ground-truth
+  topic (everything under /world); each robot node is its own OS process, and killing one
+  of them mid-run leaves the others to finish the exploration.
+- An outside process publishing malformed or stale team updates on the team topics
+  causes logged rejections, no crash, and the same run result as without it.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+
+import pytest
+import rclpy
+from rclpy.node import Node
+
+from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
+                         start_team_run, wait_until)
+
+#: Bound of one team run in these tests [s].
+RUN_TIMEOUT_S = 180.0
+SMALL_TEAM = ("--robots", "3", "--map-size", "60", "--landmarks", "6", "--seed", "2",
+              "--max-sim-time", "600")
+
+
+@pytest.fixture
+def graph_node():
+    """An rclpy node in this test run's domain, to read the ROS graph."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = Node("graph_inspector", context=context)
+    try:
+        yield node
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def robot_nodes(node: Node) -> set[str]:
+    return {f"{ns.rstrip('/')}/{name}" for name, ns in node.get_node_names_and_namespaces()
+            if name == "em_robot"}
+
+
+def robot_pid(domain: str, robot_id: int) -> int:
+    pids = processes_in_domain(rf"robot_node.*robot_id:={robot_id}( |$)", domain)
+    assert len(pids) == 1, f"robot {robot_id}: processes {pids}"
+    return pids[0]
+
+
+def test_robots_are_separate_processes_blind_to_ground_truth_and_survive_a_dead_teammate(
+        tmp_path, graph_node):
+    params = tmp_path / "params.yaml"
+    params.write_text((REPO_ROOT / "config" / "exploration.yaml").read_text()
+                      + "/em_world:\n  ros__parameters:\n    robot_timeout_s: 3.0\n")
+    summary_path = tmp_path / "summary.json"
+    run, domain = start_team_run(tmp_path, *SMALL_TEAM, "--planner", "EM_3",
+                                 "--until-explored", "0.85", "--params", str(params),
+                                 "--summary", str(summary_path))
+    with run:
+        expected = {f"/robot_{i}/em_robot" for i in range(3)}
+        wait_until(lambda: robot_nodes(graph_node) >= expected, 60.0, "three robot nodes")
+        for robot in range(3):
+            topics = graph_node.get_subscriber_names_and_types_by_node("em_robot",
+                                                                       f"/robot_{robot}")
+            names = {name for name, _ in topics}
+            assert not any(name.startswith("/world") for name in names), names
+            assert f"/robot_{robot}/sonar" in names and f"/robot_{robot}/odom" in names
+            teammates = {f"/robot_{j}/team/updates" for j in range(3) if j != robot}
+            assert teammates <= names
+            assert not any(name.startswith(f"/robot_{j}/") and name not in teammates
+                           for j in range(3) if j != robot for name in names)
+        pids = {robot: robot_pid(domain, robot) for robot in range(3)}
+        assert len(set(pids.values())) == 3  # one OS process per robot
+
+        run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)  # mid-run
+        os.kill(pids[1], signal.SIGKILL)
+        code = run.wait(RUN_TIMEOUT_S)
+    output = run.output()
+    assert code == 0, output[-3000:]
+    assert "robot_1 exited with code 137; the team goes on" in output
+    summary = json.loads(summary_path.read_text())
+    assert summary["explored_ratio"] >= 0.85, summary["stop_reason"]
+    assert "explored ratio" in summary["stop_reason"]
+    assert summary["sim_time_s"] > 60.0  # the survivors explored for long after the kill
+    assert all(r["distance_m"] > 1.0 for r in summary["robots"] if r["id"] != 1)
+    world_log = (summary_path.parent / "logs" / "world.log").read_text()
+    assert "robot 1" in world_log and "stopped" in world_log
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+
+
+HOSTILE_PUBLISHER = r'''
+import math, sys, time
+import rclpy
+from rclpy.node import Node
+from rclpy.serialization import serialize_message
+from em_exploration_msgs.msg import Keyframe, TeamUpdate, TargetRecord, TeammateDetection
+from em_exploration_ros.nodes.qos import TEAM_QOS
+
+rclpy.init()
+node = Node("intruder")
+pubs = {r: node.create_publisher(TeamUpdate, f"/robot_{r}/team/updates", TEAM_QOS)
+        for r in range(3)}
+
+def update(robot, sequence, **fields):
+    message = TeamUpdate(robot_id=robot, sequence=sequence)
+    for key, value in fields.items():
+        setattr(message, key, value)
+    return message
+
+nan_keyframe = Keyframe(robot_id=1, index=3, previous_index=2, odom_x=math.nan)
+bad_target = TargetRecord(robot_id=1, x=math.inf, frontier_type=1)
+stranger = Keyframe(robot_id=1, index=4, previous_index=3,
+                    teammates=[TeammateDetection(robot_id=9)])
+deadline = time.monotonic() + float(sys.argv[1])
+count = 0
+while time.monotonic() < deadline:
+    for robot in range(3):
+        pubs[robot].publish(update(robot, 1))                        # duplicate / stale
+        pubs[robot].publish(update((robot + 1) % 3, 5))              # id of another robot
+        pubs[robot].publish(update(robot, 10**9))                    # implausible sequence
+    pubs[1].publish(update(1, 2, keyframes=[nan_keyframe]))          # NaN pose
+    pubs[1].publish(update(7, 3))                                    # unknown robot id
+    pubs[1].publish(update(1, 4, targets=[bad_target]))              # infinite target
+    pubs[1].publish(update(1, 5, keyframes=[stranger]))              # unknown teammate id
+    pubs[2].publish(serialize_message(update(2, 6))[:13])            # truncated CDR
+    count += 1
+    time.sleep(0.05)
+print(f"published {count} rounds", flush=True)
+'''
+
+
+def run_summary(tmp_path, name: str, with_intruder: bool) -> tuple[dict, str]:
+    summary_path = tmp_path / name / "summary.json"
+    run, domain = start_team_run(tmp_path / name, *SMALL_TEAM, "--planner", "CE",
+                                 "--until-explored", "0.8", "--summary", str(summary_path))
+    intruder = None
+    with run:
+        if with_intruder:  # from mid-run on, so its stale sequence numbers really are stale
+            run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+            intruder = NodeProcess([sys.executable, "-c", HOSTILE_PUBLISHER, "30"],
+                                   tmp_path / name / "intruder.out")
+        try:
+            code = run.wait(RUN_TIMEOUT_S)
+        finally:
+            if intruder is not None:
+                intruder.stop()
+    assert code == 0, run.output()[-3000:]
+    logs = "".join(p.read_text() for p in (summary_path.parent / "logs").glob("robot_*.log"))
+    return json.loads(summary_path.read_text()), logs
+
+
+def test_hostile_team_messages_are_rejected_and_change_nothing(tmp_path):
+    clean, _ = run_summary(tmp_path, "clean", with_intruder=False)
+    attacked, logs = run_summary(tmp_path, "attacked", with_intruder=True)
+    assert "rejected a team update" in logs
+    for reason in ("not finite", "not a robot of this team", "implausibly far",
+                   "on robot"):
+        assert reason in logs, reason
+    assert [r["targets"] for r in attacked["robots"]] == [r["targets"] for r in clean["robots"]]
+    for key in ("explored_ratio", "loc_rmse_m", "landmark_rmse_m", "sim_time_s", "decisions"):
+        assert attacked[key] == clean[key], key
