@@ -8,7 +8,9 @@ the world frame in simulation), metres:
 - each robot's true trajectory (solid) and estimated keyframe trajectory (dashed), one colour
   per robot, with its start marked;
 - the targets each robot chose, marker shape by frontier type (exploration, revisiting,
-  rendezvous) and colour by robot.
+  rendezvous) and colour by robot;
+- each robot's virtual-map uncertainty ellipses (outlines) and its last frontier candidates
+  (hollow markers, shape by type), colour by robot.
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import EllipseCollection
 from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
@@ -30,6 +33,22 @@ from em_exploration_ros.core.summary import TARGET_TYPES, TargetEntry
 TARGET_MARKERS = {"exploration": "^", "revisiting": "s", "rendezvous": "*"}
 #: Shade of explored cells (RGBA); unexplored cells are left transparent.
 EXPLORED_RGBA = (0.80, 0.90, 0.80, 1.0)
+
+
+@dataclass(frozen=True)
+class UncertaintyEllipses:
+    """Virtual-map cell uncertainty ellipses: ``centres`` (K, 2) [m]; ``axes`` (K, 2) full
+    lengths (major, minor) [m] at a stated sigma scale; ``angles`` (K,) [rad] of the major
+    axis from map x."""
+
+    centres: np.ndarray
+    axes: np.ndarray
+    angles: np.ndarray
+
+    @property
+    def count(self) -> int:
+        """Number of ellipses."""
+        return len(self.centres)
 
 
 @dataclass(frozen=True)
@@ -51,6 +70,8 @@ class TeamMapLayers:
     estimated_paths: Mapping[int, np.ndarray] = field(default_factory=dict)
     estimated_landmarks: Mapping[int, np.ndarray] = field(default_factory=dict)
     targets: Mapping[int, Sequence[TargetEntry]] = field(default_factory=dict)
+    uncertainty_ellipses: Mapping[int, UncertaintyEllipses] = field(default_factory=dict)
+    frontiers: Mapping[int, Sequence[TargetEntry]] = field(default_factory=dict)
     title: str = ""
 
 
@@ -99,6 +120,22 @@ def _draw_targets(axes, layers: TeamMapLayers) -> None:
                       markeredgecolor="black", markersize=8, linestyle="none", zorder=7)
 
 
+def _draw_uncertainty(axes, layers: TeamMapLayers) -> None:
+    for robot, ellipses in sorted(layers.uncertainty_ellipses.items()):
+        if ellipses.count:
+            axes.add_collection(EllipseCollection(
+                ellipses.axes[:, 0], ellipses.axes[:, 1], np.degrees(ellipses.angles),
+                units="xy", offsets=ellipses.centres, offset_transform=axes.transData,
+                facecolors="none", edgecolors=[_robot_colour(robot)], linewidths=0.6,
+                alpha=0.7, zorder=1))
+    for robot, entries in sorted(layers.frontiers.items()):
+        for kind in TARGET_TYPES:
+            xy = np.array([(f.x, f.y) for f in entries if f.type == kind]).reshape(-1, 2)
+            axes.plot(xy[:, 0], xy[:, 1], TARGET_MARKERS[kind], markerfacecolor="none",
+                      markeredgecolor=_robot_colour(robot), markersize=5, linestyle="none",
+                      zorder=6)
+
+
 def _legend(axes, robots: list[int]) -> None:
     handles = [Line2D([], [], color=_robot_colour(r), label=f"robot {r}") for r in robots]
     handles += [Line2D([], [], color="black", linestyle="-", label="true path"),
@@ -108,6 +145,10 @@ def _legend(axes, robots: list[int]) -> None:
                        label="landmark estimate")]
     handles += [Line2D([], [], marker=TARGET_MARKERS[k], color="white", markeredgecolor="black",
                        linestyle="none", label=f"{k} target") for k in TARGET_TYPES]
+    handles += [Line2D([], [], marker="o", markerfacecolor="none", markeredgecolor="black",
+                       linestyle="none", label="uncertainty ellipse (3 sigma)"),
+                Line2D([], [], marker="^", markerfacecolor="none", markeredgecolor="black",
+                       markersize=5, linestyle="none", label="last frontiers (shape: type)")]
     axes.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8,
                 frameon=False)
 
@@ -124,6 +165,7 @@ def render_team_map(layers: TeamMapLayers, path: str | Path, dpi: int = 110) -> 
     _draw_landmarks(axes, layers)
     _draw_paths(axes, layers)
     _draw_targets(axes, layers)
+    _draw_uncertainty(axes, layers)
     axes.plot([0, layers.width_m, layers.width_m, 0, 0], [0, 0, layers.height_m,
               layers.height_m, 0], color="black", linewidth=1.0, zorder=1)
     margin = 0.02 * max(layers.width_m, layers.height_m)

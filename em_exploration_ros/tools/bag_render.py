@@ -40,7 +40,8 @@ from visualization_msgs.msg import Marker
 
 from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, ChannelInfo
 from em_exploration_ros.core.frontiers import FrontierType
-from em_exploration_ros.core.map_render import TeamMapLayers, render_team_map
+from em_exploration_ros.core.map_render import (TeamMapLayers, UncertaintyEllipses,
+                                                render_team_map)
 from em_exploration_ros.core.params import MapParams
 from em_exploration_ros.core.summary import TARGET_TYPES, TargetEntry
 from em_exploration_ros.core.wire_model import nanoseconds_to_seconds
@@ -69,24 +70,6 @@ ELLIPSE_NAMESPACE = "virtual_map_covariance"
 FRONTIER_NAMESPACES = {f"frontiers_{kind.name.lower()}": kind.name.lower()
                        for kind in FrontierType}
 _WORLD_BORDER_NAMESPACE = "world"
-
-
-@dataclass(frozen=True)
-class UncertaintyEllipses:
-    """Virtual-map cell uncertainty ellipses of one robot, as drawn in its markers.
-
-    ``centres`` (K, 2) [m]; ``axes`` (K, 2) full lengths (major, minor) [m] at the markers'
-    sigma scale (3-sigma); ``angles`` (K,) [rad] of the major axis from map x.
-    """
-
-    centres: np.ndarray
-    axes: np.ndarray
-    angles: np.ndarray
-
-    @property
-    def count(self) -> int:
-        """Number of ellipses."""
-        return len(self.centres)
 
 
 @dataclass(frozen=True)
@@ -302,6 +285,7 @@ def read_team_map(path: str | Path, map_params: MapParams | None = None) -> Reco
         width_m=width, height_m=height, cell_size_m=cell_size, explored=explored,
         true_landmarks=true_landmarks, landmark_radius_m=radius, true_paths=true_paths,
         estimated_paths=paths, estimated_landmarks=landmarks, targets=targets,
+        uncertainty_ellipses=ellipses, frontiers=frontiers,
         title=f"{path.name}: {len(robots)} robots, t = {end_s:.1f} s")
     return RecordedTeamMap(layers, ellipses, frontiers, end_s)
 
