@@ -44,6 +44,7 @@ from em_exploration_ros.core.params_yaml import ParamsFileError
 from em_exploration_ros.core.team_runner import TeamRunner
 from em_exploration_ros.core.trial_stats import mean_ci, paired_difference
 from em_exploration_ros.tools import bench_plots
+from em_exploration_ros.tools.latency_bench import add_latency_command
 from em_exploration_ros.tools.sim_cli import PLANNER_NAMES, add_run_arguments, params_from_args
 
 _LOG = logging.getLogger("em-bench")
@@ -535,6 +536,7 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--out", type=Path, required=True,
                       help="folder holding results.csv and summary.json")
     plot.set_defaults(handler=command_plot)
+    add_latency_command(commands)
     return parser
 
 

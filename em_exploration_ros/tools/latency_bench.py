@@ -1,42 +1,33 @@
-"""Decision time of the planners against the size of the team graph; fast EM step vs oracle.
+"""em-bench latency: planner decision time against the size of the team graph.
 
 Builds a synthetic 3-robot team graph (random walks at 2 m per keyframe in a 100 m x 100 m
 map with 20 landmarks, exact measurements with the sensor-derived noise models, teammate
 readings whenever two robots are within sonar range at the same keyframe) with 250, 500,
 1000 and 2000 poses, gives robot 0 about 20 candidates (exploration frontiers around it,
 revisiting frontiers near landmarks, rendezvous at the teammates' targets) and prints the
-median wall and CPU time of EM_3, BSP and CE decisions, and the agreement of the fast EM
-step with the re-solve oracle (largest relative difference of a 3x3 covariance block)
-together with the oracle's time per candidate.
-
-BLAS runs single-threaded unless ``OPENBLAS_NUM_THREADS`` is set: on a small shared
-machine, threaded BLAS on these small matrices only adds contention.
-
-Usage (repository root, package importable: installed venv or ``PYTHONPATH=.``):
-``python benchmarks/bench_propagation.py [--repeats N] [--sizes 250 500 ...]``
+median wall and CPU time of one decision of each planner, and the agreement of the fast
+EM step with the re-solve oracle (largest relative difference of a 3x3 covariance block)
+together with the oracle's time per candidate. BLAS is single-threaded by default (see
+the package docstring).
 """
 from __future__ import annotations
 
+import argparse
 import os
+import platform
+import time
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np
 
-import argparse  # noqa: E402
-import platform  # noqa: E402
-import time  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-from em_exploration_ros.core.frontiers import Frontier, FrontierType  # noqa: E402
-from em_exploration_ros.core.geometry import between, range_bearing  # noqa: E402
-from em_exploration_ros.core.occupancy_grid import OccupancyGrid  # noqa: E402
-from em_exploration_ros.core.params import ExplorationParams  # noqa: E402
-from em_exploration_ros.core.planners import PlanningContext, make_planner  # noqa: E402
-from em_exploration_ros.core.sensors import (LandmarkReading, OdometryReading,  # noqa: E402
+from em_exploration_ros.core.frontiers import Frontier, FrontierType
+from em_exploration_ros.core.geometry import between, range_bearing
+from em_exploration_ros.core.occupancy_grid import OccupancyGrid
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.planners import PlanningContext, make_planner
+from em_exploration_ros.core.sensors import (LandmarkReading, OdometryReading,
                                              TeammateReading, odometry_covariance_per_step)
-from em_exploration_ros.core.slam import (KeyframeMeasurements,  # noqa: E402
-                                          OdometryAccumulator, TeamSlam)
-from em_exploration_ros.core.uncertainty_propagation import (  # noqa: E402
+from em_exploration_ros.core.slam import KeyframeMeasurements, OdometryAccumulator, TeamSlam
+from em_exploration_ros.core.uncertainty_propagation import (
     DecisionFactorization, ScenarioBuilder, TeamSnapshot, VirtualNoise, propagate_oracle)
 
 PARAMS = ExplorationParams()
@@ -175,29 +166,37 @@ def oracle_agreement(ctx: PlanningContext, count: int) -> tuple[float, float]:
     return worst, float(np.median(oracle_times))
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000, 2000])
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--seed", type=int, default=3)
-    args = parser.parse_args()
+def add_latency_command(commands: argparse._SubParsersAction) -> None:
+    """The ``latency`` subcommand of em-bench."""
+    latency = commands.add_parser(
+        "latency", help="planner decision time against the number of poses in the graph",
+        description=__doc__.split("\n\n")[1].replace("\n", " "))
+    latency.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000, 2000],
+                         help="numbers of poses in the team graph")
+    latency.add_argument("--planners", nargs="+", default=["EM_2", "EM_3", "BSP", "CE", "NF"],
+                         help="planners to time")
+    latency.add_argument("--repeats", type=int, default=7, help="timed decisions per size")
+    latency.add_argument("--seed", type=int, default=3, help="seed of the synthetic team")
+    latency.set_defaults(handler=command_latency)
+
+
+def command_latency(args: argparse.Namespace) -> int:
+    """Print the latency table (one row per graph size)."""
     print(f"machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs, Python {platform.python_version()}, "
           f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}, "
           f"load average {os.getloadavg()[0]:.2f}")
-    print(f"{'poses':>6} {'cands':>5} {'EM_3 wall/cpu [ms]':>19} {'BSP wall/cpu [ms]':>18} "
-          f"{'CE [ms]':>8} {'oracle/cand [ms]':>16} {'fast vs oracle':>14}")
+    print("median wall / CPU time of one decision [ms]")
+    header = "".join(f"{name:>16}" for name in args.planners)
+    print(f"{'poses':>6} {'cands':>5}{header} {'oracle/cand [ms]':>17} {'fast vs oracle':>14}")
     for size in args.sizes:
         ctx = build_context(size, args.seed)
-        em = timed_decisions(ctx, "EM_3", args.repeats)
-        bsp = timed_decisions(ctx, "BSP", args.repeats)
-        ce = timed_decisions(ctx, "CE", args.repeats)
+        timings = "".join(
+            "{:>9.1f} /{:>5.1f}".format(*(1e3 * t for t in timed_decisions(ctx, name,
+                                                                           args.repeats)))
+            for name in args.planners)
         error, oracle_s = oracle_agreement(ctx, 3)
-        print(f"{ctx.slam.num_variables() - len(ctx.slam.landmark_estimates()):>6} "
-              f"{len(ctx.candidates):>5} {em[0] * 1e3:>9.1f} /{em[1] * 1e3:>7.1f} "
-              f"{bsp[0] * 1e3:>9.1f} /{bsp[1] * 1e3:>6.1f} {ce[0] * 1e3:>8.2f} "
-              f"{oracle_s * 1e3:>16.1f} {error:>14.1e}")
-
-
-if __name__ == "__main__":
-    main()
+        poses = ctx.slam.num_variables() - len(ctx.slam.landmark_estimates())
+        print(f"{poses:>6} {len(ctx.candidates):>5}{timings} {oracle_s * 1e3:>17.1f} "
+              f"{error:>14.1e}", flush=True)
+    return 0
