@@ -37,8 +37,8 @@ from em_exploration_ros.bag_format.rosbag2_metadata import (
     BagMetadata, TopicInformation, parse_bag_metadata, serialize_bag_metadata)
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.bag_format.yaml_emit import dump_block
-from em_exploration_ros.tools import bag
 from em_exploration_ros.tools.bag import format_info, repair
+from em_bag_cli import run_em_bag
 
 REPO = Path(__file__).resolve().parents[1]
 MSG_DIR = REPO / "msg_schemas" / "msg"
@@ -482,22 +482,11 @@ def _em_bag(*args: str) -> subprocess.CompletedProcess:
                           cwd=REPO, capture_output=True, text=True, timeout=60)
 
 
-def _em_bag_in_process(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    """(exit code, stdout, stderr) of em-bag run in this process."""
-    try:
-        bag.main(list(args))
-        code = 0
-    except SystemExit as stopped:
-        code = stopped.code
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
 def test_em_bag_cli_gives_one_line_errors(tmp_path: Path,
                                           capsys: pytest.CaptureFixture[str]) -> None:
     good = tmp_path / "good.mcap"
     _write_bag(good, count=30)
-    code, out, _err = _em_bag_in_process(capsys, "info", str(good))
+    code, out, _err = run_em_bag(capsys, "info", str(good))
     assert code == 0 and "Topic: /chatter" in out
 
     truncated = tmp_path / "truncated.mcap"
@@ -507,16 +496,16 @@ def test_em_bag_cli_gives_one_line_errors(tmp_path: Path,
     cases = {str(truncated): "truncated", str(not_mcap): "not an MCAP file",
              str(tmp_path / "missing.mcap"): "no such file"}
     for target, phrase in cases.items():
-        code, _out, err = _em_bag_in_process(capsys, "info", target)
+        code, _out, err = run_em_bag(capsys, "info", target)
         assert code == 2 and phrase in err and len(err.strip().splitlines()) == 1, err
 
     fixed = tmp_path / "fixed.mcap"
-    code, out, _err = _em_bag_in_process(capsys, "repair", str(truncated), str(fixed))
+    code, out, _err = run_em_bag(capsys, "repair", str(truncated), str(fixed))
     assert code == 0 and "recovered 90 messages" in out
     assert scan_bag(fixed).message_count == 90
-    code, _out, err = _em_bag_in_process(capsys, "repair", str(truncated), str(fixed))
+    code, _out, err = run_em_bag(capsys, "repair", str(truncated), str(fixed))
     assert code == 2 and "already exists" in err
-    code, _out, _err = _em_bag_in_process(capsys, "repair", str(not_mcap),
+    code, _out, _err = run_em_bag(capsys, "repair", str(not_mcap),
                                           str(tmp_path / "never.mcap"))
     assert code == 2 and not (tmp_path / "never.mcap").exists()
 

@@ -30,9 +30,9 @@ from em_exploration_ros.bag_format.bag_writer import BagWriter
 from em_exploration_ros.bag_format.mcap_ros2_schema import build_message_definition
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.summary import TARGET_TYPES
-from em_exploration_ros.tools import bag
 from em_exploration_ros.tools.bag_ros import import_message_class
 from em_exploration_ros.tools.bag_render import read_team_map
+from em_bag_cli import run_em_bag
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "bags" / "sample_3robots.mcap"
@@ -53,17 +53,6 @@ EXPECTED_TOPICS = {
         ("virtual_map", "nav_msgs/msg/OccupancyGrid"))},
 }
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-
-
-def em_bag(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    """(exit code, stdout, stderr) of em-bag run in this process."""
-    try:
-        bag.main(list(args))
-        code = 0
-    except SystemExit as stopped:
-        code = stopped.code
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 # ----- the sample file itself -------------------------------------------------------------
@@ -115,7 +104,7 @@ def same_values(ros_value: Any, decoded: Any) -> bool:
 
 # ----- em-bag info ------------------------------------------------------------------------
 def test_info_lists_the_runs_topics(capsys: pytest.CaptureFixture[str]) -> None:
-    code, out, err = em_bag(capsys, "info", str(SAMPLE))
+    code, out, err = run_em_bag(capsys, "info", str(SAMPLE))
     assert code == 0, err
     listed = {m.group(1): (m.group(2), int(m.group(3))) for m in re.finditer(
         r"Topic: (\S+) \| Type: (\S+) \| Count: (\d+)", out)}
@@ -200,7 +189,7 @@ def test_render_gives_one_line_errors(tmp_path: Path,
              wrong_type: ("has type std_msgs/msg/String, expected nav_msgs/msg/Path", "")}
     for path, (phrase, hint) in cases.items():
         out = tmp_path / f"{path.stem}.png"
-        code, _out, err = em_bag(capsys, "render", str(path), "--out", str(out))
+        code, _out, err = run_em_bag(capsys, "render", str(path), "--out", str(out))
         assert code == 2 and phrase in err and hint in err, err
         assert len(err.strip().splitlines()) == 1 and not out.exists()
     assert scan_bag(no_robots).message_count == scan_bag(wrong_type).message_count == 1

@@ -129,7 +129,10 @@ def test_virtual_odometry_noise_matches_the_slam_keyframe_model(length_m: float)
     # Twice the steps: twice the heading variance, more than twice the lateral variance
     # (heading errors act through a growing lever arm).
     longer = noise.odometry(np.array([2 * steps * step, 0.0, 0.0]))
-    short_cov, long_cov = np.linalg.inv(root.T @ root), np.linalg.inv(longer.T @ longer)
+    # Each factor's covariance also holds the SLAM's floor once (slam.covariance_floor_sigma).
+    floor = PARAMS.slam.covariance_floor_sigma ** 2
+    short_cov = np.linalg.inv(root.T @ root) - floor * np.eye(3)
+    long_cov = np.linalg.inv(longer.T @ longer) - floor * np.eye(3)
     assert long_cov[2, 2] == pytest.approx(2 * short_cov[2, 2], rel=1e-6)
     assert long_cov[0, 0] == pytest.approx(2 * short_cov[0, 0], rel=1e-6)
     assert long_cov[1, 1] > 2.05 * short_cov[1, 1]

@@ -143,9 +143,9 @@ class SlamParams:
         2, "At most this many extra iSAM2 update() calls after adding new measurements, "
         "stopping as soon as no variable needs relinearization.", 0, 100)
     covariance_floor_sigma: float = _param(
-        1e-6, "Sigma added in quadrature to every sensor-derived noise model [m or rad], so "
-        "degenerate covariances (robot at rest, noise-free sensors) stay invertible.",
-        0.0, 1.0)
+        1e-4, "Sigma added in quadrature to every sensor-derived noise model [m or rad], so "
+        "degenerate covariances (robot at rest, noise-free sensors) stay invertible; 1e-6 "
+        "made the graph too ill-conditioned for Cholesky once robots waited.", 0.0, 1.0)
 
 
 @dataclass(frozen=True)

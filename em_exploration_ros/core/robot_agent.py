@@ -94,6 +94,7 @@ class RobotAgent:
         self.grid = OccupancyGrid(params.world.width_m, params.world.height_m, params.map,
                                   params.sensors.sonar_max_range_m)
         self.planner = make_planner(params)
+        self._fallback_planner = make_planner(params, "NF")
         self.controller = ApfController(params.motion, params.world.landmark_radius_m,
                                         params.world.robot_radius_m)
         self.rendezvous = RendezvousBook(params.motion.goal_tolerance_m,
@@ -229,7 +230,12 @@ class RobotAgent:
             target_history={robot: [t.position for t in records]
                             for robot, records in self.team_targets.items()},
             explored_ratio=self.explored_ratio)
-        decision = self.planner.choose(context)
+        try:
+            decision = self.planner.choose(context)
+        except (RuntimeError, np.linalg.LinAlgError) as error:  # numerical failure in GTSAM
+            _LOG.error("robot %d: planner %s failed (%s); nearest frontier this time",
+                       self.robot_id, self.planner.name, str(error).splitlines()[0][:120])
+            decision = self._fallback_planner.choose(context)
         elapsed = time.perf_counter() - started
         chosen = next(u.total for u in decision.utilities if u.frontier is decision.target)
         self._set_target(decision.target, pose, elapsed, len(candidates), chosen)

@@ -46,8 +46,9 @@ which is exact for the linearized problem. :func:`propagate_oracle` is the direc
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Mapping, Sequence, TypeVar
 
 import gtsam
 import numpy as np
@@ -57,6 +58,9 @@ from em_exploration_ros.core.geometry import between, range_bearing
 from em_exploration_ros.core.params import MotionParams, SensorParams
 from em_exploration_ros.core.sensors import LandmarkReading, odometry_covariance_per_step
 from em_exploration_ros.core.slam import SlamNoise, TeamSlam, landmark_key, pose_key
+
+_LOG = logging.getLogger(__name__)
+T = TypeVar("T")
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -519,6 +523,23 @@ def _whitened_jacobian(factors: VirtualFactors, columns_of: Callable[[IntArray],
     return jacobian
 
 
+def _retry_if_indeterminate(first: Callable[[], T], fallback: Callable[[], T]) -> T:
+    """``first()``, or ``fallback()`` if GTSAM finds the linear system indeterminate.
+
+    The team graph is badly conditioned (the anchor's 1e-6 rad prior) and GTSAM's default
+    Cholesky elimination occasionally fails on it where QR, which iSAM2 uses, does not.
+    QR every time would cost about 60 % more per decision, so it is the fallback only.
+    """
+    try:
+        return first()
+    except RuntimeError as error:
+        if "indeterminate" not in str(error).lower():
+            raise
+        _LOG.warning("linear system indeterminate for Cholesky (%s...); using the fallback",
+                     str(error).splitlines()[0][:80])
+        return fallback()
+
+
 class DecisionFactorization:
     """Once per decision: the team graph plus the teammates' predicted paths (shared by
     every candidate), linearized at the current estimate and factored once.
@@ -548,9 +569,10 @@ class DecisionFactorization:
         graph, values = _with_virtual(snapshot, predicted)
         linear = graph.linearize(values)
         reduced = self._marginalize_untracked(linear)
-        ordering = gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(
-            reduced, list(self.boundary_keys), True)
-        bayes_net = reduced.eliminateSequential(ordering)
+        ordering = self._boundary_last_ordering(reduced)
+        bayes_net = _retry_if_indeterminate(
+            lambda: reduced.eliminateSequential(ordering),
+            lambda: reduced.eliminateSequential(ordering, gtsam.EliminateQR))
         inverse_root = np.linalg.inv(self._boundary_root(bayes_net, dims))
         covariance = inverse_root @ inverse_root.T
         #: ``P = Sigma_BB`` (|B|, |B|).
@@ -567,24 +589,43 @@ class DecisionFactorization:
         eliminated = [k for k in set(linear.keyVector()) if k not in keep and _key_dim(k) == 3]
         if not eliminated:
             return linear
-        _, remaining = linear.eliminatePartialSequential(eliminated)
+        _, remaining = _retry_if_indeterminate(
+            lambda: linear.eliminatePartialSequential(eliminated),
+            lambda: linear.eliminatePartialSequential(eliminated, gtsam.EliminateQR))
         return remaining
+
+    def _boundary_last_ordering(self, reduced: gtsam.GaussianFactorGraph) -> gtsam.Ordering:
+        """COLAMD order of the non-boundary variables, then the boundary keys in their order,
+        so that a boundary variable's conditional has only boundary variables as parents."""
+        boundary = set(self.boundary_keys)
+        colamd = gtsam.Ordering.ColamdGaussianFactorGraph(reduced)
+        ordering = gtsam.Ordering()
+        for index in range(colamd.size()):
+            if colamd.at(index) not in boundary:
+                ordering.push_back(colamd.at(index))
+        for key in self.boundary_keys:
+            ordering.push_back(key)
+        return ordering
 
     def _boundary_root(self, bayes_net: gtsam.GaussianBayesNet, dims: list[int]) -> FloatArray:
         """Upper-triangular square-root information ``R_BB`` of the boundary marginal, from
-        the last conditionals of the net (boundary eliminated last, in order)."""
+        the boundary variables' conditionals (eliminated last within their component).
+
+        Conditionals are looked up by frontal key: GTSAM emits them per connected component
+        of the graph, so a boundary landmark in a component of its own does not come last.
+        """
+        conditionals = {bayes_net.at(i).firstFrontalKey(): bayes_net.at(i)
+                        for i in range(bayes_net.size())}
         root = np.zeros((self.boundary_dim, self.boundary_dim))
-        first = bayes_net.size() - len(self.boundary_keys)
-        for index in range(len(self.boundary_keys)):
-            conditional = bayes_net.at(first + index)
-            keys = list(conditional.keys())
-            row = self.boundary_offsets[keys[0]]
+        for key in self.boundary_keys:
+            conditional = conditionals[key]
+            row = self.boundary_offsets[key]
             frontal = conditional.R()
             size = frontal.shape[0]
             root[row:row + size, row:row + size] = frontal
             parents = conditional.S()
             column = 0
-            for parent in keys[1:]:
+            for parent in list(conditional.keys())[1:]:
                 dim = _key_dim(parent)
                 offset = self.boundary_offsets[parent]
                 root[row:row + size, offset:offset + dim] = parents[:, column:column + dim]
@@ -617,8 +658,12 @@ class DecisionFactorization:
         once many meetings have connected alpha's poses."""
         if not self.tracked_keys:
             return np.zeros((0, 3, 3))
-        bayes_tree = linear.eliminateMultifrontal()
-        return np.array([bayes_tree.marginalCovariance(k) for k in self.tracked_keys])
+        def marginals(bayes_tree: gtsam.GaussianBayesTree) -> FloatArray:
+            return np.array([bayes_tree.marginalCovariance(k) for k in self.tracked_keys])
+
+        return _retry_if_indeterminate(
+            lambda: marginals(linear.eliminateMultifrontal()),
+            lambda: marginals(linear.eliminateMultifrontal(function=gtsam.EliminateQR)))
 
     def propagate(self, scenario: VirtualScenario) -> PropagationResult:
         """Covariances after adding the scenario's ``next`` measurements (the Woodbury update

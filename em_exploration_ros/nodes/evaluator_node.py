@@ -34,12 +34,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rclpy
 from em_exploration_msgs.msg import ExplorationMetrics, LandmarkArray, MotionCommand, TeamUpdate
 from nav_msgs.msg import Odometry, Path as PathMsg
 from builtin_interfaces.msg import Time
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -55,6 +53,7 @@ from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_position
                                                   odometry_pose, path_from_msg, robot_namespace,
                                                   seconds_to_time, team_update_from_msg,
                                                   time_to_seconds)
+from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
 from em_exploration_ros.nodes.ros_params import declare_exploration_params, declare_setting
 from em_exploration_ros.nodes.world_node import final_step
@@ -435,22 +434,13 @@ def _progress_line(metrics: TeamMetrics, decisions: int) -> str:
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of em-evaluator; returns the exit code (see module docstring)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = EvaluatorNode()
-        rclpy.spin_until_future_complete(node, node.done)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as error:
-        rclpy.logging.get_logger("em_evaluator").fatal(f"cannot start: {error}")
-        return 2
-    finally:
-        if node is not None:
-            # Ctrl-C (rclpy's handler ends the spin) or SIGTERM: keep what was measured.
-            node.finish("interrupted", EXIT_INTERRUPTED, publish=False)
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return run_node(EvaluatorNode, "em_evaluator", args, wrap_up=_keep_what_was_measured)
+
+
+def _keep_what_was_measured(node: EvaluatorNode) -> int:
+    """After Ctrl-C (rclpy's handler ends the spin) or SIGTERM the summary so far is still
+    written; returns the node's exit code."""
+    node.finish("interrupted", EXIT_INTERRUPTED, publish=False)
     return node.exit_code
 
 

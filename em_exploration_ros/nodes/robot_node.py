@@ -19,14 +19,12 @@ import sys
 import time
 
 import numpy as np
-import rclpy
 from em_exploration_msgs.msg import (LandmarkArray, MotionCommand, SonarScan, TeamUpdate,
                                      TeamUpdateRequest)
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import OccupancyGrid, Odometry, Path
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
@@ -44,6 +42,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_m
                                                   robot_namespace, seconds_to_time,
                                                   team_update_from_msg, team_update_to_msg,
                                                   teammate_reading_from_msg, time_to_seconds)
+from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, TEAM_QOS
 from em_exploration_ros.nodes.ros_params import declare_exploration_params
 
@@ -271,22 +270,8 @@ class RobotNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Entry point of em-robot; returns the exit code."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = RobotNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as error:
-        rclpy.logging.get_logger("em_robot").fatal(f"cannot start: {error}")
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    """Entry point of em-robot; returns the exit code (2 for invalid parameters)."""
+    return run_node(RobotNode, "em_robot", args)
 
 
 if __name__ == "__main__":

@@ -34,14 +34,11 @@ import math
 import sys
 import time
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
-import rclpy
 from em_exploration_msgs.msg import LandmarkArray, MotionCommand, SonarScan
 from geometry_msgs.msg import Point, PoseStamped
 from nav_msgs.msg import Odometry
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import ColorRGBA
@@ -56,6 +53,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
                                                   odometry_to_msg, robot_namespace,
                                                   seconds_to_time, sonar_scan_to_msg,
                                                   yaw_to_quaternion)
+from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS
 from em_exploration_ros.nodes.ros_params import declare_exploration_params, declare_setting
 
@@ -416,21 +414,7 @@ class WorldNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of em-world; returns the exit code (2 for invalid parameters)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = WorldNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as error:
-        rclpy.logging.get_logger("em_world").fatal(f"cannot start: {error}")
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(WorldNode, "em_world", args)
 
 
 if __name__ == "__main__":
