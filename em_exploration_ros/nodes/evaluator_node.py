@@ -3,7 +3,8 @@
 Subscribes to the ground truth (``/world/ground_truth/robot_i``, ``/world/landmarks``) and to
 what each robot publishes (``/robot_i/estimated_path``, ``/robot_i/landmarks``,
 ``/robot_i/team/updates`` for the chosen targets, ``/robot_i/motion_command`` for the
-finished flags). It never publishes anything a robot reads.
+finished flags). It never publishes anything a robot uses for its estimates or decisions;
+it only asks robots to re-send team updates it missed, as robots do.
 
 A simulation step is complete when the true poses of every robot at that step arrived; steps
 are recorded in order. Every ``metrics_interval_s`` of simulation time (default 2 s = em-sim's
@@ -34,7 +35,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from em_exploration_msgs.msg import ExplorationMetrics, LandmarkArray, MotionCommand, TeamUpdate
+from em_exploration_msgs.msg import (ExplorationMetrics, LandmarkArray, MotionCommand, TeamUpdate,
+                                     TeamUpdateRequest)
 from nav_msgs.msg import Odometry, Path as PathMsg
 from builtin_interfaces.msg import Time
 from rclpy.clock import Clock, ClockType
@@ -158,6 +160,8 @@ class EvaluatorNode(Node):
     def _create_interfaces(self) -> None:
         self.metrics_pub = self.create_publisher(ExplorationMetrics, "/evaluation/metrics",
                                                  STREAM_QOS)
+        self.request_pub = self.create_publisher(TeamUpdateRequest, "/team/update_requests",
+                                                 TEAM_QOS)
         self.create_subscription(LandmarkArray, "/world/landmarks", self._on_true_landmarks,
                                  LATCHED_QOS)
         for robot in range(self.num_robots):
@@ -228,11 +232,25 @@ class EvaluatorNode(Node):
     def _watch(self) -> None:
         if self.exit_code is not None:
             return
+        self._request_missing_updates()
         self._process()
         silent_s = time.monotonic() - self._last_data_wall_s
         if self.exit_code is None and silent_s > self.silence_timeout_s:
             self.finish(f"no ground truth for {silent_s:.0f} s (world or robots stopped)",
                         EXIT_SILENCE)
+
+    def _request_missing_updates(self) -> None:
+        """Ask robots again for team updates this evaluator missed (as robots do), up to
+        the latest sequence each robot reported in its motion commands."""
+        latest = {robot: int(command.team_sequence)
+                  for robot, command in enumerate(self._last_command) if command is not None}
+        for gap in self.team_updates.missing(latest):
+            request = TeamUpdateRequest(requester_id=TeamUpdateRequest.OBSERVER,
+                                        robot_id=gap.robot_id,
+                                        first_sequence=gap.first_sequence,
+                                        last_sequence=gap.last_sequence)
+            request.header.stamp = self.get_clock().now().to_msg()
+            self.request_pub.publish(request)
 
     # -- evaluation ------------------------------------------------------------------------
 
