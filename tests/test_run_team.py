@@ -97,6 +97,7 @@ def test_three_robots_explore_end_to_end(tmp_path):
                                                          reference["robots"]]
     assert (summary["stop_reason"], summary["sim_time_s"]) == (reference["stop_reason"],
                                                                reference["sim_time_s"])
+    assert summary["distance_m"] == pytest.approx(reference["distance_m"], abs=1e-6)
 
     picture = summary_path.with_name("summary_map.png")
     assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -6,7 +6,7 @@
 | ``TEAM_QOS`` (reliable, keep all, volatile) | /robot_<i>/team/updates, /team/update_requests | team data must arrive; losses and late joins are repaired by the sequence-number resend protocol, so durability is not needed |
 | ``LATCHED_QOS`` (reliable, keep last 1, transient local) | /world/landmarks, /robot_<i>/virtual_map, /robot_<i>/estimated_path, /robot_<i>/markers, /robot_<i>/target, /robot_<i>/landmarks | state whose last value a late subscriber (RViz, Foxglove, the evaluator) needs at once |
 | ``CLOCK_QOS`` (best effort, keep last 1) | /clock | the ROS 2 convention for /clock; only the newest time matters |
-| ``STREAM_QOS`` (reliable, keep last 100, volatile) | /world/ground_truth/robot_<i>, /evaluation/metrics | evaluation streams; reliable so the evaluator sees every true pose |
+| ``STREAM_QOS`` (reliable, keep all, volatile) | /world/ground_truth/robot_<i>, /evaluation/metrics | evaluation streams: the evaluator needs every true pose even when it lags behind a fast lockstep world (a keep-last-100 queue lost 100 steps at a real-time factor of 7) |
 """
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -21,6 +21,5 @@ LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                        reliability=ReliabilityPolicy.BEST_EFFORT,
                        durability=DurabilityPolicy.VOLATILE)
-STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                        reliability=ReliabilityPolicy.RELIABLE,
+STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
