@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.geometry import between, range_bearing
+from em_exploration_ros.core.geometry import range_bearing
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sensors import (LandmarkReading, OdometryReading, TeammateReading,
-                                             odometry_covariance_per_step)
-from em_exploration_ros.core.slam import (KeyframeMeasurements, OdometryAccumulator,
-                                          TeamSlam, pose_key)
+from em_exploration_ros.core.sensors import OdometryReading, odometry_covariance_per_step
+from em_exploration_ros.core.slam import OdometryAccumulator, TeamSlam, pose_key
+from em_exploration_ros.core.synthetic_team import exact_team_slam
 from em_exploration_ros.core.uncertainty_propagation import (DecisionFactorization,
                                                              ScenarioBuilder, TeamSnapshot,
                                                              VirtualNoise, propagate_oracle,
@@ -39,38 +38,11 @@ def team_slam(trajectories: list[np.ndarray], landmarks: dict[int, np.ndarray],
               odometry_sigmas: tuple[float, float, float] = (0.05, 0.05, 0.01),
               meetings: tuple[int, ...] = (), robot_id: int = 0,
               params: ExplorationParams = PARAMS) -> TeamSlam:
-    """A TeamSlam fed with exact measurements of scripted simultaneous trajectories.
-
-    Landmarks within sonar range are read at every keyframe; teammates within range read
-    each other at keyframe 0 (initialisation) and at the keyframe indices in ``meetings``.
-    Odometry carries the given per-keyframe sigmas, so the uncertainty grows along paths.
-    """
-    sensors = params.sensors
-    slam = TeamSlam(robot_id, len(trajectories), params.slam, trajectories[0][0])
-    odometry_covariance = np.diag(np.square(odometry_sigmas))
-    teammate_covariance = np.diag([(sensors.robot_obs_xy_bound_m / 1.96) ** 2] * 2
-                                  + [(sensors.robot_obs_theta_bound_rad / 1.96) ** 2])
-    ids = sorted(landmarks)
-    points = np.array([landmarks[i] for i in ids]).reshape(-1, 2)
-    for robot, poses in enumerate(trajectories):
-        for index, pose in enumerate(poses):
-            distance, bearing = range_bearing(pose, points)
-            readings = tuple(
-                LandmarkReading(ids[j], float(distance[j]), float(bearing[j]),
-                                sensors.sonar_range_sigma_m ** 2,
-                                sensors.sonar_bearing_sigma_rad ** 2)
-                for j in np.flatnonzero(distance <= sensors.sonar_max_range_m))
-            mates = tuple(
-                TeammateReading(other, between(pose, others[index]), teammate_covariance)
-                for other, others in enumerate(trajectories)
-                if other != robot and index < len(others) and (index == 0 or index in meetings)
-                and np.hypot(*(others[index][:2] - pose[:2])) <= sensors.sonar_max_range_m)
-            slam.add_keyframe(KeyframeMeasurements(
-                robot, index, float(index), index == 0, index - 1,
-                np.zeros(3) if index == 0 else between(poses[index - 1], pose),
-                np.zeros((3, 3)) if index == 0 else odometry_covariance, readings, mates))
-    slam.update()
-    return slam
+    """A TeamSlam fed with exact measurements of scripted simultaneous trajectories;
+    teammates read each other at keyframe 0 and at the indices in ``meetings``; odometry
+    carries the given per-keyframe sigmas, so the uncertainty grows along paths."""
+    return exact_team_slam(trajectories, landmarks, np.diag(np.square(odometry_sigmas)),
+                           params, meetings, robot_id)
 
 
 def _block_error(fast: np.ndarray, oracle: np.ndarray) -> float:

@@ -20,13 +20,12 @@ import time
 import numpy as np
 
 from em_exploration_ros.core.frontiers import Frontier, FrontierType
-from em_exploration_ros.core.geometry import between, range_bearing
 from em_exploration_ros.core.occupancy_grid import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planners import PlanningContext, make_planner
-from em_exploration_ros.core.sensors import (LandmarkReading, OdometryReading,
-                                             TeammateReading, odometry_covariance_per_step)
-from em_exploration_ros.core.slam import KeyframeMeasurements, OdometryAccumulator, TeamSlam
+from em_exploration_ros.core.sensors import OdometryReading, odometry_covariance_per_step
+from em_exploration_ros.core.slam import OdometryAccumulator, TeamSlam
+from em_exploration_ros.core.synthetic_team import exact_team_slam
 from em_exploration_ros.core.uncertainty_propagation import (
     DecisionFactorization, ScenarioBuilder, TeamSnapshot, VirtualNoise, propagate_oracle)
 
@@ -65,32 +64,6 @@ def keyframe_covariance() -> np.ndarray:
     return accumulator.take()[1]
 
 
-def team_slam(trajectories: list[np.ndarray], landmarks: np.ndarray) -> TeamSlam:
-    """Robot 0's TeamSlam fed with exact readings of every robot's keyframes."""
-    sensors = PARAMS.sensors
-    slam = TeamSlam(0, NUM_ROBOTS, PARAMS.slam, trajectories[0][0])
-    odometry = keyframe_covariance()
-    teammate = np.diag([(sensors.robot_obs_xy_bound_m / 1.96) ** 2] * 2
-                       + [(sensors.robot_obs_theta_bound_rad / 1.96) ** 2])
-    for robot, poses in enumerate(trajectories):
-        for index, pose in enumerate(poses):
-            distance, bearing = range_bearing(pose, landmarks)
-            readings = tuple(LandmarkReading(int(j), float(distance[j]), float(bearing[j]),
-                                             sensors.sonar_range_sigma_m ** 2,
-                                             sensors.sonar_bearing_sigma_rad ** 2)
-                             for j in np.flatnonzero(distance <= sensors.sonar_max_range_m))
-            mates = tuple(TeammateReading(other, between(pose, others[index]), teammate)
-                          for other, others in enumerate(trajectories) if other != robot
-                          and np.hypot(*(others[index][:2] - pose[:2]))
-                          <= sensors.sonar_max_range_m)
-            slam.add_keyframe(KeyframeMeasurements(
-                robot, index, float(index), index == 0, index - 1,
-                np.zeros(3) if index == 0 else between(poses[index - 1], pose),
-                np.zeros((3, 3)) if index == 0 else odometry, readings, mates))
-    slam.update()
-    return slam
-
-
 def candidates_and_targets(slam: TeamSlam, landmarks: np.ndarray, rng: np.random.Generator
                            ) -> tuple[list[Frontier], dict[int, np.ndarray]]:
     """About 20 candidates for robot 0 and a current target for each teammate."""
@@ -116,7 +89,8 @@ def build_context(num_poses: int, seed: int) -> PlanningContext:
     """The synthetic team and robot 0's decision context."""
     rng = np.random.default_rng(seed)
     landmarks = rng.uniform(8.0, SIZE_M - 8.0, (20, 2))
-    slam = team_slam(random_walks(num_poses, rng), landmarks)
+    slam = exact_team_slam(random_walks(num_poses, rng), dict(enumerate(landmarks)),
+                           keyframe_covariance(), PARAMS)
     grid = OccupancyGrid(SIZE_M, SIZE_M, PARAMS.map, PARAMS.sensors.sonar_max_range_m)
     known = np.array(list(slam.landmark_estimates().values())).reshape(-1, 2)
     grid.rebuild(np.vstack([slam.trajectory(r)[1] for r in range(NUM_ROBOTS)]), known)
