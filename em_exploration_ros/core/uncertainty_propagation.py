@@ -121,6 +121,7 @@ class VirtualNoise:
         self._slam_noise = slam_noise
         self._sensor_params = sensor_params
         self._step_m = motion_params.speed_mps * motion_params.time_step_s
+        self._odometry_roots: dict[tuple[float, float, float], FloatArray] = {}
         reading = LandmarkReading(0, 1.0, 0.0, sensor_params.sonar_range_sigma_m ** 2,
                                   sensor_params.sonar_bearing_sigma_rad ** 2)
         #: (2, 2) for (bearing [rad], range [m]) residuals.
@@ -131,12 +132,20 @@ class VirtualNoise:
 
     def odometry(self, delta: ArrayLike) -> FloatArray:
         """``(3, 3)`` for a virtual odometry ``delta`` (3,) [m, m, rad] in the previous body
-        frame: straight motion over its length at the robot's per-step distance."""
-        delta = np.asarray(delta, dtype=float)
-        length = float(np.hypot(delta[0], delta[1]))
-        steps = max(1, int(round(length / self._step_m)))
-        covariance = _straight_odometry_covariance(steps, length / steps, self._sensor_params)
-        return np.asarray(self._slam_noise.odometry(delta, covariance).R(), dtype=float)
+        frame: straight motion over its length at the robot's per-step distance.
+
+        Memoized: along a virtual path most segments have the same delta (a straight
+        ``waypoint spacing`` ahead), so a decision asks for few distinct ones.
+        """
+        key = tuple(float(v) for v in np.asarray(delta, dtype=float).reshape(3))
+        if key not in self._odometry_roots:
+            length = float(np.hypot(key[0], key[1]))
+            steps = max(1, int(round(length / self._step_m)))
+            covariance = _straight_odometry_covariance(steps, length / steps,
+                                                       self._sensor_params)
+            self._odometry_roots[key] = np.asarray(
+                self._slam_noise.odometry(np.array(key), covariance).R(), dtype=float)
+        return self._odometry_roots[key].copy()
 
 
 @dataclass(frozen=True)
