@@ -77,9 +77,9 @@ class DecisionRecord:
 class _Pending:
     """What this robot has produced since its last update to the team."""
 
-    keyframes: list = field(default_factory=list)
-    targets: list = field(default_factory=list)
-    rendezvous: list = field(default_factory=list)
+    keyframes: list[KeyframeMeasurements] = field(default_factory=list)
+    targets: list[TargetRecord] = field(default_factory=list)
+    rendezvous: list[RendezvousEvent] = field(default_factory=list)
 
 
 class RobotAgent:
