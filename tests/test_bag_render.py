@@ -29,7 +29,7 @@ from em_exploration_ros.bag_format.bag_reader import BagScanner, scan_bag
 from em_exploration_ros.bag_format.bag_writer import BagWriter
 from em_exploration_ros.bag_format.mcap_ros2_schema import build_message_definition
 from em_exploration_ros.core.params_yaml import load_params
-from em_exploration_ros.core.summary import TARGET_TYPES
+from em_exploration_ros.core.evaluation.summary import TARGET_TYPES
 from em_exploration_ros.tools.bag_ros import import_message_class
 from em_exploration_ros.tools.bag_render import read_team_map
 from em_bag_cli import run_em_bag

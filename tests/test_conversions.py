@@ -5,9 +5,9 @@ from em_exploration_msgs.msg import TeamUpdate as TeamUpdateMsg
 from rclpy.serialization import deserialize_message, serialize_message
 
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.team_data import InvalidTeamUpdate, LandmarkEstimate
-from em_exploration_ros.core.team_runner import TeamRunner, step_input
-from em_exploration_ros.core.wire_model import sim_time_s, twist_to_increment_covariance
+from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, LandmarkEstimate
+from em_exploration_ros.core.sim.team_runner import TeamRunner, step_input
+from em_exploration_ros.core.sim.wire_model import sim_time_s, twist_to_increment_covariance
 from em_exploration_ros.nodes import conversions as conv
 
 PARAMS = ExplorationParams().replace(world={"width_m": 50.0, "height_m": 50.0,

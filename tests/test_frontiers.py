@@ -4,12 +4,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.frontiers import (Frontier, FrontierType, RendezvousBook,
+from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType, RendezvousBook,
                                                candidate_targets, exploration_frontiers,
                                                frontier_cells, nearest_frontier,
                                                rendezvous_frontiers, revisiting_frontiers,
                                                segment_point_distances)
-from em_exploration_ros.core.occupancy_grid import OccupancyGrid
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import FrontierParams, MapParams
 
 NO_LANDMARKS = np.zeros((0, 2))

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from em_exploration_ros.core.map_render import EXPLORED_RGBA, TeamMapLayers, render_team_map
-from em_exploration_ros.core.summary import TargetEntry
+from em_exploration_ros.core.evaluation.map_render import EXPLORED_RGBA, TeamMapLayers, render_team_map
+from em_exploration_ros.core.evaluation.summary import TargetEntry
 
 
 def layers(explored: np.ndarray) -> TeamMapLayers:

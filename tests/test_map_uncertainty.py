@@ -3,13 +3,13 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.geometry import range_bearing
-from em_exploration_ros.core.map_uncertainty import (CellObservations, VirtualMap,
+from em_exploration_ros.core.virtual_map.cell_uncertainty import (CellObservations, VirtualMap,
                                                      cell_covariances_from_poses,
                                                      covariance_intersection, inverse_2x2,
                                                      information_to_covariance,
                                                      inverse_sensor_model,
                                                      observation_confidence)
-from em_exploration_ros.core.occupancy_grid import GridGeometry, predicted_observed_mask
+from em_exploration_ros.core.virtual_map.occupancy import GridGeometry, predicted_observed_mask
 from em_exploration_ros.core.params import MapParams, SensorParams
 
 SENSORS = SensorParams()

@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.metrics import (MetricHistory, MetricSample, heading_rmse,
+from em_exploration_ros.core.evaluation.metrics import (MetricHistory, MetricSample, heading_rmse,
                                              landmark_rmse, localization_rmse, path_length)
-from em_exploration_ros.core.world import World
+from em_exploration_ros.core.sim.world import World
 
 
 def _world() -> World:

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.motion import ApfController
+from em_exploration_ros.core.planning.motion import ApfController
 from em_exploration_ros.core.params import MotionParams, SensorParams, WorldParams
-from em_exploration_ros.core.world import collides, generate_world, step_pose
+from em_exploration_ros.core.sim.world import collides, generate_world, step_pose
 
 MOTION = MotionParams()
 LANDMARK_RADIUS = 1.0

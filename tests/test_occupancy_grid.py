@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.occupancy_grid import (GridGeometry, OccupancyGrid,
+from em_exploration_ros.core.virtual_map.occupancy import (GridGeometry, OccupancyGrid,
                                                     observation_counts, observation_pairs,
                                                     predicted_observed_mask)
 from em_exploration_ros.core.params import MapParams

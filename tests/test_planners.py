@@ -7,12 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.frontiers import Frontier, FrontierType
-from em_exploration_ros.core.occupancy_grid import OccupancyGrid, predicted_observed_mask
+from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid, predicted_observed_mask
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planners import (EmPlanner, PlanningContext, allocation_utility,
+from em_exploration_ros.core.planning.planners import (EmPlanner, PlanningContext, allocation_utility,
                                               distance_utility, make_planner, trace_sqrt_sum)
-from em_exploration_ros.core.slam import TeamSlam
+from em_exploration_ros.core.slam.team_slam import TeamSlam
 from test_uncertainty_propagation import straight, team_slam
 
 PARAMS = ExplorationParams()

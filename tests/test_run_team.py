@@ -15,8 +15,8 @@ import subprocess
 import pytest
 
 from em_exploration_ros.core.params_yaml import load_params
-from em_exploration_ros.core.summary import check_summary
-from em_exploration_ros.core.team_runner import TeamRunner
+from em_exploration_ros.core.evaluation.summary import check_summary
+from em_exploration_ros.core.sim.team_runner import TeamRunner
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, processes_in_domain,
                          start_team_run)
 

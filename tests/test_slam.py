@@ -12,13 +12,13 @@ import pytest
 
 from em_exploration_ros.core.geometry import between, compose, wrap_angle
 from em_exploration_ros.core.params import ExplorationParams, SlamParams
-from em_exploration_ros.core.sensors import (LandmarkReading, OdometryReading, SensorSimulator,
+from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReading, SensorSimulator,
                                              TeammateReading)
-from em_exploration_ros.core.slam import (KeyframeBuilder, KeyframeMeasurements,
+from em_exploration_ros.core.slam.team_slam import (KeyframeBuilder, KeyframeMeasurements,
                                           OdometryAccumulator, SlamNoise, TeamSlam,
                                           batch_solve, body_to_map_covariance, landmark_key,
                                           pose_key)
-from em_exploration_ros.core.world import advance_robot, generate_world, run_seed_sequences
+from em_exploration_ros.core.sim.world import advance_robot, generate_world, run_seed_sequences
 
 PARAMS = ExplorationParams()
 #: Relinearize everything at every update: iSAM2 then reaches the batch optimum.

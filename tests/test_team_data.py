@@ -4,10 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.frontiers import FrontierType
-from em_exploration_ros.core.sensors import LandmarkReading, TeammateReading
-from em_exploration_ros.core.slam import KeyframeMeasurements
-from em_exploration_ros.core.team_data import (InvalidTeamUpdate, LandmarkEstimate,
+from em_exploration_ros.core.planning.frontiers import FrontierType
+from em_exploration_ros.core.sim.sensors import LandmarkReading, TeammateReading
+from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
+from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
                                                MissingRange, SharedKeyframe, TargetRecord,
                                                TeamUpdateInbox, TeamUpdateOutbox,
                                                validate_team_update)

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.trial_stats import (band, curve_on_grid, distance_grid, mean_ci,
+from em_exploration_ros.core.evaluation.trial_stats import (band, curve_on_grid, distance_grid, mean_ci,
                                                  paired_difference, t_critical_95)
 
 

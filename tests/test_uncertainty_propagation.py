@@ -7,10 +7,10 @@ import pytest
 
 from em_exploration_ros.core.geometry import range_bearing
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sensors import OdometryReading, odometry_covariance_per_step
-from em_exploration_ros.core.slam import OdometryAccumulator, TeamSlam, pose_key
-from em_exploration_ros.core.synthetic_team import exact_team_slam
-from em_exploration_ros.core.uncertainty_propagation import (DecisionFactorization,
+from em_exploration_ros.core.sim.sensors import OdometryReading, odometry_covariance_per_step
+from em_exploration_ros.core.slam.team_slam import OdometryAccumulator, TeamSlam, pose_key
+from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
+from em_exploration_ros.core.planning.em_step import (DecisionFactorization,
                                                              ScenarioBuilder, TeamSnapshot,
                                                              VirtualNoise, propagate_oracle,
                                                              virtual_waypoints)

@@ -1,7 +1,7 @@
 """World <-> robot conversions: commands, odometry poses and covariances survive the wire."""
 import numpy as np
 
-from em_exploration_ros.core.wire_model import (DeadReckoningDifferencer, DeadReckoningIntegrator,
+from em_exploration_ros.core.sim.wire_model import (DeadReckoningDifferencer, DeadReckoningIntegrator,
                                                 command_to_twist,
                                                 increment_covariance_to_twist,
                                                 twist_to_command,

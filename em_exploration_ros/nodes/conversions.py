@@ -12,14 +12,14 @@ from em_exploration_msgs import msg as em_msg
 from geometry_msgs.msg import PoseStamped, Quaternion
 from nav_msgs.msg import Odometry, Path
 
-from em_exploration_ros.core.frontiers import FrontierType
-from em_exploration_ros.core.sensors import LandmarkReading, TeammateReading
-from em_exploration_ros.core.simulation import SensorFrame
-from em_exploration_ros.core.slam import KeyframeMeasurements
-from em_exploration_ros.core.wire_model import (NANOSECONDS_PER_SECOND,
+from em_exploration_ros.core.planning.frontiers import FrontierType
+from em_exploration_ros.core.sim.sensors import LandmarkReading, TeammateReading
+from em_exploration_ros.core.sim.simulation import SensorFrame
+from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
+from em_exploration_ros.core.sim.wire_model import (NANOSECONDS_PER_SECOND,
                                                 nanoseconds_to_seconds, planar_quaternion,
                                                 planar_yaw, seconds_to_nanoseconds)
-from em_exploration_ros.core.team_data import (InvalidTeamUpdate, LandmarkEstimate,
+from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
                                                RendezvousEvent, RendezvousState,
                                                SharedKeyframe, TargetRecord, TeamUpdate)
 
@@ -39,7 +39,7 @@ def seconds_to_time(seconds: float) -> Time:
 
 
 def time_to_seconds(stamp: Time) -> float:
-    """builtin_interfaces/Time as seconds (wire-exact, see core.wire_model)."""
+    """builtin_interfaces/Time as seconds (wire-exact, see core.sim.wire_model)."""
     return nanoseconds_to_seconds(stamp.sec * NANOSECONDS_PER_SECOND + stamp.nanosec)
 
 

@@ -1,4 +1,4 @@
-"""em-evaluator: the outside observer of a run; a thin shell around ``core.evaluation``.
+"""em-evaluator: the outside observer of a run; a thin shell around ``core.evaluation.evaluator``.
 
 Subscribes to the ground truth (``/world/ground_truth/robot_i``, ``/world/landmarks``) and to
 what each robot publishes (``/robot_i/estimated_path``, ``/robot_i/landmarks``,
@@ -12,7 +12,7 @@ are recorded in order. Every ``metrics_interval_s`` of simulation time (default 
 (waiting up to ``estimate_wait_s`` for those of the last keyframe), so a seeded lockstep run
 gives the same metrics every time, whatever the message timing. They are published on
 ``/evaluation/metrics`` (ExplorationMetrics) and kept; a progress line is logged every
-``progress_interval_s``. The run ends, with the summary JSON (``core.summary.RunSummary``,
+``progress_interval_s``. The run ends, with the summary JSON (``core.evaluation.summary.RunSummary``,
 em-sim's schema) and the final map PNG written, when:
 
 - the team explored ratio reaches ``run.until_explored``, the team distance reaches
@@ -44,13 +44,13 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
-from em_exploration_ros.core.evaluation import (TeamEvaluator, TeamMetrics, landmark_truth,
+from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
                                                 stamp_key)
-from em_exploration_ros.core.map_render import TeamMapLayers, render_team_map
-from em_exploration_ros.core.summary import HistorySample, RobotSummary, RunSummary, TargetEntry
-from em_exploration_ros.core.team_data import InvalidTeamUpdate, TargetRecord, TeamUpdateInbox
-from em_exploration_ros.core.team_runner import FRONTIER_TYPE_NAMES
-from em_exploration_ros.core.wire_model import sim_time_s
+from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, render_team_map
+from em_exploration_ros.core.evaluation.summary import HistorySample, RobotSummary, RunSummary, TargetEntry
+from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TargetRecord, TeamUpdateInbox
+from em_exploration_ros.core.sim.team_runner import FRONTIER_TYPE_NAMES
+from em_exploration_ros.core.sim.wire_model import sim_time_s
 from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_positions_from_msg,
                                                   odometry_pose, path_from_msg, robot_namespace,
                                                   seconds_to_time, team_update_from_msg,

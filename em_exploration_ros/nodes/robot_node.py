@@ -1,6 +1,6 @@
 """em-robot: one robot's process: team SLAM, virtual map, planner and motion control.
 
-A thin shell around ``core.robot_agent.RobotAgent``. Inputs: its own sonar and dead
+A thin shell around ``core.agent.robot_agent.RobotAgent``. Inputs: its own sonar and dead
 reckoning from the world simulator, robot 0's launch pose (the mission's map anchor), and
 its teammates' team updates. It never subscribes to ground truth.
 
@@ -28,11 +28,11 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
-from em_exploration_ros.core.map_uncertainty import cell_covariances_from_poses
-from em_exploration_ros.core.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.team_data import (InvalidTeamUpdate, LandmarkEstimate,
+from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariances_from_poses
+from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
+from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
                                                TeamUpdateInbox)
-from em_exploration_ros.core.wire_model import (command_to_twist, sim_time_s,
+from em_exploration_ros.core.sim.wire_model import (command_to_twist, sim_time_s,
                                                 twist_to_increment_covariance)
 from em_exploration_ros.nodes import visualization
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_msg,

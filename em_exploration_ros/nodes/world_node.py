@@ -1,4 +1,4 @@
-"""em-world: the world simulator node, a thin shell around ``core.simulation.WorldSimulation``.
+"""em-world: the world simulator node, a thin shell around ``core.sim.simulation.WorldSimulation``.
 
 It is the system's clock and its only source of ground truth. Topics (QoS from nodes/qos.py):
 
@@ -16,7 +16,7 @@ step k publishes /clock, every robot's sonar (with the barrier ``team_sequences`
 odometry, and the ground truth; it then waits until every live robot has answered step k
 with a MotionCommand, or ``robot_timeout_s`` wall seconds passed for a robot (which is then
 treated as stopped: zero motion from then on). The commands are applied in robot id order
-and the world advances: the same order as ``core.team_runner.TeamRunner.step_once``, so em-sim
+and the world advances: the same order as ``core.sim.team_runner.TeamRunner.step_once``, so em-sim
 and the ROS system draw the same noise.
 
 Real-time mode: a wall timer advances the world every ``time_step_s / realtime_factor``
@@ -45,9 +45,9 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.simulation import WorldSimulation
-from em_exploration_ros.core.team_data import LandmarkEstimate
-from em_exploration_ros.core.world import World
+from em_exploration_ros.core.sim.simulation import WorldSimulation
+from em_exploration_ros.core.agent.team_data import LandmarkEstimate
+from em_exploration_ros.core.sim.world import World
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
                                                   dead_reckoning_to_msg, landmark_array_to_msg,
                                                   odometry_to_msg, robot_namespace,

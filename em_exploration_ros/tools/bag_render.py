@@ -39,12 +39,12 @@ from rclpy.serialization import deserialize_message
 from visualization_msgs.msg import Marker
 
 from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, ChannelInfo
-from em_exploration_ros.core.frontiers import FrontierType
-from em_exploration_ros.core.map_render import (TeamMapLayers, UncertaintyEllipses,
+from em_exploration_ros.core.planning.frontiers import FrontierType
+from em_exploration_ros.core.evaluation.map_render import (TeamMapLayers, UncertaintyEllipses,
                                                 render_team_map)
 from em_exploration_ros.core.params import MapParams
-from em_exploration_ros.core.summary import TARGET_TYPES, TargetEntry
-from em_exploration_ros.core.wire_model import nanoseconds_to_seconds
+from em_exploration_ros.core.evaluation.summary import TARGET_TYPES, TargetEntry
+from em_exploration_ros.core.sim.wire_model import nanoseconds_to_seconds
 from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg, odometry_pose,
                                                   path_from_msg, quaternion_to_yaw,
                                                   target_from_msg)

@@ -41,8 +41,8 @@ from typing import Any, Callable, Iterable, Sequence, TextIO
 
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import ParamsFileError
-from em_exploration_ros.core.team_runner import TeamRunner
-from em_exploration_ros.core.trial_stats import mean_ci, paired_difference
+from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.core.evaluation.trial_stats import mean_ci, paired_difference
 from em_exploration_ros.tools import bench_plots
 from em_exploration_ros.tools.latency_bench import add_latency_command
 from em_exploration_ros.tools.sim_cli import PLANNER_NAMES, add_run_arguments, params_from_args

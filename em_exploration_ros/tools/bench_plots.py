@@ -5,7 +5,7 @@ per trial and metrics sample, missing values empty) and ``summary.json`` (see be
 Outputs there: per setting the paper's three plots, ``<setting>_loc_rmse.png``,
 ``<setting>_landmark_rmse.png`` and ``<setting>_explored_ratio.png`` (mean and 95%
 confidence band per planner against the team's distance travelled, see
-core/trial_stats.py), and ``results.md`` (final values with 95% CIs and paired differences).
+core/evaluation/trial_stats.py), and ``results.md`` (final values with 95% CIs and paired differences).
 Matplotlib draws through its Agg renderer only (no display, no pyplot state).
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from em_exploration_ros.core.trial_stats import band, curve_on_grid, distance_grid
+from em_exploration_ros.core.evaluation.trial_stats import band, curve_on_grid, distance_grid
 
 #: Columns of results.csv.
 CSV_COLUMNS = ("setting", "planner", "seed", "distance_m", "explored_ratio", "loc_rmse_m",

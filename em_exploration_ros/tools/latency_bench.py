@@ -19,14 +19,14 @@ import time
 
 import numpy as np
 
-from em_exploration_ros.core.frontiers import Frontier, FrontierType
-from em_exploration_ros.core.occupancy_grid import OccupancyGrid
+from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planners import PlanningContext, make_planner
-from em_exploration_ros.core.sensors import OdometryReading, odometry_covariance_per_step
-from em_exploration_ros.core.slam import OdometryAccumulator, TeamSlam
-from em_exploration_ros.core.synthetic_team import exact_team_slam
-from em_exploration_ros.core.uncertainty_propagation import (
+from em_exploration_ros.core.planning.planners import PlanningContext, make_planner
+from em_exploration_ros.core.sim.sensors import OdometryReading, odometry_covariance_per_step
+from em_exploration_ros.core.slam.team_slam import OdometryAccumulator, TeamSlam
+from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
+from em_exploration_ros.core.planning.em_step import (
     DecisionFactorization, ScenarioBuilder, TeamSnapshot, VirtualNoise, propagate_oracle)
 
 PARAMS = ExplorationParams()

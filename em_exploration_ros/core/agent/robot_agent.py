@@ -18,19 +18,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from em_exploration_ros.core.frontiers import (Frontier, FrontierType, RendezvousBook,
+from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType, RendezvousBook,
                                                candidate_targets, frontier_cells)
 from em_exploration_ros.core.geometry import compose
-from em_exploration_ros.core.motion import ApfController
-from em_exploration_ros.core.occupancy_grid import OccupancyGrid
+from em_exploration_ros.core.planning.motion import ApfController
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planners import PlanningContext, make_planner
-from em_exploration_ros.core.sensors import LandmarkReading, OdometryReading, TeammateReading
-from em_exploration_ros.core.slam import KeyframeBuilder, KeyframeMeasurements, TeamSlam
-from em_exploration_ros.core.team_data import (LandmarkEstimate, RendezvousEvent,
+from em_exploration_ros.core.planning.planners import PlanningContext, make_planner
+from em_exploration_ros.core.sim.sensors import LandmarkReading, OdometryReading, TeammateReading
+from em_exploration_ros.core.slam.team_slam import KeyframeBuilder, KeyframeMeasurements, TeamSlam
+from em_exploration_ros.core.agent.team_data import (LandmarkEstimate, RendezvousEvent,
                                                RendezvousState, SharedKeyframe, TargetRecord,
                                                TeamUpdate, TeamUpdateOutbox)
-from em_exploration_ros.core.wire_model import DeadReckoningDifferencer
+from em_exploration_ros.core.sim.wire_model import DeadReckoningDifferencer
 
 _LOG = logging.getLogger(__name__)
 

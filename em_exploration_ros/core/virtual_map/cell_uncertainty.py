@@ -1,9 +1,9 @@
 """Virtual map uncertainty: per-cell covariances of virtual landmarks.
 
 Every cell of the virtual map holds a virtual landmark ``v`` at its centre (map frame, the
-cell layout of :class:`~em_exploration_ros.core.occupancy_grid.GridGeometry`). A robot
+cell layout of :class:`~em_exploration_ros.core.virtual_map.occupancy.GridGeometry`). A robot
 pose ``x = (x [m], y [m], theta [rad])`` observes the cell when the centre lies within the
-sonar range (the rule of :func:`~em_exploration_ros.core.occupancy_grid.observation_pairs`),
+sonar range (the rule of :func:`~em_exploration_ros.core.virtual_map.occupancy.observation_pairs`),
 through the bearing-range model ``g(x, v) = (bearing [rad], range [m])``.
 
 Covariance of one observation (inverse sensor model)::
@@ -43,7 +43,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from em_exploration_ros.core.occupancy_grid import GridGeometry, observation_pairs
+from em_exploration_ros.core.virtual_map.occupancy import GridGeometry, observation_pairs
 from em_exploration_ros.core.params import MapParams, SensorParams
 
 FloatArray = NDArray[np.float64]

@@ -15,7 +15,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from em_exploration_ros.core.occupancy_grid import OccupancyGrid
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import FrontierParams
 
 #: Positions closer than this are the same target when de-duplicating [m].

@@ -8,9 +8,9 @@ sequence (``pose_key(robot, latest + k)``), heading along the path. Virtual meas
 
 * odometry between successive waypoints, with the covariance the robot's dead reckoning
   accumulates over that distance (straight motion in steps of ``speed * time_step``,
-  the per-step model of :func:`~em_exploration_ros.core.sensors.odometry_covariance_per_step`
+  the per-step model of :func:`~em_exploration_ros.core.sim.sensors.odometry_covariance_per_step`
   accumulated like the SLAM keyframes), turned into a noise model by the SLAM's own
-  :class:`~em_exploration_ros.core.slam.SlamNoise` (so fixed reference sigmas apply too);
+  :class:`~em_exploration_ros.core.slam.team_slam.SlamNoise` (so fixed reference sigmas apply too);
 * bearing-range readings of every known landmark within sonar range of a waypoint;
 * inter-robot readings when two robots are within sonar range at the same step ``k``
   (waypoint ``k`` of each path; a robot that reached its target waits at its last
@@ -56,8 +56,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from em_exploration_ros.core.geometry import between, range_bearing
 from em_exploration_ros.core.params import MotionParams, SensorParams
-from em_exploration_ros.core.sensors import LandmarkReading, odometry_covariance_per_step
-from em_exploration_ros.core.slam import SlamNoise, TeamSlam, landmark_key, pose_key
+from em_exploration_ros.core.sim.sensors import LandmarkReading, odometry_covariance_per_step
+from em_exploration_ros.core.slam.team_slam import SlamNoise, TeamSlam, landmark_key, pose_key
 
 _LOG = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -97,7 +97,7 @@ def _straight_odometry_covariance(steps: int, step_length_m: float,
                                   sensor_params: SensorParams) -> FloatArray:
     """Covariance ``(3, 3)`` of the odometry of ``steps`` straight steps of equal length.
 
-    The :class:`~em_exploration_ros.core.slam.OdometryAccumulator` recursion
+    The :class:`~em_exploration_ros.core.slam.team_slam.OdometryAccumulator` recursion
     ``Sigma_k+1 = A Sigma_k A^T + Q`` in closed form: along a straight line the compose
     Jacobian is ``A = [[1, 0, 0], [0, 1, s], [0, 0, 1]]`` (``s`` the step length) and the
     per-step noise ``Q = diag(q_xy, q_xy, q_theta)``, so ``Sigma_n = sum_k A^k Q A^kT``.

@@ -16,8 +16,8 @@ from enum import IntEnum
 
 import numpy as np
 
-from em_exploration_ros.core.frontiers import FrontierType
-from em_exploration_ros.core.slam import KeyframeMeasurements
+from em_exploration_ros.core.planning.frontiers import FrontierType
+from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
 
 #: Records further ahead of the expected sequence number than this are rejected as
 #: implausible (a hostile or corrupted sender), instead of opening a huge gap.

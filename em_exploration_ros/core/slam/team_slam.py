@@ -36,7 +36,7 @@ from em_exploration_ros.core.geometry import (compose, compose_jacobians,
 from em_exploration_ros.core.params import SlamParams
 
 if TYPE_CHECKING:
-    from em_exploration_ros.core.sensors import (LandmarkReading, OdometryReading,
+    from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReading,
                                                  TeammateReading)
 
 #: Covariance frame of pose accessors: ``"map"`` (additive x, y, theta errors in the map

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from em_exploration_ros.core.geometry import between, range_bearing, wrap_angle
 from em_exploration_ros.core.params import BOUND_95_TO_SIGMA, MotionParams, SensorParams
-from em_exploration_ros.core.world import World, derive_seed_sequence
+from em_exploration_ros.core.sim.world import World, derive_seed_sequence
 
 FloatArray = NDArray[np.float64]
 

@@ -33,12 +33,12 @@ from typing import Mapping, Protocol, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from em_exploration_ros.core.frontiers import Frontier, FrontierType
-from em_exploration_ros.core.map_uncertainty import CellObservations, observation_confidence
-from em_exploration_ros.core.occupancy_grid import OccupancyGrid
+from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
+from em_exploration_ros.core.virtual_map.cell_uncertainty import CellObservations, observation_confidence
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams, PlannerParams
-from em_exploration_ros.core.slam import TeamSlam
-from em_exploration_ros.core.uncertainty_propagation import (DecisionFactorization,
+from em_exploration_ros.core.slam.team_slam import TeamSlam
+from em_exploration_ros.core.planning.em_step import (DecisionFactorization,
                                                              ScenarioBuilder, TeamSnapshot,
                                                              VirtualNoise, VirtualScenario)
 

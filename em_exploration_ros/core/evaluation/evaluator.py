@@ -22,10 +22,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from em_exploration_ros.core.metrics import landmark_rmse, localization_rmse
-from em_exploration_ros.core.occupancy_grid import OccupancyGrid
+from em_exploration_ros.core.evaluation.metrics import landmark_rmse, localization_rmse
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams, WorldParams
-from em_exploration_ros.core.world import World
+from em_exploration_ros.core.sim.world import World
 
 #: Stamps are matched on this resolution [ns] (sim time is a multiple of the step).
 _STAMP_RESOLUTION_NS = 1000

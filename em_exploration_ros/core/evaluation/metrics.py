@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from em_exploration_ros.core.geometry import wrap_angle
-from em_exploration_ros.core.world import World
+from em_exploration_ros.core.sim.world import World
 
 FloatArray = NDArray[np.float64]
 

@@ -27,7 +27,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle
 
-from em_exploration_ros.core.summary import TARGET_TYPES, TargetEntry
+from em_exploration_ros.core.evaluation.summary import TARGET_TYPES, TargetEntry
 
 #: Marker of each target type.
 TARGET_MARKERS = {"exploration": "^", "revisiting": "s", "rendezvous": "*"}

@@ -17,15 +17,15 @@ from typing import Callable
 
 import numpy as np
 
-from em_exploration_ros.core.evaluation import TeamEvaluator, TeamMetrics
-from em_exploration_ros.core.frontiers import FrontierType
+from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
+from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.simulation import SensorFrame, WorldSimulation
-from em_exploration_ros.core.summary import (HistorySample, RobotSummary, RunSummary,
+from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
+from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
+from em_exploration_ros.core.evaluation.summary import (HistorySample, RobotSummary, RunSummary,
                                              TargetEntry)
-from em_exploration_ros.core.team_data import TeamUpdateInbox
-from em_exploration_ros.core.wire_model import (command_to_twist, pose_through_wire,
+from em_exploration_ros.core.agent.team_data import TeamUpdateInbox
+from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
                                                 twist_to_increment_covariance)
 
 #: Team metrics are evaluated every this many steps (and at the end).

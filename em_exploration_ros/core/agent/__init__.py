@@ -1,0 +1,1 @@
+"""One robot's brain (SLAM + virtual map + planner + motion) and the team data it shares."""

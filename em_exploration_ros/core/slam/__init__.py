@@ -1,0 +1,1 @@
+"""Per-robot team SLAM: the factor graph on iSAM2 that each robot keeps of the whole team."""
