@@ -20,7 +20,9 @@ em-sim's schema) and the final map PNG written, when:
 - the run's final step (``run.max_steps`` or ``max_sim_time_s``, as the world) completed:
   exit code 0, the stop reason says so;
 - no ground truth arrived for ``silence_timeout_s`` wall seconds (world or robots
-  stopped): exit code 3; Ctrl-C: the summary so far, exit code 130.
+  stopped): exit code 3; Ctrl-C: the summary so far, exit code 130;
+- the team neither travelled nor explored new area for ``run.stall_timeout_s`` of
+  simulation time (``core.evaluation.stall``): stop reason "stalled: ...", exit code 4.
 
 Run (with the simulation clock): ``python -m em_exploration_ros.nodes.evaluator_node
 --ros-args -p use_sim_time:=true -p summary_path:=runs/x/summary.json``
@@ -46,6 +48,7 @@ from rclpy.task import Future
 
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
                                                 stamp_key)
+from em_exploration_ros.core.evaluation.stall import EXIT_STALLED, STALLED_PREFIX, StallWatch
 from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, render_team_map
 from em_exploration_ros.core.evaluation.summary import HistorySample, RobotSummary, RunSummary, TargetEntry
 from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TargetRecord, TeamUpdateInbox
@@ -135,6 +138,7 @@ class EvaluatorNode(Node):
         self.final_step = final_step(self.params, max_sim_time_s)
         self.evaluator: TeamEvaluator | None = None
         self.history: list[TeamMetrics] = []
+        self._stall = StallWatch(self.params.run.stall_timeout_s)
         self.paths = StampedEstimates()
         self.landmark_estimates = StampedEstimates()
         self.targets: list[dict[int, TargetRecord]] = [{} for _ in range(self.num_robots)]
@@ -279,7 +283,8 @@ class EvaluatorNode(Node):
             self._pending = None
             reason = self._stop_reason(step, self.evaluate(step))
             if reason:
-                self.finish(reason, EXIT_OK)
+                self.finish(reason, EXIT_STALLED if reason.startswith(STALLED_PREFIX)
+                            else EXIT_OK)
 
     def _record_step(self, step: int) -> None:
         stamp_s = self._stamp_s(step)
@@ -318,7 +323,7 @@ class EvaluatorNode(Node):
             return "every robot finished"
         if step >= self.final_step:
             return f"final step {self.final_step} (t = {self._stamp_s(step):g} s) reached"
-        return ""
+        return self._stall.update(metrics.stamp_s, metrics.distance_m, metrics.explored_ratio)
 
     def _stamp_s(self, step: int) -> float:
         return sim_time_s(step, self.time_step_s)

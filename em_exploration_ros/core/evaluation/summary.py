@@ -4,7 +4,11 @@ Top-level keys (units in the names): ``explored_ratio``, ``distance_m`` (all rob
 ``loc_rmse_m``, ``landmark_rmse_m``, ``decisions``, ``wall_s``, ``sim_time_s``,
 ``decision_time_median_s``, ``decision_time_max_s``, ``robots`` (per robot: ``id``,
 ``distance_m``, ``decisions``, ``targets`` (in order: ``x``, ``y`` [m, map frame],
-``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``), plus ``seed``,
+``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``, ``given_up``
+(targets the robot gave up, in order: ``x``, ``y`` [m, map frame], ``stamp_s``,
+``reason``: blocked / no progress / deadline) and ``blocked_s`` (simulation time during
+which the robot's odometry showed it blocked while it commanded forward motion); null
+where the writer cannot know them), plus ``seed``,
 ``planner``, ``num_robots``, ``map_size_m``, ``num_landmarks``, ``stop_reason`` and
 ``history``: samples of the metrics against distance travelled.
 """
@@ -33,6 +37,16 @@ class TargetEntry:
 
 
 @dataclass
+class GivenUpEntry:
+    """A target a robot gave up: position in the map frame [m], when [s sim time], why."""
+
+    x: float
+    y: float
+    stamp_s: float
+    reason: str
+
+
+@dataclass
 class RobotSummary:
     """Per-robot part of the summary."""
 
@@ -41,6 +55,8 @@ class RobotSummary:
     decisions: int = 0
     targets: list[TargetEntry] = field(default_factory=list)
     decision_times_s: list[float] = field(default_factory=list)
+    given_up: list[GivenUpEntry] | None = None
+    blocked_s: float = math.nan
 
 
 @dataclass

@@ -18,12 +18,13 @@ from typing import Callable
 import numpy as np
 
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
+from em_exploration_ros.core.evaluation.stall import StallWatch
 from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
-from em_exploration_ros.core.evaluation.summary import (HistorySample, RobotSummary, RunSummary,
-                                             TargetEntry)
+from em_exploration_ros.core.evaluation.summary import (GivenUpEntry, HistorySample, RobotSummary,
+                                                      RunSummary, TargetEntry)
 from em_exploration_ros.core.agent.team_data import TeamUpdateInbox
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
                                                 twist_to_increment_covariance)
@@ -64,6 +65,7 @@ class TeamRunner:
         self.evaluator = TeamEvaluator(world, params)
         self._inboxes = [TeamUpdateInbox(i, n) for i in range(n)]
         self._barrier = {i: 0 for i in range(n)}
+        self._stall = StallWatch(params.run.stall_timeout_s)
         self.history: list[TeamMetrics] = []
 
     def run(self, progress: Callable[[Progress], None] | None = None) -> RunSummary:
@@ -140,7 +142,7 @@ class TeamRunner:
             return f"distance {metrics.distance_m:.0f} m >= {run.max_distance_m:.0f} m"
         if all(agent.finished for agent in self.agents):
             return "every robot finished"
-        return ""
+        return self._stall.update(metrics.stamp_s, metrics.distance_m, metrics.explored_ratio)
 
     def summary(self, wall_s: float, stop_reason: str) -> RunSummary:
         """The run's summary in the shared JSON schema."""
@@ -164,7 +166,10 @@ class TeamRunner:
                 targets=[TargetEntry(float(d.target.position[0]), float(d.target.position[1]),
                                      FRONTIER_TYPE_NAMES[d.target.kind])
                          for d in agent.decisions],
-                decision_times_s=[d.elapsed_s for d in agent.decisions])
+                decision_times_s=[d.elapsed_s for d in agent.decisions],
+                given_up=[GivenUpEntry(float(g.position[0]), float(g.position[1]), g.stamp_s,
+                                       g.reason.value) for g in agent.given_up],
+                blocked_s=agent.blocked_s)
                 for agent in self.agents],
             history=[HistorySample(m.stamp_s, m.distance_m, m.explored_ratio, m.loc_rmse_m,
                                    m.landmark_rmse_m) for m in self.history])
