@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from em_exploration_ros.core.evaluation.stall import EXIT_STALLED, STALLED_PREFIX
+from em_exploration_ros.core.evaluation.run_monitor import EXIT_STALLED, STALLED_PREFIX
 from em_exploration_ros.core.params import ExplorationParams, PlannerParams
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
 from em_exploration_ros.core.sim.team_runner import Progress, TeamRunner
