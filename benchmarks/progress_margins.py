@@ -101,14 +101,17 @@ def main() -> None:
                          [_longest_without_progress(stamps, part[:, 2], m)
                           for m in args.min_progress],
                          _longest_blocked(stamps, part[:, 3], part[:, 4])))
-    print(f"{len(rows)} approaches")
-    for index, margin in enumerate(args.min_progress):
-        values = np.array([r[3][index] for r in rows])
-        print(f"longest time without {margin:g} m closer [s]: max {values.max():.1f}, "
-              f"99th pct {np.percentile(values, 99):.1f}, median {np.median(values):.1f}")
     blocked = np.array([r[4] for r in rows])
-    print(f"approaches with blocked steps: {np.count_nonzero(blocked)}, longest blocked "
-          f"stretch {blocked.max():.1f} s")
+    print(f"{len(rows)} approaches, {np.count_nonzero(blocked)} with blocked steps (longest "
+          f"blocked stretch {blocked.max():.1f} s)")
+    for label, chosen in (("never blocked", blocked == 0), ("blocked", blocked > 0)):
+        if not np.any(chosen):
+            continue
+        for index, margin in enumerate(args.min_progress):
+            values = np.array([r[3][index] for r in rows])[chosen]
+            print(f"{label}: longest time without {margin:g} m closer [s]: max "
+                  f"{values.max():.1f}, 99th pct {np.percentile(values, 99):.1f}, median "
+                  f"{np.median(values):.1f}")
     worst = sorted(rows, key=lambda r: -max(r[3]))[:5]
     for robot, start, length, longest, blocked_s in worst:
         print(f"  robot {robot} from t={start:.1f} s for {length:.1f} s: without progress "
