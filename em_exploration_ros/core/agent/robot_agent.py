@@ -18,10 +18,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType, RendezvousBook,
-                                               candidate_targets, frontier_cells)
+from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType,
+                                                        candidate_targets, frontier_cells)
 from em_exploration_ros.core.geometry import compose
 from em_exploration_ros.core.planning.motion import ApfController
+from em_exploration_ros.core.planning.rendezvous import RendezvousBook
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.planners import PlanningContext, make_planner
