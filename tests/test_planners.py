@@ -13,7 +13,7 @@ from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.planners import (EmPlanner, PlanningContext, allocation_utility,
                                               distance_utility, make_planner, trace_sqrt_sum)
 from em_exploration_ros.core.slam.team_slam import TeamSlam
-from test_uncertainty_propagation import straight, team_slam
+from test_em_step import straight, team_slam
 
 PARAMS = ExplorationParams()
 HIGH_NOISE = (0.1, 0.1, 0.02)      # per-keyframe odometry sigmas [m, m, rad]
