@@ -6,8 +6,8 @@ import pytest
 
 from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType,
                                                         candidate_targets, exploration_frontiers,
-                                                        frontier_cells, nearest_frontier,
-                                                        rendezvous_frontiers, revisiting_frontiers,
+                                                        frontier_cells, rendezvous_frontiers,
+                                                        revisiting_frontiers,
                                                         segment_point_distances)
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import FrontierParams, MapParams
@@ -70,12 +70,11 @@ def test_exploration_frontiers() -> None:
     assert exploration_frontiers(np.zeros((0, 2)), robot, 0.5, params) == []
 
 
-def test_nearest_frontier_tie_break() -> None:
+def test_exploration_frontiers_tie_break_keeps_row_major_order() -> None:
     cells = np.array([[5.0, 1.0], [5.0, 9.0], [1.0, 5.0], [9.0, 5.0]])
-    chosen = nearest_frontier(cells, np.array([5.0, 5.0]))
-    assert chosen is not None
-    np.testing.assert_allclose(chosen.position, [5.0, 1.0])
-    assert nearest_frontier(np.zeros((0, 2)), np.zeros(2)) is None
+    chosen = exploration_frontiers(cells, np.array([5.0, 5.0]), 0.5, FrontierParams())
+    np.testing.assert_allclose([f.position for f in chosen],
+                               [[5.0, 1.0], [5.0, 9.0], [1.0, 5.0], [9.0, 5.0]])
 
 
 def test_segment_point_distances() -> None:

@@ -104,15 +104,6 @@ def exploration_frontiers(cells: np.ndarray, robot_xy: np.ndarray, explored_rati
     return _frontiers_of(points[keep], FrontierType.EXPLORATION)
 
 
-def nearest_frontier(cells: np.ndarray, robot_xy: np.ndarray) -> Frontier | None:
-    """The NF rule: the frontier cell (K, 2) nearest to ``robot_xy`` [m], ties to the first
-    in row-major cell order (lowest y, then lowest x); None without frontier cells."""
-    points, _ = _by_distance(_as_points(cells), robot_xy)
-    if len(points) == 0:
-        return None
-    return Frontier(points[0], FrontierType.EXPLORATION)
-
-
 def segment_point_distances(start: np.ndarray, ends: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Distances (K, M) [m] from points (M, 2) to the segments ``start`` (2,) -> ``ends`` (K, 2)."""
     start = np.asarray(start, dtype=float)[:2]
