@@ -6,23 +6,22 @@ from em_exploration_ros.core.planning.rendezvous import RendezvousBook
 
 
 def test_rendezvous_completes_when_both_arrive() -> None:
-    book = RendezvousBook(goal_tolerance_m=1.0, timeout_s=120.0)
+    book = RendezvousBook(timeout_s=120.0)
     point = np.array([20.0, 10.0])
     meeting = book.request(requester_id=0, partner_id=2, meeting_point=point, time_s=5.0,
                            rendezvous_id=7)
     assert meeting.deadline_s == pytest.approx(125.0)
     np.testing.assert_allclose(book.is_waiting(2), point)
     assert book.is_waiting(0) is None and book.is_waiting(1) is None
-    assert book.report_position(2, np.array([20.5, 10.5]), 30.0) == []
-    assert book.report_position(0, np.array([15.0, 10.0]), 31.0) == []  # not there yet
+    assert book.arrived(2, 30.0) == []
     np.testing.assert_allclose(book.is_waiting(2), point)
-    done = book.report_position(0, np.array([19.2, 10.0]), 40.0)
+    done = book.arrived(0, 40.0)
     assert [m.rendezvous_id for m in done] == [7]
     assert book.is_waiting(2) is None and book.open_meetings() == []
 
 
 def test_requester_waits_after_arriving_first() -> None:
-    book = RendezvousBook(goal_tolerance_m=1.0, timeout_s=120.0)
+    book = RendezvousBook(timeout_s=120.0)
     book.request(1, 0, np.array([5.0, 5.0]), time_s=0.0)
     assert book.arrived(1, time_s=10.0) == []
     np.testing.assert_allclose(book.is_waiting(1), [5.0, 5.0])
@@ -31,7 +30,7 @@ def test_requester_waits_after_arriving_first() -> None:
 
 
 def test_rendezvous_timeout_release_and_replacement() -> None:
-    book = RendezvousBook(goal_tolerance_m=1.0, timeout_s=100.0)
+    book = RendezvousBook(timeout_s=100.0)
     book.request(0, 1, np.array([1.0, 1.0]), time_s=0.0)
     book.request(2, 1, np.array([9.0, 9.0]), time_s=50.0)
     np.testing.assert_allclose(book.is_waiting(1), [1.0, 1.0])  # earliest request wins

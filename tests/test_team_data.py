@@ -51,7 +51,7 @@ def test_inbox_delivers_in_order_and_ignores_duplicates():
     assert not inbox.receive(second)  # duplicate of a buffered update
     assert inbox.pop_ready() == [second, third]
     assert inbox.missing() == []
-    assert inbox.next_expected(1) == 4
+    assert inbox.receive(fourth) and inbox.pop_ready() == [fourth]  # 4 is next
 
 
 def test_inbox_barrier_limits_release_and_reports_known_gaps():

@@ -98,8 +98,7 @@ class RobotAgent:
         self._fallback_planner = make_planner(params, "NF")
         self.controller = ApfController(params.motion, params.world.landmark_radius_m,
                                         params.world.robot_radius_m)
-        self.rendezvous = RendezvousBook(params.motion.goal_tolerance_m,
-                                         params.frontiers.rendezvous_timeout_s)
+        self.rendezvous = RendezvousBook(params.frontiers.rendezvous_timeout_s)
         self.outbox = TeamUpdateOutbox(robot_id)
         self.decisions: list[DecisionRecord] = []
         self.target: Frontier | None = None

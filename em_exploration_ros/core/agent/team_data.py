@@ -262,10 +262,6 @@ class TeamUpdateInbox:
                 gaps.append(MissingRange(robot, first, latest))
         return gaps
 
-    def next_expected(self, robot_id: int) -> int:
-        """The next sequence number expected from ``robot_id``."""
-        return self._streams[robot_id].next_sequence
-
 
 class TeamUpdateOutbox:
     """Numbers this robot's outgoing updates and keeps them for re-sending on request."""

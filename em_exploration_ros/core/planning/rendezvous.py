@@ -54,9 +54,8 @@ class RendezvousBook:
     (``requested_at_s + timeout_s``), or when either robot is released.
     """
 
-    def __init__(self, goal_tolerance_m: float, timeout_s: float) -> None:
-        """Args: arrival distance to the meeting point [m], longest wait after a request [s]."""
-        self.goal_tolerance_m = float(goal_tolerance_m)
+    def __init__(self, timeout_s: float) -> None:
+        """Args: longest wait after a request [s]."""
         self.timeout_s = float(timeout_s)
         self._open: dict[int, _OpenMeeting] = {}
 
@@ -83,17 +82,6 @@ class RendezvousBook:
             if entry.involves(robot_id) and requester_id in (None, key):
                 entry.arrived.add(robot_id)
         return self._close(lambda entry: len(entry.arrived) == 2)
-
-    def report_position(self, robot_id: int, xy: np.ndarray, time_s: float) -> list[Meeting]:
-        """Mark ``robot_id`` arrived at those of its open meetings whose point lies within
-        the goal tolerance of ``xy`` (2,) [m]; returns the meetings completed (closed)."""
-        xy = np.asarray(xy, dtype=float)[:2]
-        completed = []
-        for key, entry in list(self._open.items()):
-            close_enough = np.linalg.norm(entry.meeting.meeting_point - xy) <= self.goal_tolerance_m
-            if entry.involves(robot_id) and close_enough:
-                completed += self.arrived(robot_id, time_s, requester_id=key)
-        return completed
 
     def expire(self, time_s: float) -> list[Meeting]:
         """Close and return the meetings whose deadline is at or before ``time_s``."""
