@@ -5,7 +5,7 @@ import pytest
 
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.params import ExplorationParams, ProgressParams
-from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
+from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType, frontier_cells
 from em_exploration_ros.core.planning.progress import (GivenUpTarget, GiveUpReason,
                                                        ProgressMonitor, RecoveryTurn,
                                                        TargetBlacklist)
@@ -162,3 +162,45 @@ def test_a_blocked_robot_gives_its_target_up_in_the_window_and_never_returns_nea
         stretch = stretch + 1 if blocked else 0
         longest = max(longest, stretch)
     assert 0.2 * longest <= 10.0 + 0.2 + 1e-9
+
+
+def test_when_every_candidate_is_near_a_given_up_target_the_robot_falls_back_or_finishes(
+        caplog):
+    params = ExplorationParams().replace(
+        world={"width_m": 60.0, "height_m": 60.0, "num_robots": 1, "num_landmarks": 0},
+        planner={"name": "NF"}, progress={"blacklist_radius_m": 0.5})
+    agent = RobotAgent(0, params, np.array([8.0, 30.0, 0.0]))
+    odometry = DeadReckoningIntegrator()
+    pose = np.array([8.0, 30.0, 0.0])
+    step = 0
+
+    def run_step():
+        nonlocal pose, step
+        command = agent.step(StepInput(step, step * 0.2, odometry.pose, np.eye(3) * 1e-8))
+        moved = step_pose(pose, command.turn_rad, command.forward_m, params.motion)
+        odometry.add(between(pose, moved))
+        pose, step = moved, step + 1
+        return command
+
+    while agent.explored_ratio <= params.frontiers.all_frontiers_below_ratio:
+        run_step()  # until candidates are only the frontiers near the robot
+    cells = frontier_cells(agent.grid, params.frontiers)
+    for candidate in agent.last_candidates:
+        agent.blacklist.add(GivenUpTarget(candidate.position, step * 0.2, GiveUpReason.BLOCKED))
+    near = {tuple(c.position) for c in agent.last_candidates}
+    agent.target = None  # decide at the next step
+    decisions = len(agent.decisions)
+    run_step()
+    fallback = agent.decisions[-1].target.position
+    assert len(agent.decisions) == decisions + 1 and tuple(fallback) not in near
+    open_cells = [c for c in cells if tuple(c) not in near]
+    nearest = min(open_cells, key=lambda c: np.linalg.norm(c - agent.current_pose()[:2]))
+    assert np.linalg.norm(fallback - nearest) < 1e-9
+
+    for cell in frontier_cells(agent.grid, params.frontiers):
+        agent.blacklist.add(GivenUpTarget(cell, step * 0.2, GiveUpReason.BLOCKED))
+    agent.target = None
+    with caplog.at_level("INFO"):
+        command = run_step()
+    assert command.finished and len(agent.decisions) == decisions + 1
+    assert "finished: no reachable frontier" in caplog.text

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType,
-                                                        candidate_targets, frontier_cells,
-                                                        nearest_frontier)
+                                                        candidate_targets,
+                                                        exploration_frontiers, frontier_cells)
 from em_exploration_ros.core.geometry import compose
 from em_exploration_ros.core.planning.motion import ApfController
 from em_exploration_ros.core.planning.rendezvous import RendezvousBook
@@ -311,10 +311,11 @@ class RobotAgent:
         """Every candidate lies near a given-up target: the nearest frontier cell that does
         not, or finish when there is none."""
         open_cells = cells[~self.blacklist.excludes(cells, self._stamp_s)]
-        target = nearest_frontier(open_cells, pose[:2])
-        if target is None:
+        if len(open_cells) == 0:
             self._finish("no reachable frontier")
             return
+        target = exploration_frontiers(open_cells, pose[:2], self.explored_ratio,
+                                       self.params.frontiers)[0]  # the nearest comes first
         _LOG.info("robot %d: every candidate is near a given-up target; nearest other "
                   "frontier %s", self.robot_id, target.position.tolist())
         distance = float(np.linalg.norm(target.position - pose[:2]))
