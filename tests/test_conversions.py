@@ -12,7 +12,7 @@ from em_exploration_ros.nodes import conversions as conv
 
 PARAMS = ExplorationParams().replace(world={"width_m": 50.0, "height_m": 50.0,
                                             "num_landmarks": 5},
-                                     planner={"name": "NF"}, run={"seed": 4})
+                                     planner={"name": "NEAREST"}, run={"seed": 4})
 
 
 def through_dds(message):

@@ -16,7 +16,7 @@ are retried). Layout of ``--out``::
 summary.json. Examples::
 
     em-bench planners --out benchmarks/results --map-size 100 200 --trials 20 --jobs 2
-    em-bench planners --out /tmp/b --planners NF CE --map-size 40 --landmarks 4 --trials 2
+    em-bench planners --out /tmp/b --planners NEAREST CE --map-size 40 --landmarks 4 --trials 2
 """
 from __future__ import annotations
 
@@ -45,7 +45,8 @@ from em_exploration_ros.core.sim.team_runner import TeamRunner
 from em_exploration_ros.core.evaluation.trial_stats import mean_ci, paired_difference
 from em_exploration_ros.tools import bench_plots
 from em_exploration_ros.tools.latency_bench import add_latency_command
-from em_exploration_ros.tools.sim_cli import PLANNER_NAMES, add_run_arguments, params_from_args
+from em_exploration_ros.tools.sim_cli import (PLANNER_NAMES, PLANNER_TYPE, add_run_arguments,
+                                              params_from_args)
 
 _LOG = logging.getLogger("em-bench")
 
@@ -518,7 +519,7 @@ def build_parser() -> argparse.ArgumentParser:
         "parallel worker processes, resumable; writes CSV, JSON summary, plots, results.md.")
     add_run_arguments(planners)
     _widen_to_lists(planners, ("map_size", "cell_size"))
-    planners.add_argument("--planners", nargs="+", choices=PLANNER_NAMES,
+    planners.add_argument("--planners", nargs="+", type=PLANNER_TYPE, choices=PLANNER_NAMES,
                           help=f"planners to compare (default {' '.join(PAPER_PLANNERS)})")
     planners.add_argument("--trials", type=int, help="trials (seeds) per planner (default 20)")
     planners.add_argument("--seed-start", type=int, help="first seed (default 0)")

@@ -15,7 +15,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from em_exploration_ros.core.params import ExplorationParams, PlannerParams
+from em_exploration_ros.core.params import (ExplorationParams, PlannerParams,
+                                            current_planner_name)
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
 from em_exploration_ros.core.sim.team_runner import Progress, TeamRunner
 
@@ -23,13 +24,16 @@ from em_exploration_ros.core.sim.team_runner import Progress, TeamRunner
 PROGRESS_EVERY_STEPS = 250
 
 PLANNER_NAMES = PlannerParams.__dataclass_fields__["name"].metadata["choices"]
+#: argparse ``type`` of options that name planners: deprecated names map to the new ones.
+PLANNER_TYPE = current_planner_name
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """The options shared by em-sim and the benchmark for one exploration setting."""
     parser.add_argument("--params", type=Path, help="ROS 2 parameter YAML file to start from")
     parser.add_argument("--robots", type=int, help="number of robots (default 3)")
-    parser.add_argument("--planner", choices=PLANNER_NAMES, help="planner (default EM_3)")
+    parser.add_argument("--planner", type=PLANNER_TYPE, choices=PLANNER_NAMES,
+                        help="planner (default EM_3)")
     parser.add_argument("--map-size", type=float, metavar="M",
                         help="side of the square map [m] (default 100)")
     parser.add_argument("--cell-size", type=float, metavar="M",

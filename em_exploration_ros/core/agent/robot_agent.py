@@ -94,7 +94,7 @@ class RobotAgent:
         self.grid = OccupancyGrid(params.world.width_m, params.world.height_m, params.map,
                                   params.sensors.sonar_max_range_m)
         self.planner = make_planner(params)
-        self._fallback_planner = make_planner(params, "NF")
+        self._fallback_planner = make_planner(params, "NEAREST")
         self.controller = ApfController(params.motion, params.world.landmark_radius_m,
                                         params.world.robot_radius_m)
         self.rendezvous = RendezvousBook(params.motion.goal_tolerance_m,
