@@ -98,3 +98,14 @@ def test_upgrade_deprecated_reports_each_replacement():
     assert groups == {"planner": {"name": "NEAREST"}, "world": {"width_m": 5.0}}
     assert len(messages) == 1 and "NEAREST" in messages[0]
     assert upgrade_deprecated({"planner": {"name": "CE"}}) == ({"planner": {"name": "CE"}}, [])
+
+
+def test_removed_parameter_loads_with_a_warning(tmp_path):
+    path = tmp_path / "old.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    planner:\n"
+                    "      allocation_waypoint_spacing_m: 10.0\n      name: CE\n")
+    with pytest.warns(ParameterDeprecationWarning,
+                      match="allocation_waypoint_spacing_m is deprecated and ignored"):
+        params = load_params(path)
+    assert params == ExplorationParams().replace(planner={"name": "CE"})
+    assert "planner.allocation_waypoint_spacing_m" not in params.flat()

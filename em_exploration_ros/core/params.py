@@ -208,8 +208,6 @@ class PlannerParams:
                        choices=("EM_2", "EM_3", "CE", "BSP", "NEAREST"))
     virtual_waypoint_spacing_m: float = _param(
         2.0, "Spacing of virtual waypoints along a candidate path in the EM step [m].", 0.1, 100.0)
-    allocation_waypoint_spacing_m: float = _param(
-        10.0, "Spacing of waypoints used by task allocation [m].", 0.1, 100.0)
     allocation_d_max_m: float = _param(
         30.0, "Task allocation h(d) = 1 - d / d_max below d_max [m].", 0.1, 1000.0)
     allocation_history: int = _param(
@@ -250,7 +248,8 @@ RENAMED_PLANNERS: Mapping[str, str] = MappingProxyType({"NF": "NEAREST"})
 
 #: Parameters that were removed, ``'group.field'`` -> why. A file that still sets one loads
 #: with a deprecation warning; the value is ignored.
-REMOVED_PARAMETERS: Mapping[str, str] = MappingProxyType({})
+REMOVED_PARAMETERS: Mapping[str, str] = MappingProxyType({
+    "planner.allocation_waypoint_spacing_m": "task allocation uses the targets themselves"})
 
 
 class ParameterDeprecationWarning(FutureWarning):
