@@ -250,12 +250,12 @@ class RobotAgent:
         motion = self.params.motion
         self._target_deadline_s = (self._stamp_s + motion.target_timeout_factor * distance
                                    / motion.speed_mps + motion.target_timeout_margin_s)
-        partner = self.robot_id if target.partner_id is None else target.partner_id
+        partner = target.partner_id if target.kind == FrontierType.RENDEZVOUS else None
         record = TargetRecord(self.robot_id, index, self._stamp_s, target.position.copy(),
                               target.kind, partner, utility, elapsed_s)
         self.team_targets[self.robot_id].append(record)
         self._pending.targets.append(record)
-        if target.kind == FrontierType.RENDEZVOUS:
+        if partner is not None:
             self._send_rendezvous(RendezvousState.REQUEST, index, self.robot_id, partner,
                                   target.position)
             self.rendezvous.request(self.robot_id, partner, target.position, self._stamp_s, index)
