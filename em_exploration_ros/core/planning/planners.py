@@ -87,12 +87,13 @@ class CandidateUtility:
 
 @dataclass(frozen=True)
 class Decision:
-    """The chosen target, every candidate's utilities (candidate order) and the wall time
-    of the decision [s]."""
+    """The chosen target, every candidate's utilities (candidate order) and
+    ``choose_time_s``, the wall time of ``Planner.choose`` alone [s] (the robot's whole
+    decision, map rebuild included, is ``DecisionRecord.planning_time_s``)."""
 
     target: Frontier
     utilities: list[CandidateUtility]
-    elapsed_s: float
+    choose_time_s: float
 
 
 class Planner(Protocol):

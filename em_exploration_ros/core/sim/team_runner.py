@@ -146,7 +146,7 @@ class TeamRunner:
         """The run's summary in the shared JSON schema."""
         final = self.history[-1]
         distances = self.evaluator.robot_distances_m
-        times = [d.elapsed_s for agent in self.agents for d in agent.decisions]
+        times = [d.planning_time_s for agent in self.agents for d in agent.decisions]
         world = self.params.world
         return RunSummary(
             seed=self.params.run.seed, planner=self.params.planner.name,
@@ -164,7 +164,7 @@ class TeamRunner:
                 targets=[TargetEntry(float(d.target.position[0]), float(d.target.position[1]),
                                      FRONTIER_TYPE_NAMES[d.target.kind])
                          for d in agent.decisions],
-                decision_times_s=[d.elapsed_s for d in agent.decisions])
+                decision_times_s=[d.planning_time_s for d in agent.decisions])
                 for agent in self.agents],
             history=[HistorySample(m.stamp_s, m.distance_m, m.explored_ratio, m.loc_rmse_m,
                                    m.landmark_rmse_m) for m in self.history])
