@@ -141,11 +141,13 @@ def oracle_agreement(ctx: PlanningContext, count: int) -> tuple[float, float]:
     return worst, float(np.median(oracle_times))
 
 
-def add_latency_command(commands: argparse._SubParsersAction) -> None:
-    """The ``latency`` subcommand of em-bench."""
-    latency = commands.add_parser(
-        "latency", help="planner decision time against the number of poses in the graph",
-        description=__doc__.split("\n\n")[1].replace("\n", " "))
+#: One-line help of the ``latency`` subcommand of em-bench.
+LATENCY_HELP = "planner decision time against the number of poses in the graph"
+
+
+def add_latency_arguments(latency: argparse.ArgumentParser) -> None:
+    """Description, options and handler of ``latency``, the em-bench subcommand's parser."""
+    latency.description = __doc__.split("\n\n")[1].replace("\n", " ")
     latency.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000, 2000],
                          help="numbers of poses in the team graph")
     latency.add_argument("--planners", nargs="+", type=PLANNER_TYPE, choices=PLANNER_NAMES,

@@ -57,7 +57,8 @@ from numpy.typing import ArrayLike, NDArray
 from em_exploration_ros.core.geometry import between, range_bearing
 from em_exploration_ros.core.params import MotionParams, SensorParams
 from em_exploration_ros.core.sim.sensors import LandmarkReading, odometry_covariance_per_step
-from em_exploration_ros.core.slam.team_slam import SlamNoise, TeamSlam, landmark_key, pose_key
+from em_exploration_ros.core.slam.team_slam import (SlamNoise, TeamSlam, is_landmark_key,
+                                                    landmark_key, pose_key)
 
 _LOG = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -65,13 +66,10 @@ T = TypeVar("T")
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-_LANDMARK_CHAR = ord("L")
-
 
 def _key_dim(key: int) -> int:
-    """Tangent dimension of a team-graph variable: 2 for a landmark, 3 for a pose (the
-    symbol character is the key's top byte)."""
-    return 2 if int(key) >> 56 == _LANDMARK_CHAR else 3
+    """Tangent dimension of a team-graph variable: 2 for a landmark, 3 for a pose."""
+    return 2 if is_landmark_key(key) else 3
 
 
 def virtual_waypoints(start_pose: ArrayLike, target_xy: ArrayLike | None,
