@@ -16,7 +16,8 @@ from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReadin
                                              TeammateReading)
 from em_exploration_ros.core.slam.team_slam import (KeyframeBuilder, KeyframeMeasurements,
                                           OdometryAccumulator, SlamNoise, TeamSlam,
-                                          body_to_map_covariance, landmark_key, pose_key)
+                                          body_to_map_covariance, is_landmark_key,
+                                          landmark_key, pose_key)
 from em_exploration_ros.core.sim.world import advance_robot, generate_world, run_seed_sequences
 
 PARAMS = ExplorationParams()
@@ -438,3 +439,9 @@ def test_invalid_robot_ids_are_rejected() -> None:
                                           observes=(0,)))
     with pytest.raises(ValueError):
         TeamSlam(2, 2, PARAMS.slam, poses[(0, 0)])
+
+
+def test_landmark_keys_are_told_from_pose_keys() -> None:
+    assert is_landmark_key(landmark_key(0)) and is_landmark_key(landmark_key(10**6))
+    assert not any(is_landmark_key(pose_key(robot, index))
+                   for robot in range(26) for index in (0, 7, 10**6))

@@ -122,7 +122,7 @@ class TeamRunner:
         """The run's summary in the shared JSON schema (the run monitor's)."""
         decisions = [[DecisionEntry(d.stamp_s, (float(d.target.position[0]),
                                                 float(d.target.position[1])),
-                                    d.target.kind, d.elapsed_s) for d in agent.decisions]
+                                    d.target.kind, d.planning_time_s) for d in agent.decisions]
                      for agent in self.agents]
         progress = [RobotProgressRecord(
             tuple(GivenUpEntry(float(g.position[0]), float(g.position[1]), g.stamp_s,
