@@ -141,7 +141,7 @@ def test_a_blocked_robot_gives_its_target_up_in_the_window_and_never_returns_nea
                 "blacklist_duration_s": 1e9}
     params = ExplorationParams().replace(
         world={"width_m": 60.0, "height_m": 60.0, "num_robots": 1, "num_landmarks": 0},
-        planner={"name": "NF"}, progress=progress)
+        planner={"name": "NEAREST"}, progress=progress)
     agent, trace = blocked_world_run(params, 1500)
     blocked_given_up = [g for g in agent.given_up if g.reason == GiveUpReason.BLOCKED]
     assert blocked_given_up, "the wall never stopped the robot"
@@ -168,7 +168,7 @@ def test_when_every_candidate_is_near_a_given_up_target_the_robot_falls_back_or_
         caplog):
     params = ExplorationParams().replace(
         world={"width_m": 60.0, "height_m": 60.0, "num_robots": 1, "num_landmarks": 0},
-        planner={"name": "NF"}, progress={"blacklist_radius_m": 0.5})
+        planner={"name": "NEAREST"}, progress={"blacklist_radius_m": 0.5})
     agent = RobotAgent(0, params, np.array([8.0, 30.0, 0.0]))
     odometry = DeadReckoningIntegrator()
     pose = np.array([8.0, 30.0, 0.0])

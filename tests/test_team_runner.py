@@ -97,7 +97,7 @@ def test_em_sim_exits_with_status_4_when_the_run_stalls(monkeypatch, tmp_path):
     params = tmp_path / "params.yaml"
     params.write_text("/**:\n  ros__parameters:\n    run:\n      stall_timeout_s: 10.0\n")
     out = tmp_path / "run.json"
-    code = sim_cli.main(["--planner", "NF", "--map-size", "50", "--landmarks", "5", "--seed",
+    code = sim_cli.main(["--planner", "NEAREST", "--map-size", "50", "--landmarks", "5", "--seed",
                          "2", "--params", str(params), "--summary", str(out), "--quiet"])
     assert code == 4
     data = json.loads(out.read_text())
