@@ -12,9 +12,10 @@ and the reference behaviour is an option; the field's description says which is 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 #: Ratio between a 95% error bound and the standard deviation of a Gaussian.
 BOUND_95_TO_SIGMA = 1.96
@@ -262,10 +263,7 @@ class ExplorationParams:
         against each field's type and range.
         """
         groups = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - set(groups))
-        if unknown:
-            raise ValueError(f"unknown parameter group(s): {', '.join(unknown)}; "
-                             f"known: {', '.join(groups)}")
+        _refuse_unknown(values, groups, "parameter group")
         built = {}
         for name, group_field in groups.items():
             default_group = group_field.default_factory()  # type: ignore[misc]
@@ -284,10 +282,7 @@ class ExplorationParams:
     def replace(self, **group_overrides: Mapping[str, Any]) -> "ExplorationParams":
         """A copy with some fields changed: ``params.replace(world={'num_robots': 5})``."""
         groups = {f.name for f in dataclasses.fields(self)}
-        unknown = sorted(set(group_overrides) - groups)
-        if unknown:
-            raise ValueError(f"unknown parameter group(s): {', '.join(unknown)}; "
-                             f"known: {', '.join(sorted(groups))}")
+        _refuse_unknown(group_overrides, groups, "parameter group")
         changed = {name: replace_checked(getattr(self, name), overrides)
                    for name, overrides in group_overrides.items()}
         return dataclasses.replace(self, **changed)
@@ -296,12 +291,24 @@ class ExplorationParams:
 def replace_checked(group: Any, overrides: Mapping[str, Any]) -> Any:
     """Copy of a parameter group with ``overrides`` applied after type and range checks."""
     fields = {f.name: f for f in dataclasses.fields(group)}
-    unknown = sorted(set(overrides) - set(fields))
-    if unknown:
-        raise ValueError(f"unknown parameter(s) in {type(group).__name__}: {', '.join(unknown)}")
+    _refuse_unknown(overrides, fields, f"parameter in {type(group).__name__}")
     checked = {name: _checked_value(type(group).__name__, fields[name], getattr(group, name), value)
                for name, value in overrides.items()}
     return dataclasses.replace(group, **checked)
+
+
+def closest_name_hint(name: str, known: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` for the known name closest to a misspelt ``name``, or ''."""
+    matches = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return f" (did you mean '{matches[0]}'?)" if matches else ""
+
+
+def _refuse_unknown(names: Iterable[str], known: Iterable[str], what: str) -> None:
+    """``ValueError`` for the first of ``names`` not in ``known``, with the closest name."""
+    known = sorted(known)
+    for name in sorted(set(names) - set(known)):
+        raise ValueError(f"unknown {what}: '{name}'{closest_name_hint(name, known)}; "
+                         f"known: {', '.join(known)}")
 
 
 def _checked_value(group_name: str, f: dataclasses.Field, default: Any, value: Any) -> Any:

@@ -1,0 +1,85 @@
+"""What every node does with input it cannot use, and with a publish that fails.
+
+``InputGuard.drop(topic, reason)`` writes one throttled WARN per topic (with the count
+dropped since the previous line); the checks themselves are the ROS-free functions of
+``core.agent.input_checks``. ``header_problem`` and ``float_values`` apply them to any
+message: the header's stamp and frame, and every floating-point number it carries.
+``publish_or_log`` publishes and logs, never raises, when the middleware refuses.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Iterator
+
+import numpy as np
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+
+from em_exploration_ros.core.agent.input_checks import (RejectionLog, frame_problem,
+                                                        stamp_problem)
+
+#: Wall seconds between two log lines about the same topic's dropped input.
+LOG_PERIOD_S = 5.0
+_FLOAT_TYPES = ("double", "float")
+
+
+class InputGuard:
+    """Counts and logs (throttled) the input a node drops, per topic."""
+
+    def __init__(self, node: Node, period_s: float = LOG_PERIOD_S) -> None:
+        self._logger = node.get_logger()
+        self._log = RejectionLog(period_s)
+
+    @property
+    def dropped(self) -> int:
+        """Messages dropped so far."""
+        return self._log.total
+
+    def drop(self, topic: str, reason: str) -> None:
+        """Drop one message of ``topic`` for ``reason``; log it unless throttled."""
+        count = self._log.note(topic, time.monotonic())
+        if count is not None:
+            suffix = f" ({count} dropped on this topic since the last line)" if count > 1 else ""
+            self._logger.warn(f"dropped a message on {topic}: {reason}{suffix}")
+
+    def check(self, topic: str, *problems: str | None) -> bool:
+        """True if every problem is None; otherwise drops the message for the first one."""
+        for problem in problems:
+            if problem:
+                self.drop(topic, problem)
+                return False
+        return True
+
+
+def header_problem(header: Any, frame_id: str) -> str | None:
+    """Reason if a std_msgs/Header has a negative or malformed stamp or another frame."""
+    return (stamp_problem(header.stamp.sec, header.stamp.nanosec)
+            or frame_problem(header.frame_id, frame_id))
+
+
+def float_values(message: Any) -> Iterator[float]:
+    """Every floating-point number in a ROS message, nested messages and arrays included."""
+    for name, kind in message.get_fields_and_field_types().items():
+        value = getattr(message, name)
+        base = kind.split("<", 1)[-1].rstrip(">").split("[", 1)[0]
+        if base in _FLOAT_TYPES:
+            if isinstance(value, float):
+                yield value
+            else:
+                yield from np.asarray(value, dtype=float).ravel().tolist()
+        elif "/" in base:
+            items = value if ("sequence<" in kind or "[" in kind) else (value,)
+            for item in items:
+                yield from float_values(item)
+
+
+def publish_or_log(publisher: Publisher, message: Any, node: Node, what: str) -> bool:
+    """Publish ``message``; if the middleware refuses, log an ERROR and return False."""
+    try:
+        publisher.publish(message)
+    except RCLError as error:
+        node.get_logger().error(f"could not publish {what} on {publisher.topic_name}: {error}",
+                                throttle_duration_sec=LOG_PERIOD_S)
+        return False
+    return True
