@@ -17,15 +17,17 @@ from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 OBSERVER = 2**32 - 1
 
 
-def test_clock_guard_drops_negative_malformed_and_backwards_clocks():
-    guard = ClockGuard()
-    assert guard.check(5, 0) is None
-    assert "negative" in guard.check(-1, 0)
-    assert "nanosec" in guard.check(6, 2**32 - 1)
-    assert "backwards" in guard.check(4, 999_999_999)
-    assert guard.check(5, 0) is None  # the same time again is fine
-    assert guard.check(5, 200_000_000) is None
-    assert "backwards" in guard.check(5, 100_000_000)
+def test_clock_guard_drops_negative_malformed_backwards_and_leaping_clocks():
+    guard = ClockGuard(max_rate=100.0)
+    assert guard.check(5, 0, wall_s=0.0) is None
+    assert "negative" in guard.check(-1, 0, wall_s=0.1)
+    assert "nanosec" in guard.check(6, 2**32 - 1, wall_s=0.1)
+    assert "backwards" in guard.check(4, 999_999_999, wall_s=0.1)
+    assert guard.check(5, 0, wall_s=0.1) is None  # the same time again is fine
+    assert guard.check(5, 200_000_000, wall_s=0.2) is None
+    assert "backwards" in guard.check(5, 100_000_000, wall_s=0.3)
+    assert "leapt" in guard.check(2**31 - 1, 0, wall_s=0.3)
+    assert guard.check(105, 0, wall_s=1.2) is None  # 100 s in one wall second
 
 
 @pytest.mark.parametrize("values, reason", [

@@ -50,7 +50,6 @@ from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, render_
 from em_exploration_ros.core.evaluation.summary import HistorySample, RobotSummary, RunSummary, TargetEntry
 from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, first_problem,
                                                         frame_problem, id_problem,
-                                                        number_problem,
                                                         sequence_entry_problem, size_problem,
                                                         stamp_step_problem, step_problem)
 from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
@@ -67,7 +66,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, landma
                                                   time_to_seconds)
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
-from em_exploration_ros.nodes.input_guard import (InputGuard, float_values, header_problem,
+from em_exploration_ros.nodes.input_guard import (InputGuard, content_problem, header_problem,
                                                   publish_or_log)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
@@ -222,7 +221,7 @@ class EvaluatorNode(Node):
         ids = [lm.landmark_id for lm in message.landmarks]
         if not self.inputs.check(
                 "/world/landmarks", header_problem(message.header, WORLD_FRAME),
-                number_problem(float_values(message), "a number"),
+                content_problem(message),
                 (f"{len(ids)} landmarks, the world has {expected}"
                  if len(ids) != expected else None),
                 (f"landmark ids {sorted(set(ids))[:5]}... are not distinct"
@@ -246,7 +245,7 @@ class EvaluatorNode(Node):
                                       EVALUATOR_STEP_LEAD),
                 "duplicate" if step in self._complete_steps or robot in self._truth.get(
                     step, {}) else None,
-                number_problem(float_values(message), "a number")):
+                content_problem(message)):
             return
         self._last_data_wall_s = time.monotonic()
         poses = self._truth.setdefault(step, {})
@@ -264,7 +263,7 @@ class EvaluatorNode(Node):
                 f"/{robot_namespace(robot)}/estimated_path", problem,
                 header_problem(message.header, MAP_FRAME),
                 size_problem(len(message.poses), keyframes, "poses"),
-                number_problem(float_values(message), "a number")):
+                content_problem(message)):
             return
         self._on_estimate(self.paths, robot, message.header.stamp, path_from_msg(message))
 
@@ -276,7 +275,7 @@ class EvaluatorNode(Node):
                 size_problem(len(message.landmarks), MAX_LANDMARKS_PER_UPDATE, "landmarks"),
                 first_problem(id_problem(lm.landmark_id, None, "landmark id")
                               for lm in message.landmarks),
-                number_problem(float_values(message), "a number")):
+                content_problem(message)):
             return
         self._on_estimate(self.landmark_estimates, robot, message.header.stamp,
                           landmark_positions_from_msg(message))
@@ -289,7 +288,10 @@ class EvaluatorNode(Node):
     def _on_team_update(self, robot: int, message: TeamUpdate) -> None:
         """Targets from the robots' update streams, validated and in sequence order exactly
         as a robot reads them (malformed or impostor records are rejected)."""
+        problem = header_problem(message.header, MAP_FRAME) or content_problem(message)
         try:
+            if problem:
+                raise InvalidTeamUpdate(problem)
             self.team_updates.receive(team_update_from_msg(message), robot)
         except InvalidTeamUpdate as error:
             self.inputs.drop(f"/{robot_namespace(robot)}/team/updates",
@@ -309,7 +311,7 @@ class EvaluatorNode(Node):
                 header_problem(message.header, f"{robot_namespace(robot)}/base_link"), problem,
                 f"stamp of step {step} in a command for step {message.step}"
                 if step != message.step else None,
-                number_problem(float_values(message), "a number"),
+                content_problem(message),
                 sequence_entry_problem(message.team_sequence, 0 if last is None else int(
                     last.team_sequence), MAX_SEQUENCE_LEAD, "team_sequence")):
             return

@@ -2,8 +2,9 @@
 
 ``InputGuard.drop(topic, reason)`` writes one throttled WARN per topic (with the count
 dropped since the previous line); the checks themselves are the ROS-free functions of
-``core.agent.input_checks``. ``header_problem`` and ``float_values`` apply them to any
-message: the header's stamp and frame, and every floating-point number it carries.
+``core.agent.input_checks``. ``header_problem`` and ``content_problem`` apply them to any
+message: the header's stamp and frame; every floating-point number and every time it
+carries.
 ``publish_or_log`` publishes and logs, never raises, when the middleware refuses.
 """
 from __future__ import annotations
@@ -16,8 +17,10 @@ from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 
+from builtin_interfaces.msg import Time
+
 from em_exploration_ros.core.agent.input_checks import (RejectionLog, frame_problem,
-                                                        stamp_problem)
+                                                        number_problem, stamp_problem)
 
 #: Wall seconds between two log lines about the same topic's dropped input.
 LOG_PERIOD_S = 5.0
@@ -58,20 +61,38 @@ def header_problem(header: Any, frame_id: str) -> str | None:
             or frame_problem(header.frame_id, frame_id))
 
 
-def float_values(message: Any) -> Iterator[float]:
-    """Every floating-point number in a ROS message, nested messages and arrays included."""
+def content_problem(message: Any) -> str | None:
+    """Reason if any number of a message (nested ones included) is not finite or
+    implausibly large, or any builtin_interfaces/Time in it is negative or malformed."""
+    floats = []
+    for kind, value in _leaves(message):
+        if kind == "time":
+            problem = stamp_problem(*value)
+            if problem:
+                return problem
+        else:
+            floats.append(value)
+    return number_problem(floats, "a number")
+
+
+def _leaves(message: Any) -> Iterator[tuple[str, Any]]:
+    """("float", value) for every float and ("time", (sec, nanosec)) for every Time."""
+    if isinstance(message, Time):
+        yield "time", (message.sec, message.nanosec)
+        return
     for name, kind in message.get_fields_and_field_types().items():
         value = getattr(message, name)
-        base = kind.split("<", 1)[-1].rstrip(">").split("[", 1)[0]
+        base = kind.split("<", 1)[-1].rstrip(">").split(",")[0].split("[", 1)[0]
         if base in _FLOAT_TYPES:
             if isinstance(value, float):
-                yield value
+                yield "float", value
             else:
-                yield from np.asarray(value, dtype=float).ravel().tolist()
+                for number in np.asarray(value, dtype=float).ravel().tolist():
+                    yield "float", number
         elif "/" in base:
             items = value if ("sequence<" in kind or "[" in kind) else (value,)
             for item in items:
-                yield from float_values(item)
+                yield from _leaves(item)
 
 
 def publish_or_log(publisher: Publisher, message: Any, node: Node, what: str) -> bool:

@@ -33,8 +33,7 @@ from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariance
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, barrier_problem,
                                                         first_problem, frame_problem,
-                                                        landmark_reading_problem,
-                                                        number_problem, request_problem,
+                                                        landmark_reading_problem, request_problem,
                                                         size_problem, stamp_step_problem,
                                                         step_problem)
 from em_exploration_ros.core.agent.resend import ResendScheduler
@@ -55,7 +54,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_m
                                                   teammate_reading_from_msg, time_to_seconds)
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, TEAM_QOS
-from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard, float_values,
+from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard, content_problem,
                                                   header_problem, publish_or_log)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
@@ -141,7 +140,7 @@ class RobotNode(Node):
         p = message.pose
         anchor = np.array([p.position.x, p.position.y, quaternion_to_yaw(p.orientation)])
         if not self.inputs.check("/mission/anchor_pose", header_problem(message.header, MAP_FRAME),
-                                 number_problem(float_values(message), "anchor pose")):
+                                 content_problem(message)):
             return
         self.agent = RobotAgent(self.robot_id, self.params, anchor)
         self.get_logger().info(f"map anchored at robot 0's launch pose {anchor.round(3).tolist()}")
@@ -172,7 +171,7 @@ class RobotNode(Node):
                                 "landmark readings")
                 or size_problem(len(message.teammates), self.num_robots - 1,
                                 "teammate readings")
-                or number_problem(float_values(message), "a number")
+                or content_problem(message)
                 or first_problem(landmark_reading_problem(r.range, r.range_variance,
                                                           r.bearing_variance, r.landmark_id)
                                  for r in message.landmarks)
@@ -190,7 +189,7 @@ class RobotNode(Node):
                 or frame_problem(message.child_frame_id, f"{ns}/base_link", "child_frame_id")
                 or self._sensor_step_problem(step, self._odometry)
                 or stamp_step_problem(stamp_ns, step, self.time_step_s)
-                or number_problem(float_values(message), "a number"))
+                or content_problem(message))
 
     def _on_scan(self, message: SonarScan) -> None:
         if not self.inputs.check(f"/{robot_namespace(self.robot_id)}/sonar",
@@ -209,12 +208,15 @@ class RobotNode(Node):
         self._process_ready_steps()
 
     def _on_team_update(self, sender: int, message: TeamUpdate) -> None:
+        topic = f"/{robot_namespace(sender)}/team/updates"
+        problem = header_problem(message.header, MAP_FRAME) or content_problem(message)
         try:
+            if problem:
+                raise InvalidTeamUpdate(problem)
             self.inbox.receive(team_update_from_msg(message), sender)
         except InvalidTeamUpdate as error:
             self.rejected_updates += 1
-            self.inputs.drop(f"/{robot_namespace(sender)}/team/updates",
-                             f"rejected a team update: {error}")
+            self.inputs.drop(topic, f"rejected a team update: {error}")
             return
         self._process_ready_steps()
 

@@ -8,7 +8,8 @@ negative time ends the node. Nothing checks that the clock goes forward either.
 
 Choice: the node's time source is replaced at construction by ``ValidatedTimeSource``,
 an rclpy ``TimeSource`` whose ``clock_callback`` first asks ``core.agent.input_checks.
-ClockGuard``: a negative, malformed or backwards clock is dropped with a throttled WARN
+ClockGuard``: a negative, malformed or backwards clock (or one that leaps further ahead
+than any simulation runs) is dropped with a throttled WARN
 (``InputGuard``) and the node's ROS clock keeps its last valid time; everything else goes
 to rclpy's own handling, so ``use_sim_time`` set at start or later keeps working. (Keeping
 rclpy's TimeSource and subscribing /clock a second time would not help: its callback would
@@ -17,6 +18,8 @@ still raise.) rclpy creates the time source inside ``Node.__init__`` and offers 
 detaching the original from the node and its parameter callback.
 """
 from __future__ import annotations
+
+import time
 
 from rclpy.node import Node
 from rclpy.time_source import CLOCK_TOPIC, TimeSource
@@ -35,7 +38,7 @@ class ValidatedTimeSource(TimeSource):
         super().__init__(node=node)
 
     def clock_callback(self, msg: Clock) -> None:
-        problem = self._clock_check.check(msg.clock.sec, msg.clock.nanosec)
+        problem = self._clock_check.check(msg.clock.sec, msg.clock.nanosec, time.monotonic())
         if problem:
             self._guard.drop(CLOCK_TOPIC, problem)
             return

@@ -44,8 +44,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from em_exploration_ros.core.agent.input_checks import (command_problem, number_problem,
-                                                        sequence_entry_problem)
+from em_exploration_ros.core.agent.input_checks import command_problem, sequence_entry_problem
 from em_exploration_ros.core.agent.team_data import MAX_SEQUENCE_LEAD
 from em_exploration_ros.core.node_settings import LOCKSTEP, REALTIME, WorldNodeSettings
 from em_exploration_ros.core.params import ExplorationParams
@@ -59,7 +58,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
                                                   yaw_to_quaternion)
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS
-from em_exploration_ros.nodes.input_guard import InputGuard, float_values, header_problem
+from em_exploration_ros.nodes.input_guard import InputGuard, content_problem, header_problem
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
@@ -343,7 +342,7 @@ class WorldNode(Node):
                 or header_problem(message.header, f"{robot_namespace(robot)}/base_link")
                 or command_problem(twist.linear.x, twist.angular.z, motion.speed_mps,
                                    motion.max_turn_per_step_rad, motion.time_step_s)
-                or number_problem(float_values(message), "a number")
+                or content_problem(message)
                 or (f"team_sequence {message.team_sequence} is behind {last_sequence}"
                     if message.team_sequence < last_sequence else None)
                 or sequence_entry_problem(message.team_sequence, last_sequence,

@@ -29,6 +29,9 @@ MAX_STEP_LEAD = 1000
 #: estimates [steps]: it may lag behind a fast lockstep world while it evaluates, and
 #: must never drop a true pose (2000 s of simulation at the paper's 0.2 s step).
 EVALUATOR_STEP_LEAD = 10_000
+#: Fastest plausible simulation clock [simulated s per wall s]: lockstep on a tiny map
+#: runs at a few hundred, the real-time mode at most 1000.
+MAX_SIM_RATE = 10_000.0
 #: Nanoseconds per second, the bound of builtin_interfaces/Time.nanosec.
 _NANOSECONDS_PER_SECOND = 1_000_000_000
 #: Largest relative slack of a motion command over the robot's kinematic limits.
@@ -140,14 +143,20 @@ def command_problem(linear_x: float, angular_z: float, speed_mps: float,
 
 @dataclass
 class ClockGuard:
-    """Accepts a clock only if it is valid and does not go backwards.
+    """Accepts a clock only if it is valid, does not go backwards and does not leap ahead.
 
-    ``check`` returns the reason to drop a /clock sample (negative, malformed, or
-    earlier than the last accepted one) or None and remembers it as the latest."""
+    ``check`` returns the reason to drop a /clock sample (negative, malformed, earlier
+    than the last accepted one, or further ahead of it than ``max_rate`` simulated
+    seconds per wall second allow, plus one second) or None and remembers it. Without the
+    last bound one hostile sample at the year 2038 would make every true one "backwards".
+    """
 
+    max_rate: float = MAX_SIM_RATE
     latest_ns: int = -1
+    latest_wall_s: float = 0.0
 
-    def check(self, sec: int, nanosec: int) -> str | None:
+    def check(self, sec: int, nanosec: int, wall_s: float) -> str | None:
+        """Check a sample received at monotonic wall time ``wall_s`` [s]."""
         problem = stamp_problem(sec, nanosec, "clock")
         if problem:
             return problem
@@ -155,7 +164,12 @@ class ClockGuard:
         if now_ns < self.latest_ns:
             return (f"clock went backwards from {self.latest_ns / 1e9:.3f} s to "
                     f"{now_ns / 1e9:.3f} s")
-        self.latest_ns = now_ns
+        if self.latest_ns >= 0:
+            allowed_s = self.max_rate * max(wall_s - self.latest_wall_s, 0.0) + 1.0
+            if (now_ns - self.latest_ns) / 1e9 > allowed_s:
+                return (f"clock leapt from {self.latest_ns / 1e9:.3f} s to {now_ns / 1e9:.3f} s "
+                        f"in {wall_s - self.latest_wall_s:.3f} wall seconds")
+        self.latest_ns, self.latest_wall_s = now_ns, wall_s
         return None
 
 
