@@ -1,10 +1,12 @@
 """Plausibility checks of received input, the re-send scheduler and the world watch."""
 import math
 
+import numpy as np
 import pytest
 
 from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, ClockGuard,
-                                                        RejectionLog, barrier_problem,
+                                                        RejectionLog, array_problem,
+                                                        barrier_problem,
                                                         command_problem, first_problem,
                                                         frame_problem, id_problem,
                                                         landmark_reading_problem,
@@ -35,7 +37,10 @@ def test_clock_guard_drops_negative_malformed_backwards_and_leaping_clocks():
 ])
 def test_numbers_must_be_finite_and_plausible(values, reason):
     assert reason in number_problem(values, "x")
+    assert reason in array_problem(np.array(values), "x")
     assert number_problem((0.0, -1e8, 3.5), "x") is None
+    assert array_problem(np.array([0.0, -1e8, 3.5]), "x") is None
+    assert array_problem(np.zeros(0), "x") is None
 
 
 def test_stamps_frames_ids_and_sizes():

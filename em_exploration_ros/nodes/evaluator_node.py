@@ -62,11 +62,12 @@ from em_exploration_ros.core.sim.team_runner import FRONTIER_TYPE_NAMES
 from em_exploration_ros.core.sim.wire_model import sim_time_s
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, landmark_positions_from_msg,
                                                   odometry_pose, path_from_msg, robot_namespace,
-                                                  seconds_to_time, team_update_from_msg,
+                                                  seconds_to_time,
                                                   time_to_seconds)
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
-from em_exploration_ros.nodes.input_guard import (InputGuard, content_problem, header_problem,
+from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
+                                                  content_problem, header_problem,
                                                   publish_or_log)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
@@ -262,7 +263,10 @@ class EvaluatorNode(Node):
         if not self.inputs.check(
                 f"/{robot_namespace(robot)}/estimated_path", problem,
                 header_problem(message.header, MAP_FRAME),
+                self._stale_problem(self.paths, robot, message.header.stamp),
                 size_problem(len(message.poses), keyframes, "poses"),
+                first_problem(frame_problem(pose.header.frame_id, MAP_FRAME, "pose frame_id")
+                              for pose in message.poses),
                 content_problem(message)):
             return
         self._on_estimate(self.paths, robot, message.header.stamp, path_from_msg(message))
@@ -272,6 +276,7 @@ class EvaluatorNode(Node):
         if not self.inputs.check(
                 f"/{robot_namespace(robot)}/landmarks", problem,
                 header_problem(message.header, MAP_FRAME),
+                self._stale_problem(self.landmark_estimates, robot, message.header.stamp),
                 size_problem(len(message.landmarks), MAX_LANDMARKS_PER_UPDATE, "landmarks"),
                 first_problem(id_problem(lm.landmark_id, None, "landmark id")
                               for lm in message.landmarks),
@@ -279,6 +284,15 @@ class EvaluatorNode(Node):
             return
         self._on_estimate(self.landmark_estimates, robot, message.header.stamp,
                           landmark_positions_from_msg(message))
+
+    @staticmethod
+    def _stale_problem(history: StampedEstimates, robot: int, stamp: Time) -> str | None:
+        """Reason if an estimate is older than the newest one of the robot (robots publish
+        their estimates in time order)."""
+        newest = history.newest_key(robot)
+        if newest is not None and stamp_key(time_to_seconds(stamp)) < newest:
+            return "older than the robot's last estimate"
+        return None
 
     def _on_estimate(self, history: StampedEstimates, robot: int, stamp: Time,
                      value: Any) -> None:
@@ -288,11 +302,8 @@ class EvaluatorNode(Node):
     def _on_team_update(self, robot: int, message: TeamUpdate) -> None:
         """Targets from the robots' update streams, validated and in sequence order exactly
         as a robot reads them (malformed or impostor records are rejected)."""
-        problem = header_problem(message.header, MAP_FRAME) or content_problem(message)
         try:
-            if problem:
-                raise InvalidTeamUpdate(problem)
-            self.team_updates.receive(team_update_from_msg(message), robot)
+            self.team_updates.receive(checked_team_update(message), robot)
         except InvalidTeamUpdate as error:
             self.inputs.drop(f"/{robot_namespace(robot)}/team/updates",
                              f"rejected a team update: {error}")

@@ -4,7 +4,7 @@
 dropped since the previous line); the checks themselves are the ROS-free functions of
 ``core.agent.input_checks``. ``header_problem`` and ``content_problem`` apply them to any
 message: the header's stamp and frame; every floating-point number and every time it
-carries.
+carries; ``checked_team_update`` adds a team update's array sizes.
 ``publish_or_log`` publishes and logs, never raises, when the middleware refuses.
 """
 from __future__ import annotations
@@ -13,14 +13,15 @@ import time
 from typing import Any, Iterator
 
 import numpy as np
+from builtin_interfaces.msg import Time
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 
-from builtin_interfaces.msg import Time
-
-from em_exploration_ros.core.agent.input_checks import (RejectionLog, frame_problem,
-                                                        number_problem, stamp_problem)
+from em_exploration_ros.core.agent.input_checks import (RejectionLog, array_problem,
+                                                        frame_problem, stamp_problem)
+from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TeamUpdate
+from em_exploration_ros.nodes.conversions import MAP_FRAME, team_update_from_msg
 
 #: Wall seconds between two log lines about the same topic's dropped input.
 LOG_PERIOD_S = 5.0
@@ -63,20 +64,19 @@ def header_problem(header: Any, frame_id: str) -> str | None:
 
 def content_problem(message: Any) -> str | None:
     """Reason if any number of a message (nested ones included) is not finite or
-    implausibly large, or any builtin_interfaces/Time in it is negative or malformed."""
-    floats = []
+    implausibly large, or any builtin_interfaces/Time in it is negative or malformed.
+    Arrays of numbers are checked as arrays, without a Python object per number."""
     for kind, value in _leaves(message):
-        if kind == "time":
-            problem = stamp_problem(*value)
-            if problem:
-                return problem
-        else:
-            floats.append(value)
-    return number_problem(floats, "a number")
+        problem = (stamp_problem(*value) if kind == "time"
+                   else array_problem(value, "a number"))
+        if problem:
+            return problem
+    return None
 
 
 def _leaves(message: Any) -> Iterator[tuple[str, Any]]:
-    """("float", value) for every float and ("time", (sec, nanosec)) for every Time."""
+    """("numbers", array) for every float field or float array and ("time", (sec,
+    nanosec)) for every builtin_interfaces/Time, nested messages included."""
     if isinstance(message, Time):
         yield "time", (message.sec, message.nanosec)
         return
@@ -84,15 +84,26 @@ def _leaves(message: Any) -> Iterator[tuple[str, Any]]:
         value = getattr(message, name)
         base = kind.split("<", 1)[-1].rstrip(">").split(",")[0].split("[", 1)[0]
         if base in _FLOAT_TYPES:
-            if isinstance(value, float):
-                yield "float", value
-            else:
-                for number in np.asarray(value, dtype=float).ravel().tolist():
-                    yield "float", number
+            yield "numbers", np.asarray(value, dtype=float)
         elif "/" in base:
             items = value if ("sequence<" in kind or "[" in kind) else (value,)
             for item in items:
                 yield from _leaves(item)
+
+
+def checked_team_update(message: Any) -> TeamUpdate:
+    """A received em_exploration_msgs/TeamUpdate as core data, after the checks that do
+    not need the receiver's state: header (stamp, frame ``map``), array sizes (before
+    anything is converted), every number and time. ``InvalidTeamUpdate`` says why not;
+    the receiver's inbox then validates the content against the team."""
+    problem = header_problem(message.header, MAP_FRAME)
+    if problem:
+        raise InvalidTeamUpdate(problem)
+    update = team_update_from_msg(message)
+    problem = content_problem(message)
+    if problem:
+        raise InvalidTeamUpdate(problem)
+    return update
 
 
 def publish_or_log(publisher: Publisher, message: Any, node: Node, what: str) -> bool:

@@ -50,11 +50,12 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_m
                                                   odometry_pose, odometry_twist_covariance,
                                                   path_to_msg, quaternion_to_yaw,
                                                   robot_namespace, seconds_to_time,
-                                                  team_update_from_msg, team_update_to_msg,
+                                                  team_update_to_msg,
                                                   teammate_reading_from_msg, time_to_seconds)
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, TEAM_QOS
-from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard, content_problem,
+from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
+                                                  checked_team_update, content_problem,
                                                   header_problem, publish_or_log)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
@@ -209,11 +210,8 @@ class RobotNode(Node):
 
     def _on_team_update(self, sender: int, message: TeamUpdate) -> None:
         topic = f"/{robot_namespace(sender)}/team/updates"
-        problem = header_problem(message.header, MAP_FRAME) or content_problem(message)
         try:
-            if problem:
-                raise InvalidTeamUpdate(problem)
-            self.inbox.receive(team_update_from_msg(message), sender)
+            self.inbox.receive(checked_team_update(message), sender)
         except InvalidTeamUpdate as error:
             self.rejected_updates += 1
             self.inputs.drop(topic, f"rejected a team update: {error}")

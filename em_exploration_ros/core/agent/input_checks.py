@@ -13,6 +13,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence
 
+import numpy as np
+
 from em_exploration_ros.core.sim.wire_model import seconds_to_nanoseconds
 
 #: Largest magnitude of any number in a message (coordinates [m], variances [m^2],
@@ -45,6 +47,19 @@ def number_problem(values: Iterable[float], what: str) -> str | None:
             return f"{what} is not finite ({value})"
         if abs(value) > MAX_ABS_VALUE:
             return f"{what} is implausibly large ({value:g})"
+    return None
+
+
+def array_problem(values: np.ndarray, what: str) -> str | None:
+    """``number_problem`` for an array, vectorized."""
+    values = np.asarray(values, dtype=float)
+    if values.size == 0:
+        return None
+    if not np.all(np.isfinite(values)):
+        return f"{what} is not finite ({values[~np.isfinite(values)].flat[0]})"
+    largest = float(np.max(np.abs(values)))
+    if largest > MAX_ABS_VALUE:
+        return f"{what} is implausibly large ({largest:g})"
     return None
 
 

@@ -119,11 +119,8 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
     if update.sequence < 1:
         raise InvalidTeamUpdate(f"sequence must be >= 1, got {update.sequence}")
     _check_finite(update.stamp_s, "stamp")
-    for items, limit, what in ((update.keyframes, MAX_KEYFRAMES_PER_UPDATE, "keyframes"),
-                               (update.landmarks, MAX_LANDMARKS_PER_UPDATE, "landmarks"),
-                               (update.targets, MAX_TARGETS_PER_UPDATE, "targets"),
-                               (update.rendezvous, MAX_RENDEZVOUS_PER_UPDATE, "rendezvous")):
-        _check_size(len(items), limit, what)
+    check_record_sizes(len(update.keyframes), len(update.landmarks), len(update.targets),
+                       len(update.rendezvous))
     for shared in update.keyframes:
         kf = shared.measurements
         if kf.robot_id != update.robot_id:
@@ -171,6 +168,16 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
             raise InvalidTeamUpdate("rendezvous event sent on behalf of another robot")
         _check_vector(event.meeting_point, 2, "meeting point")
         _check_finite(event.timeout_s, "rendezvous timeout")
+
+
+def check_record_sizes(keyframes: int, landmarks: int, targets: int, rendezvous: int) -> None:
+    """Raise ``InvalidTeamUpdate`` if a record's arrays are longer than plausible (the
+    ``MAX_*_PER_UPDATE`` bounds); cheap, so receivers call it before converting a message."""
+    for size, limit, what in ((keyframes, MAX_KEYFRAMES_PER_UPDATE, "keyframes"),
+                              (landmarks, MAX_LANDMARKS_PER_UPDATE, "landmarks"),
+                              (targets, MAX_TARGETS_PER_UPDATE, "targets"),
+                              (rendezvous, MAX_RENDEZVOUS_PER_UPDATE, "rendezvous")):
+        _check_size(size, limit, what)
 
 
 def _check_robot_id(robot_id: int, num_robots: int, what: str) -> None:
