@@ -10,6 +10,13 @@ for missing ones again (TeamUpdateRequest) while it waits; a teammate silent pas
 ``barrier_timeout_s`` is skipped with a warning. In real-time mode the barrier is empty
 and steps are processed as they come.
 
+Every message is checked before it touches any state (``scan_problem``,
+``odometry_problem``, ``core.agent.input_checks``); unusable ones are dropped with a
+throttled WARN, so the sensor data kept for coming steps stays bounded. Requests for
+re-sends are rate-limited per requester and merged (``core.agent.resend``). A world that
+leaves the ROS graph is logged at once; after ``world_lost_timeout_s`` the robot exits
+with code 4.
+
 Run: ``python -m em_exploration_ros.nodes.robot_node --ros-args -r __ns:=/robot_0
 -p robot_id:=0 -p use_sim_time:=true --params-file config/exploration.yaml``
 """
