@@ -17,7 +17,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from ros_process import NodeProcess, ros_args, wait_until
+from ros_process import NodeProcess, ros_args
 
 WORLD = "em_exploration_ros.nodes.world_node"
 ROBOT = "em_exploration_ros.nodes.robot_node"

@@ -9,7 +9,6 @@ A new setting of a node belongs in its table.
 """
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -97,7 +96,3 @@ def checked_settings(settings_type: type, values: dict[str, Any]) -> Any:
     setting, and for an unknown name the closest valid one."""
     return replace_checked(settings_type(), values)
 
-
-def setting_names(settings_type: type) -> list[str]:
-    """The names of a settings table."""
-    return [f.name for f in dataclasses.fields(settings_type)]
