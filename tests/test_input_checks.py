@@ -9,7 +9,7 @@ from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, ClockGuar
                                                         barrier_problem,
                                                         command_problem, first_problem,
                                                         frame_problem, id_problem,
-                                                        landmark_reading_problem,
+                                                        landmark_reading_problem, reason_kind,
                                                         number_problem, request_problem,
                                                         size_problem, stamp_problem,
                                                         stamp_step_problem, step_problem)
@@ -92,12 +92,22 @@ def test_requests_from_teammates_or_the_observer_with_a_proper_range():
 
 
 def test_rejection_log_throttles_per_key_and_counts_what_it_held_back():
-    log = RejectionLog(period_s=5.0)
+    log = RejectionLog(period_s=5.0, max_keys=3)
     assert log.note("/a", 0.0) == 1
     assert log.note("/a", 1.0) is None and log.note("/a", 2.0) is None
-    assert log.note("/b", 2.0) == 1  # another topic is not held back
+    assert log.note("/b", 2.0) == 1  # another key is not held back
     assert log.note("/a", 5.5) == 3
-    assert log.total == 5
+    assert log.note("/c", 6.0) == 1
+    assert log.note("/d", 6.0) == 1 and log.note("/e", 6.5) is None  # both count as "other"
+    assert log.total == 8
+
+
+def test_reasons_of_one_kind_share_a_key():
+    assert reason_kind("frame_id 'x' is not 'map'") == reason_kind("frame_id '' is not 'map'")
+    assert reason_kind("step 12 is stale (next expected 40)") == reason_kind(
+        "step 7 is stale (next expected 9)")
+    assert reason_kind("twist is not finite (nan)") == reason_kind("twist is not finite (-inf)")
+    assert reason_kind("step 12 is stale") != reason_kind("requester id 3 is not a teammate")
 
 
 def test_resends_are_coalesced_per_requester_and_rate_limited():

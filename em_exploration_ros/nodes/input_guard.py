@@ -1,7 +1,7 @@
 """What every node does with input it cannot use, and with a publish that fails.
 
-``InputGuard.drop(topic, reason)`` writes one throttled WARN per topic (with the count
-dropped since the previous line); the checks themselves are the ROS-free functions of
+``InputGuard.drop(topic, reason)`` writes one throttled WARN per topic and kind of reason
+(with the count dropped since the previous line); the checks themselves are the ROS-free functions of
 ``core.agent.input_checks``. ``header_problem`` and ``content_problem`` apply them to any
 message: the header's stamp and frame; every floating-point number and every time it
 carries; ``checked_team_update`` adds a team update's array sizes.
@@ -19,7 +19,8 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 
 from em_exploration_ros.core.agent.input_checks import (RejectionLog, array_problem,
-                                                        frame_problem, stamp_problem)
+                                                        frame_problem, reason_kind,
+                                                        stamp_problem)
 from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TeamUpdate
 from em_exploration_ros.nodes.conversions import MAP_FRAME, team_update_from_msg
 
@@ -29,7 +30,7 @@ _FLOAT_TYPES = ("double", "float")
 
 
 class InputGuard:
-    """Counts and logs (throttled) the input a node drops, per topic."""
+    """Counts and logs (throttled) the input a node drops, per topic and kind of reason."""
 
     def __init__(self, node: Node, period_s: float = LOG_PERIOD_S) -> None:
         self._logger = node.get_logger()
@@ -41,10 +42,11 @@ class InputGuard:
         return self._log.total
 
     def drop(self, topic: str, reason: str) -> None:
-        """Drop one message of ``topic`` for ``reason``; log it unless throttled."""
-        count = self._log.note(topic, time.monotonic())
+        """Drop one message of ``topic`` for ``reason``; log it unless a line about the same
+        kind of reason on the topic was written less than the period ago."""
+        count = self._log.note(f"{topic} {reason_kind(reason)}", time.monotonic())
         if count is not None:
-            suffix = f" ({count} dropped on this topic since the last line)" if count > 1 else ""
+            suffix = f" ({count} such since the last line)" if count > 1 else ""
             self._logger.warn(f"dropped a message on {topic}: {reason}{suffix}")
 
     def check(self, topic: str, *problems: str | None) -> bool:

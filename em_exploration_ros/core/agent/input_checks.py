@@ -10,6 +10,7 @@ checks know nothing of ROS (plain numbers in, reasons out).
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence
 
@@ -36,6 +37,10 @@ EVALUATOR_STEP_LEAD = 10_000
 MAX_SIM_RATE = 10_000.0
 #: Nanoseconds per second, the bound of builtin_interfaces/Time.nanosec.
 _NANOSECONDS_PER_SECOND = 1_000_000_000
+#: Key under which a RejectionLog counts input once it tells ``max_keys`` keys apart.
+OTHER_KEY = "(other)"
+_QUOTED = re.compile(r"'[^']*'?")
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*(?:e[-+]?\d+)?|nan|inf)", re.IGNORECASE)
 #: Largest relative slack of a motion command over the robot's kinematic limits.
 _COMMAND_SLACK = 1.01
 
@@ -188,12 +193,21 @@ class ClockGuard:
         return None
 
 
+def reason_kind(reason: str) -> str:
+    """A reason with its values blanked (quoted text, numbers), so that reasons of the same
+    kind share one throttled log line: ``frame_id 'x' is not 'map'`` -> ``frame_id _ is not _``."""
+    return _NUMBER.sub("#", _QUOTED.sub("_", reason))[:80]
+
+
 @dataclass
 class RejectionLog:
-    """Throttles the log lines of dropped input: at most one line per ``key`` (e.g. a
-    topic) every ``period_s`` wall seconds, counting what was dropped in between."""
+    """Throttles the log lines of dropped input: at most one line per ``key`` (e.g. topic and
+    reason kind) every ``period_s`` wall seconds, counting what was dropped in between.
+    At most ``max_keys`` keys are told apart (the rest share one), so the log's own memory
+    is bounded whatever the input."""
 
     period_s: float = 5.0
+    max_keys: int = 256
     _last_logged_s: dict[str, float] = field(default_factory=dict)
     _dropped: dict[str, int] = field(default_factory=dict)
     total: int = 0
@@ -201,6 +215,8 @@ class RejectionLog:
     def note(self, key: str, now_s: float) -> int | None:
         """Count one dropped input under ``key`` at monotonic time ``now_s`` [s]; returns
         the number dropped since the last line when a line is due, else None."""
+        if key not in self._last_logged_s and len(self._last_logged_s) >= self.max_keys:
+            key = OTHER_KEY
         self.total += 1
         self._dropped[key] = self._dropped.get(key, 0) + 1
         last = self._last_logged_s.get(key)
