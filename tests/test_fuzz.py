@@ -21,7 +21,7 @@ from ros_process import (RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
 #: Bound of one team run [s] and of the attack [s], and its rate [messages/s].
 RUN_TIMEOUT_S = 180.0
 FUZZ_S = 10.0
-FUZZ_RATE_HZ = 300.0
+FUZZ_RATE_HZ = 150.0
 #: Memory a process may gain under the attack over the same run without it [MB].
 RSS_MARGIN_MB = 50.0
 TEAM = ("--robots", "3", "--map-size", "60", "--landmarks", "6", "--seed", "2",
