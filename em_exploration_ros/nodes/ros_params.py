@@ -12,18 +12,22 @@ A value given at start (parameter file, ``-p``) goes through the checks of
 an out-of-range value is a ``ValueError`` naming the parameter, which ``node_main``
 turns into exit code 2 without a traceback. ``refuse_unknown_overrides`` refuses a
 value given for a parameter the node does not have (a typo), naming the closest one.
+Deprecated names and values (``core.params.upgrade_deprecated``) are accepted with a
+warning on the node's logger: a removed parameter is declared (so a file that sets it is
+no error) and ignored.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Mapping
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 
-from em_exploration_ros.core.params import (ExplorationParams, closest_name_hint,
-                                            replace_checked)
-from em_exploration_ros.core.params_yaml import NODE_SETTINGS_ANYWHERE
+from em_exploration_ros.core.params import (REMOVED_PARAMETERS, ExplorationParams,
+                                            closest_name_hint, replace_checked,
+                                            upgrade_deprecated)
+from em_exploration_ros.core.params_yaml import NODE_SETTINGS_ANYWHERE, nest_dotted
 
 #: Parameters rclpy itself may take from a parameter file besides the declared ones.
 _RCLPY_PREFIXES = ("qos_overrides.",)
@@ -52,17 +56,15 @@ def _overrides(node: Node) -> dict[str, Any]:
             for name, parameter in node._parameter_overrides.items()}  # noqa: SLF001
 
 
-def _declare_table(node: Node, table: Any, prefix: str = "") -> Any:
+def _declare_table(node: Node, table: Any, given: Mapping[str, Any], prefix: str = "") -> Any:
     """Declare every field of the dataclass instance ``table`` as ``<prefix><field>``, the
-    value given at start checked and coerced first; returns ``table`` with those values."""
-    overrides = _overrides(node)
-    for f in dataclasses.fields(table):
-        name = prefix + f.name
-        if name in overrides:
-            try:
-                table = replace_checked(table, {f.name: overrides[name]})
-            except ValueError as error:
-                raise ValueError(f"parameter {name}: {error}") from None
+    values ``given`` at start (by field name) checked and coerced first; returns ``table``
+    with those values."""
+    for name, value in given.items():
+        try:
+            table = replace_checked(table, {name: value})
+        except ValueError as error:
+            raise ValueError(f"parameter {prefix}{name}: {error}") from None
     for f in dataclasses.fields(table):
         name = prefix + f.name
         value = getattr(table, f.name)
@@ -74,16 +76,29 @@ def _declare_table(node: Node, table: Any, prefix: str = "") -> Any:
 
 def declare_exploration_params(node: Node) -> ExplorationParams:
     """Declare every exploration parameter on ``node`` and return their values
-    (``ValueError`` naming the parameter for a value the checks refuse)."""
+    (``ValueError`` naming the parameter for a value the checks refuse). Deprecated
+    parameters are upgraded with a warning on the node's logger."""
     defaults = ExplorationParams()
-    groups = {group.name: _declare_table(node, getattr(defaults, group.name), f"{group.name}.")
+    names = set(defaults.flat()) | set(REMOVED_PARAMETERS)
+    given, messages = upgrade_deprecated(nest_dotted(
+        {name: value for name, value in _overrides(node).items() if name in names}))
+    for message in messages:
+        node.get_logger().warning(message)
+    for name, reason in REMOVED_PARAMETERS.items():
+        descriptor = ParameterDescriptor(name=name, read_only=True, dynamic_typing=True,
+                                         description=f"Deprecated and ignored ({reason}).")
+        node.declare_parameter(name, None, descriptor)
+    groups = {group.name: _declare_table(node, getattr(defaults, group.name),
+                                         given.get(group.name, {}), f"{group.name}.")
               for group in dataclasses.fields(defaults)}
     return dataclasses.replace(defaults, **groups)
 
 
 def declare_node_settings(node: Node, settings_type: type) -> Any:
     """Declare the node's own settings (a table of ``core.node_settings``) and return them."""
-    return _declare_table(node, settings_type())
+    fields = {f.name for f in dataclasses.fields(settings_type)}
+    given = {name: value for name, value in _overrides(node).items() if name in fields}
+    return _declare_table(node, settings_type(), given)
 
 
 def refuse_unknown_overrides(node: Node) -> None:
