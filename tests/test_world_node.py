@@ -30,8 +30,7 @@ from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg,
                                                   teammate_reading_from_msg, time_to_seconds)
 from em_exploration_ros.nodes.qos import (CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
-from em_exploration_ros.nodes.world_node import (STAND_STILL, LockstepBarrier, StepAnswer,
-                                                 final_step)
+from em_exploration_ros.nodes.world_node import final_step
 from ros_process import NodeProcess, ros_args, wait_until
 
 WORLD_MODULE = "em_exploration_ros.nodes.world_node"
@@ -271,32 +270,6 @@ def test_silent_robot_is_stopped_and_the_world_goes_on(tmp_path, team):
         assert "every robot finished or stopped" in world.output()
         assert world.running()
         assert world.stop() == 0
-
-
-def test_lockstep_barrier_bookkeeping():
-    barrier = LockstepBarrier(3, robot_timeout_s=2.0)
-    barrier.open(0, now_s=100.0)
-    go = StepAnswer(1.0, 0.1, 4, False)
-    assert barrier.answer(0, 0, go) == LockstepBarrier.ACCEPTED
-    assert barrier.answer(0, 0, go) == LockstepBarrier.DUPLICATE
-    assert barrier.answer(1, 1, go) == LockstepBarrier.FUTURE
-    assert not barrier.complete and barrier.waiting_for() == [1, 2]
-    assert barrier.expire(101.9) == []
-    assert barrier.answer(1, 0, StepAnswer(0.5, 0.0, 3, True)) == LockstepBarrier.ACCEPTED
-    assert barrier.expire(102.0) == [2]
-    assert barrier.complete
-    assert barrier.close() == [go, StepAnswer(0.5, 0.0, 3, True), STAND_STILL]
-    assert barrier.team_sequences == [4, 3, 0] and barrier.finished == [False, True, False]
-    assert not barrier.all_done
-    barrier.open(1, now_s=200.0)
-    assert barrier.answer(2, 1, go) == LockstepBarrier.IGNORED
-    assert barrier.answer(0, 0, go) == LockstepBarrier.STALE
-    assert barrier.answer(0, 1, StepAnswer(0.0, 0.0, 6, True)) == LockstepBarrier.ACCEPTED
-    assert not barrier.complete  # a finished robot still answers every step
-    assert barrier.answer(1, 1, StepAnswer(0.0, 0.0, 3, True)) == LockstepBarrier.ACCEPTED
-    assert barrier.complete
-    barrier.close()
-    assert barrier.team_sequences == [6, 3, 0] and barrier.all_done
 
 
 def test_final_step_takes_the_earlier_limit():

@@ -48,6 +48,7 @@ from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMet
                                                 stamp_key)
 from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, render_team_map
 from em_exploration_ros.core.evaluation.summary import HistorySample, RobotSummary, RunSummary, TargetEntry
+from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness
 from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TargetRecord, TeamUpdateInbox
 from em_exploration_ros.core.sim.team_runner import FRONTIER_TYPE_NAMES
 from em_exploration_ros.core.sim.wire_model import sim_time_s
@@ -55,6 +56,7 @@ from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_position
                                                   odometry_pose, path_from_msg, robot_namespace,
                                                   seconds_to_time, team_update_from_msg,
                                                   time_to_seconds)
+from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
 from em_exploration_ros.nodes.ros_params import declare_exploration_params, declare_setting
@@ -151,6 +153,8 @@ class EvaluatorNode(Node):
         self._next_progress_s = self.progress_interval_s
         self._first_step_wall_s: float | None = None
         self._last_data_wall_s = time.monotonic()
+        self._started_wall_s = time.monotonic()
+        self.liveness = TeamLiveness(self.num_robots)
         self._create_interfaces()
         self.get_logger().info(
             f"evaluating {self.num_robots} robots every {self.interval_steps} steps; stop at "
@@ -179,6 +183,7 @@ class EvaluatorNode(Node):
                                      lambda m, r=robot: self._on_team_update(r, m), TEAM_QOS)
             self.create_subscription(MotionCommand, f"/{ns}/motion_command",
                                      lambda m, r=robot: self._on_command(r, m), SENSOR_QOS)
+        watch_liveliness(self, list(range(self.num_robots)), self._on_liveliness)
         self.create_timer(_WATCH_PERIOD_S, self._watch,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
@@ -222,11 +227,36 @@ class EvaluatorNode(Node):
             for record in update.targets:
                 self.targets[update.robot_id][record.decision_index] = record
 
+    def _status_times(self) -> tuple[float, float]:
+        """(simulation time of the latest recorded step, wall seconds since the start) [s]."""
+        return (self._stamp_s(max(self.recorded_step, 0)),
+                time.monotonic() - self._started_wall_s)
+
+    def _on_liveliness(self, robot: int, alive: bool) -> None:
+        if alive:
+            if self.liveness.heard(robot, *self._status_times(), "liveliness asserted again"):
+                self.get_logger().info(f"robot {robot} rejoined (liveliness asserted again)")
+        elif self.liveness.lost(robot, *self._status_times(), "liveliness lease expired"):
+            self.get_logger().warn(f"robot {robot} lost: its liveliness lease expired (process "
+                                   f"dead, stopped or wedged)")
+            self._check_all_finished()
+
     def _on_command(self, robot: int, message: MotionCommand) -> None:
         self._last_command[robot] = message
-        if self._all_finished_step is None and all(
-                c is not None and c.finished for c in self._last_command):
-            self._all_finished_step = max(int(c.step) for c in self._last_command)
+        if message.finished:
+            self.liveness.finished(robot, self._stamp_s(int(message.step)),
+                                   time.monotonic() - self._started_wall_s)
+        self._check_all_finished()
+
+    def _check_all_finished(self) -> None:
+        """Every robot that is not lost has reported ``finished`` (at least one has): the
+        run ends at the latest step they answered, as soon as its ground truth is in."""
+        if self._all_finished_step is not None:
+            return
+        present = [c for r, c in enumerate(self._last_command)
+                   if self.liveness.status(r) != LOST]
+        if present and all(c is not None and c.finished for c in present):
+            self._all_finished_step = max(int(c.step) for c in present)
             self._process()
 
     def _watch(self) -> None:
@@ -265,10 +295,13 @@ class EvaluatorNode(Node):
         while self.evaluator is not None and self.exit_code is None:
             if self._pending is None:
                 if not self._complete_steps:
-                    return
+                    if not self._finished_unevaluated():
+                        return
+                    self._pending = (self.recorded_step, time.monotonic())
+                    continue
                 step = self._complete_steps.popleft()
                 self._record_step(step)
-                if step >= self.final_step or step == self._all_finished_step or (
+                if step >= self.final_step or self._finished_by(step) or (
                         step > 0 and step % self.interval_steps == 0):
                     self._pending = (step, time.monotonic())
                 continue
@@ -280,6 +313,16 @@ class EvaluatorNode(Node):
             reason = self._stop_reason(step, self.evaluate(step))
             if reason:
                 self.finish(reason, EXIT_OK)
+
+    def _finished_by(self, step: int) -> bool:
+        return self._all_finished_step is not None and step >= self._all_finished_step
+
+    def _finished_unevaluated(self) -> bool:
+        """Every robot finished at a step already recorded (its ground truth came before
+        the robots' answers) that was not evaluated yet."""
+        return (self._finished_by(self.recorded_step)
+                and (not self.history
+                     or self.history[-1].stamp_s != self._stamp_s(self.recorded_step)))
 
     def _record_step(self, step: int) -> None:
         stamp_s = self._stamp_s(step)
@@ -314,7 +357,7 @@ class EvaluatorNode(Node):
             return f"explored ratio {metrics.explored_ratio:.3f} >= {run.until_explored}"
         if metrics.distance_m >= run.max_distance_m:
             return f"distance {metrics.distance_m:.0f} m >= {run.max_distance_m:.0f} m"
-        if step == self._all_finished_step:
+        if self._finished_by(step):
             return "every robot finished"
         if step >= self.final_step:
             return f"final step {self.final_step} (t = {self._stamp_s(step):g} s) reached"
@@ -398,7 +441,9 @@ class EvaluatorNode(Node):
         summary.robots = [RobotSummary(
             id=robot, distance_m=float(distances[robot]), decisions=len(chosen),
             targets=[_target_entry(t) for t in chosen],
-            decision_times_s=[t.planning_time_s for t in chosen])
+            decision_times_s=[t.planning_time_s for t in chosen],
+            status=self.liveness.status(robot), status_changes=self.liveness.changes(robot),
+            downtime_s=self.liveness.downtime_s(robot, self._stamp_s(max(self.recorded_step, 0))))
             for robot, chosen in enumerate(targets)]
         times = [t.planning_time_s for chosen in targets for t in chosen]
         summary.decisions = len(times)

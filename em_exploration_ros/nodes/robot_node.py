@@ -8,7 +8,16 @@ Lockstep: each SonarScan carries the world's barrier (``team_sequences``). The n
 processes a step only when it holds every teammate's updates up to the barrier, asking
 for missing ones again (TeamUpdateRequest) while it waits; a teammate silent past
 ``barrier_timeout_s`` is skipped with a warning. In real-time mode the barrier is empty
-and steps are processed as they come.
+and steps are processed as they come. A step the world sends again (its barrier repair) is
+answered again with the same command.
+
+Liveliness (``nodes/liveliness.py``): the node offers its own and logs a warning when a
+teammate's is lost. Rejoin: a node whose first step is not step 0 was restarted after a
+crash. It asks its teammates for its own earlier stream (``/team/update_requests`` with
+itself as requester; each teammate re-sends what it holds on ``/robot_<i>/team/history``),
+waits until it holds it up to the sequence number the world's barrier names for it, then
+resumes (``RobotAgent.resume``): its graph, targets and numbering continue where its stream
+left off and its published path holds its whole history.
 
 Run: ``python -m em_exploration_ros.nodes.robot_node --ros-args -r __ns:=/robot_0
 -p robot_id:=0 -p use_sim_time:=true --params-file config/exploration.yaml``
@@ -29,6 +38,8 @@ from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
 from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariances_from_poses
+from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
+                                                  keyframe_ranges)
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
                                                TeamUpdateInbox)
@@ -42,6 +53,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_m
                                                   robot_namespace, seconds_to_time,
                                                   team_update_from_msg, team_update_to_msg,
                                                   teammate_reading_from_msg, time_to_seconds)
+from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, TEAM_QOS
 from em_exploration_ros.nodes.ros_params import declare_exploration_params
@@ -62,6 +74,15 @@ class RobotNode(Node):
         self.request_period_s = self.declare_parameter(
             "request_period_s", 0.5, ParameterDescriptor(
                 description="Wall seconds between two requests for missing team updates.")).value
+        self.rejoin_settle_s = self.declare_parameter(
+            "rejoin_settle_s", 1.0, ParameterDescriptor(
+                description="After a restart: wall seconds to listen for teammates' copies of "
+                "this robot's earlier stream before resuming.", read_only=True)).value
+        self.rejoin_timeout_s = self.declare_parameter(
+            "rejoin_timeout_s", 20.0, ParameterDescriptor(
+                description="After a restart: wall seconds after which the robot resumes with "
+                "what it recovered of its stream, even if records are missing.",
+                read_only=True)).value
         self.params = declare_exploration_params(self)
         self.num_robots = self.params.world.num_robots
         if not 0 <= self.robot_id < self.num_robots:
@@ -69,6 +90,10 @@ class RobotNode(Node):
         self.time_step_s = self.params.motion.time_step_s
         self.agent: RobotAgent | None = None
         self.inbox = TeamUpdateInbox(self.robot_id, self.num_robots)
+        self.archive = StreamArchive(self.robot_id, self.num_robots)
+        self._recovery: OwnHistoryRecovery | None = None
+        self._served_history: dict[int, float] = {}
+        self._last_reply: MotionCommand | None = None
         self.rejected_updates = 0
         self._scans: dict[int, SonarScan] = {}
         self._odometry: dict[int, Odometry] = {}
@@ -100,12 +125,18 @@ class RobotNode(Node):
         self.create_subscription(Odometry, f"/{ns}/odom", self._on_odometry, SENSOR_QOS)
         self.create_subscription(TeamUpdateRequest, "/team/update_requests",
                                  self._on_update_request, TEAM_QOS)
-        for teammate in range(self.num_robots):
-            if teammate != self.robot_id:
-                self.create_subscription(
-                    TeamUpdate, f"/{robot_namespace(teammate)}/team/updates",
-                    lambda message, sender=teammate: self._on_team_update(sender, message),
-                    TEAM_QOS)
+        self.create_subscription(TeamUpdate, f"/{ns}/team/history", self._on_own_history,
+                                 TEAM_QOS)
+        teammates = [r for r in range(self.num_robots) if r != self.robot_id]
+        self.history_pubs = {r: self.create_publisher(
+            TeamUpdate, f"/{robot_namespace(r)}/team/history", TEAM_QOS) for r in teammates}
+        for teammate in teammates:
+            self.create_subscription(
+                TeamUpdate, f"/{robot_namespace(teammate)}/team/updates",
+                lambda message, sender=teammate: self._on_team_update(sender, message),
+                TEAM_QOS)
+        self.alive_pub = offer_liveliness(self, self.robot_id)
+        watch_liveliness(self, teammates, self._on_teammate_liveliness)
         # Wall (steady) time: in lockstep the sim clock stands still while the world waits.
         self.create_timer(0.1, self._maintain, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
@@ -123,9 +154,24 @@ class RobotNode(Node):
         self.get_logger().info(f"map anchored at robot 0's launch pose {anchor.round(3).tolist()}")
         self._process_ready_steps()
 
+    def _on_teammate_liveliness(self, teammate: int, alive: bool) -> None:
+        if alive:
+            self.get_logger().info(f"teammate {teammate}: liveliness asserted")
+        else:
+            self.get_logger().warn(f"teammate {teammate} lost: its liveliness lease expired "
+                                   f"(process dead, stopped or wedged)")
+
+    def _processed(self, step: int) -> bool:
+        return self._next_step is not None and step < self._next_step
+
     def _on_scan(self, message: SonarScan) -> None:
         if message.robot_id != self.robot_id:
             self.get_logger().warn(f"ignored a sonar scan addressed to robot {message.robot_id}")
+            return
+        if self._processed(int(message.step)):
+            # The world sent the step again: our answer did not arrive. Answer again.
+            if self._last_reply is not None and self._last_reply.step == message.step:
+                self.command_pub.publish(self._last_reply)
             return
         if len(message.team_sequences) not in (0, self.num_robots):
             self.get_logger().warn(
@@ -137,6 +183,8 @@ class RobotNode(Node):
 
     def _on_odometry(self, message: Odometry) -> None:
         step = int(round(time_to_seconds(message.header.stamp) / self.time_step_s))
+        if self._processed(step):
+            return
         self._odometry[step] = message
         self._process_ready_steps()
 
@@ -149,7 +197,34 @@ class RobotNode(Node):
             return
         self._process_ready_steps()
 
+    def _on_own_history(self, message: TeamUpdate) -> None:
+        """A teammate's copy of one of this robot's earlier records (after a restart)."""
+        if self._recovery is None:
+            return
+        try:
+            self._recovery.receive(team_update_from_msg(message))
+        except InvalidTeamUpdate as error:
+            self.rejected_updates += 1
+            self.get_logger().warn(f"rejected a relayed record of this robot's history: {error}")
+
+    def _serve_history(self, requester: int) -> None:
+        """Re-send what this robot holds of a restarted teammate's stream (at most once per
+        ``request_period_s`` per teammate)."""
+        now = time.monotonic()
+        if now - self._served_history.get(requester, -float("inf")) < self.request_period_s:
+            return
+        self._served_history[requester] = now
+        held = self.archive.held(requester)
+        for update in held:
+            self.history_pubs[requester].publish(team_update_to_msg(update))
+        self.get_logger().info(f"robot {requester} restarted: re-sent the {len(held)} records "
+                               f"of its stream this robot holds")
+
     def _on_update_request(self, message: TeamUpdateRequest) -> None:
+        asker, owner = int(message.requester_id), int(message.robot_id)
+        if asker == owner and asker in self.history_pubs:
+            self._serve_history(asker)
+            return
         if message.robot_id != self.robot_id or self.agent is None:
             return
         resent = self.agent.outbox.resend(int(message.first_sequence), int(message.last_sequence))
@@ -161,10 +236,18 @@ class RobotNode(Node):
                 f"{message.requester_id}")
 
     def _maintain(self) -> None:
-        """Ask again for missing team updates; give up waiting on silent teammates."""
+        """Ask again for missing team updates (or, after a restart, for this robot's own
+        stream); give up waiting on silent teammates."""
+        now = time.monotonic()
+        if self._recovery is not None:
+            if self._recovery.complete(now):
+                self._process_ready_steps()
+            elif now - self._last_request >= self.request_period_s:
+                self._last_request = now
+                self._request_own_history()
+            return
         if self._waiting_since is None:
             return
-        now = time.monotonic()
         if now - self._last_request >= self.request_period_s:
             self._last_request = now
             for gap in self.inbox.missing(self._barrier):
@@ -182,11 +265,50 @@ class RobotNode(Node):
 
     # -- stepping ------------------------------------------------------------------------
 
+    def _request_own_history(self) -> None:
+        request = TeamUpdateRequest(requester_id=self.robot_id, robot_id=self.robot_id,
+                                    first_sequence=1, last_sequence=0)
+        request.header.stamp = self.get_clock().now().to_msg()
+        self.request_pub.publish(request)
+
+    def _start_recovery(self, scan: SonarScan) -> None:
+        """This process starts in the middle of a run: it was restarted after a crash."""
+        barrier = list(scan.team_sequences)
+        needed = int(barrier[self.robot_id]) if barrier else 0
+        now = time.monotonic()
+        self._recovery = OwnHistoryRecovery(self.robot_id, self.num_robots, needed, now,
+                                            self.rejoin_settle_s, self.rejoin_timeout_s)
+        self.get_logger().warn(
+            f"first step is {scan.step}, not 0: restarted in a running team; asking the "
+            f"teammates for this robot's stream (the team holds it up to sequence {needed})")
+        self._last_request = now
+        self._request_own_history()
+
+    def _resume(self) -> None:
+        recovery, self._recovery = self._recovery, None
+        history = recovery.history()
+        if recovery.short_of:
+            self.get_logger().error(
+                f"resuming without {recovery.short_of} records of this robot's stream (up to "
+                f"sequence {recovery.needed_sequence}): no teammate sent them")
+        self.agent.resume(history)
+        indices, _ = self.agent.slam.trajectory(self.robot_id)
+        span = f"keyframes {int(indices[0])}..{int(indices[-1])}" if len(indices) else "no keyframe"
+        self.get_logger().info(
+            f"rejoined: recovered {len(history)} records of this robot's stream ({span}, "
+            f"{len(self.agent.decisions)} targets); continuing at sequence {len(history) + 1}")
+
     def _process_ready_steps(self, ignore_barrier: bool = False) -> None:
         """Process every step whose sensor data (and barrier) is complete, in order."""
         while self.agent is not None:
             if self._next_step is None and self._scans:
                 self._next_step = min(self._scans)
+                if self._next_step > 0:
+                    self._start_recovery(self._scans[self._next_step])
+            if self._recovery is not None:
+                if not self._recovery.complete(time.monotonic()):
+                    return
+                self._resume()
             step = self._next_step
             if step is None or step not in self._scans or step not in self._odometry:
                 return
@@ -207,7 +329,9 @@ class RobotNode(Node):
         agent = self.agent
         step = int(scan.step)
         stamp_s = sim_time_s(step, self.time_step_s)
-        agent.apply_team_updates(self.inbox.pop_ready(limits))
+        released = self.inbox.pop_ready(limits)
+        agent.apply_team_updates(released)
+        self.archive.keep(released)
         decisions_before = len(agent.decisions)
         command = agent.step(StepInput(
             step, stamp_s, odometry_pose(odometry),
@@ -224,6 +348,7 @@ class RobotNode(Node):
         reply.header = scan.header
         reply.twist.linear.x, reply.twist.angular.z = linear_x, angular_z
         self.command_pub.publish(reply)
+        self._last_reply = reply
         if step % self.params.slam.keyframe_interval_steps == 0:
             self._publish_estimates(stamp_s)
         if len(agent.decisions) != decisions_before:
@@ -269,9 +394,26 @@ class RobotNode(Node):
                                            self.params.world.landmark_radius_m, stamp_s)))
 
 
+    def log_team_graph(self) -> None:
+        """One line with the keyframes of every robot this robot's graph holds."""
+        if self.agent is None:
+            return
+        parts = []
+        for robot in range(self.num_robots):
+            indices, _ = self.agent.slam.trajectory(robot)
+            parts.append(f"robot {robot}: {keyframe_ranges(indices)}")
+        self.get_logger().info("team graph keyframes: " + "; ".join(parts))
+
+
 def main(args: list[str] | None = None) -> int:
     """Entry point of em-robot; returns the exit code (2 for invalid parameters)."""
-    return run_node(RobotNode, "em_robot", args)
+    return run_node(RobotNode, "em_robot", args, wrap_up=_log_graph)
+
+
+def _log_graph(node: RobotNode) -> int:
+    """At the end (Ctrl-C, SIGTERM): what the team graph holds, for the run's logs."""
+    node.log_team_graph()
+    return 0
 
 
 if __name__ == "__main__":
