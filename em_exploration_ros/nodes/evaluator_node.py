@@ -234,8 +234,7 @@ class EvaluatorNode(Node):
 
     def _on_liveliness(self, robot: int, alive: bool) -> None:
         if alive:
-            if self.liveness.heard(robot, *self._status_times(), "liveliness asserted again"):
-                self.get_logger().info(f"robot {robot} rejoined (liveliness asserted again)")
+            self.get_logger().info(f"robot {robot}: liveliness asserted")
         elif self.liveness.lost(robot, *self._status_times(), "liveliness lease expired"):
             self.get_logger().warn(f"robot {robot} lost: its liveliness lease expired (process "
                                    f"dead, stopped or wedged)")
@@ -243,6 +242,9 @@ class EvaluatorNode(Node):
 
     def _on_command(self, robot: int, message: MotionCommand) -> None:
         self._last_command[robot] = message
+        if self.liveness.heard(robot, *self._status_times(), "answers the world again"):
+            self.get_logger().info(f"robot {robot} rejoined: it answers the world again "
+                                   f"(step {message.step})")
         if message.finished:
             self.liveness.finished(robot, self._stamp_s(int(message.step)),
                                    time.monotonic() - self._started_wall_s)

@@ -14,7 +14,7 @@ from typing import Callable
 
 from rclpy.node import Node
 from rclpy.publisher import Publisher
-from rclpy.qos_event import SubscriptionEventCallbacks
+from rclpy.event_handler import SubscriptionEventCallbacks
 from std_msgs.msg import Empty
 
 from em_exploration_ros.nodes.conversions import robot_namespace

@@ -292,11 +292,12 @@ class RobotNode(Node):
                 f"resuming without {recovery.short_of} records of this robot's stream (up to "
                 f"sequence {recovery.needed_sequence}): no teammate sent them")
         self.agent.resume(history)
-        indices, _ = self.agent.slam.trajectory(self.robot_id)
-        span = f"keyframes {int(indices[0])}..{int(indices[-1])}" if len(indices) else "no keyframe"
+        keyframes = np.array([shared.measurements.index for update in history
+                              for shared in update.keyframes], dtype=int)
         self.get_logger().info(
-            f"rejoined: recovered {len(history)} records of this robot's stream ({span}, "
-            f"{len(self.agent.decisions)} targets); continuing at sequence {len(history) + 1}")
+            f"rejoined: recovered {len(history)} records of this robot's stream (keyframes "
+            f"{keyframe_ranges(keyframes)}, {len(self.agent.decisions)} targets); continuing "
+            f"at sequence {len(history) + 1}")
 
     def _process_ready_steps(self, ignore_barrier: bool = False) -> None:
         """Process every step whose sensor data (and barrier) is complete, in order."""
