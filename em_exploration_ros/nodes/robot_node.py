@@ -242,7 +242,7 @@ class RobotNode(Node):
         if self._recovery is not None:
             if self._recovery.complete(now):
                 self._process_ready_steps()
-            elif now - self._last_request >= self.request_period_s:
+            elif self._recovery.short_of and now - self._last_request >= self.request_period_s:
                 self._last_request = now
                 self._request_own_history()
             return
