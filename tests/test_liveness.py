@@ -5,19 +5,28 @@ from em_exploration_ros.core.agent.liveness import (ACTIVE, FINISHED, LOST, REJO
                                                     StatusChange, TeamLiveness)
 
 
-def test_statuses_change_with_times_and_downtime_is_summed():
-    team = TeamLiveness(3)
+def test_a_liveliness_loss_counts_after_the_grace_and_downtime_is_summed():
+    team = TeamLiveness(3, grace_s=4.0)
     assert [team.status(r) for r in range(3)] == [ACTIVE] * 3
-    assert team.heard(0, 1.0, 1.0, "alive") is False          # never lost: no change
-    assert team.lost(1, 10.0, 5.0, "lease expired")
-    assert not team.lost(1, 11.0, 6.0, "lease expired")      # no news
-    assert team.heard(1, 30.0, 15.0, "alive again")
+    assert team.heard(0, 1.0, 1.0, "answers") is False        # never lost: no change
+    team.liveliness_lost(0, 2.0, 2.0)                          # a lossy network ...
+    team.liveliness_back(0)                                    # ... and it is back
+    assert team.confirm(100.0) == [] and team.status(0) == ACTIVE
+
+    team.liveliness_lost(1, 10.0, 5.0)
+    team.liveliness_lost(1, 11.0, 6.0)                         # repeated report: no news
+    assert team.confirm(8.9) == [] and team.status(1) == ACTIVE
+    assert team.confirm(9.0) == [1] and team.status(1) == LOST
+    team.liveliness_back(1)                                    # a restarted process ...
+    assert team.status(1) == LOST                              # ... is lost until it answers
+    assert team.heard(1, 30.0, 15.0, "answers again")
     assert team.status(1) == REJOINED
-    assert team.lost(1, 50.0, 20.0, "lease expired")
+    team.liveliness_lost(1, 50.0, 20.0)
+    assert team.confirm(30.0) == [1]
     assert team.downtime_s(1, until_sim_time_s=70.0) == (30.0 - 10.0) + (70.0 - 50.0)
-    assert team.changes(1) == [StatusChange(LOST, 10.0, 5.0, "lease expired"),
-                               StatusChange(REJOINED, 30.0, 15.0, "alive again"),
-                               StatusChange(LOST, 50.0, 20.0, "lease expired")]
+    assert team.changes(1) == [StatusChange(LOST, 10.0, 5.0, "liveliness lost for 4.0 s"),
+                               StatusChange(REJOINED, 30.0, 15.0, "answers again"),
+                               StatusChange(LOST, 50.0, 20.0, "liveliness lost for 10.0 s")]
     assert team.finished(2, 40.0, 18.0) and team.status(2) == FINISHED
     assert not team.finished(2, 41.0, 19.0)
     assert not team.finished(1, 60.0, 22.0)  # a lost robot's flag is stale news

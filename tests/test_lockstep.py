@@ -72,3 +72,21 @@ def test_stopped_robot_rejoins_when_it_answers_again():
     assert barrier.answer(0, 5, GO, 10.5) == LockstepBarrier.REJOINED
     assert barrier.answer(1, 5, GO, 10.5) == LockstepBarrier.ACCEPTED
     assert barrier.complete and barrier.close() == [GO, GO]
+
+
+def test_suspect_robot_gets_the_short_timeout_until_trusted():
+    barrier = LockstepBarrier(2, robot_timeout_s=30.0, suspect_timeout_s=4.0)
+    barrier.open(0, now_s=0.0)
+    barrier.suspect(1, now_s=2.0)              # liveliness lost while the world waits
+    barrier.answer(0, 0, GO, 2.5)
+    assert barrier.expire(5.9) == []
+    assert barrier.answer(1, 0, GO, 5.9) == LockstepBarrier.ACCEPTED  # it was alive: no harm
+    barrier.close()
+    barrier.open(1, now_s=10.0)                # still suspect: 4 s again
+    assert barrier.expire(13.9) == [] and barrier.expire(14.0) == [1]
+    barrier.trust(1)
+    barrier.answer(1, 1, GO, 15.0)             # rejoins
+    barrier.answer(0, 1, GO, 15.0)
+    barrier.close()
+    barrier.open(2, now_s=20.0)                # trusted again: the long timeout
+    assert barrier.expire(49.9) == [] and barrier.expire(50.0) == [0, 1]

@@ -223,9 +223,11 @@ def test_killed_and_wedged_robots_are_restarted_and_rejoin_without_losing_keyfra
     logs = summary_path.parent / "logs"
     for name in ("world", "evaluator", "robot_0"):
         log = (logs / f"{name}.log").read_text()
-        assert "robot 1 lost" in log or "teammate 1 lost" in log, name
-        assert "robot 2 lost" in log or "teammate 2 lost" in log, name
+        assert "1: liveliness lost" in log and "2: liveliness lost" in log, name
     assert before_crash and before_wedge
+    for name in ("world", "evaluator"):
+        log = (logs / f"{name}.log").read_text()
+        assert "robot 1 lost:" in log and "robot 2 lost:" in log, name
     for robot in range(3):
         log = (logs / f"robot_{robot}.log").read_text()
         assert before_crash <= keyframes_in_graph(log, 1), robot   # 0 keyframes lost

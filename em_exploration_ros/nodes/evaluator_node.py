@@ -154,7 +154,9 @@ class EvaluatorNode(Node):
         self._first_step_wall_s: float | None = None
         self._last_data_wall_s = time.monotonic()
         self._started_wall_s = time.monotonic()
-        self.liveness = TeamLiveness(self.num_robots)
+        self.liveness = TeamLiveness(self.num_robots, declare_setting(
+            self, "liveliness_grace_s", 4.0, "Wall seconds a robot's liveliness must stay lost "
+            "before the robot counts as lost.", 0.0, 1e6))
         self._create_interfaces()
         self.get_logger().info(
             f"evaluating {self.num_robots} robots every {self.interval_steps} steps; stop at "
@@ -234,11 +236,12 @@ class EvaluatorNode(Node):
 
     def _on_liveliness(self, robot: int, alive: bool) -> None:
         if alive:
+            self.liveness.liveliness_back(robot)
             self.get_logger().info(f"robot {robot}: liveliness asserted")
-        elif self.liveness.lost(robot, *self._status_times(), "liveliness lease expired"):
-            self.get_logger().warn(f"robot {robot} lost: its liveliness lease expired (process "
-                                   f"dead, stopped or wedged)")
-            self._check_all_finished()
+            return
+        self.liveness.liveliness_lost(robot, *self._status_times())
+        self.get_logger().warn(f"robot {robot}: liveliness lost (process dead, stopped or "
+                               f"wedged, or its assertions lost on the network)")
 
     def _on_command(self, robot: int, message: MotionCommand) -> None:
         self._last_command[robot] = message
@@ -264,6 +267,10 @@ class EvaluatorNode(Node):
     def _watch(self) -> None:
         if self.exit_code is not None:
             return
+        for robot in self.liveness.confirm(time.monotonic() - self._started_wall_s):
+            self.get_logger().warn(f"robot {robot} lost: no liveliness for "
+                                   f"{self.liveness.grace_s:g} s")
+            self._check_all_finished()
         self._request_missing_updates()
         self._process()
         silent_s = time.monotonic() - self._last_data_wall_s

@@ -158,8 +158,8 @@ class RobotNode(Node):
         if alive:
             self.get_logger().info(f"teammate {teammate}: liveliness asserted")
         else:
-            self.get_logger().warn(f"teammate {teammate} lost: its liveliness lease expired "
-                                   f"(process dead, stopped or wedged)")
+            self.get_logger().warn(f"teammate {teammate}: liveliness lost (process dead, stopped "
+                                   f"or wedged, or its assertions lost on the network)")
 
     def _processed(self, step: int) -> bool:
         return self._next_step is not None and step < self._next_step

@@ -17,8 +17,8 @@ odometry, and the ground truth; it then waits until every live robot has answere
 with a MotionCommand (``core.sim.lockstep.LockstepBarrier``). A robot whose answer is
 missing gets the step's sensor messages again every ``step_resend_s`` (the same messages,
 so a missed start or a lost packet changes nothing); a robot still silent after
-``robot_timeout_s`` wall seconds, or whose liveliness lease expired (``nodes/liveliness.py``),
-is *lost*: the world logs ``robot <i> lost: <why>`` and stops waiting for it (zero motion).
+``robot_timeout_s`` wall seconds (``liveliness_grace_s`` once its liveliness lease expired,
+``nodes/liveliness.py``) is *lost*: the world logs ``robot <i> lost: <why>`` and stops waiting for it (zero motion).
 A lost robot that answers again (recovered, or restarted with the same id) rejoins at the
 pose where its vehicle stopped. The commands are applied in robot id order and the world
 advances: the same order as ``core.sim.team_runner.TeamRunner.step_once``, so em-sim and the
@@ -127,6 +127,11 @@ class WorldNode(Node):
             self, "robot_timeout_s", 30.0, "Lockstep: wall seconds a robot may stay silent on "
             "a step before it is treated as lost (zero motion until it answers again).",
             0.01, 1e6)
+        liveliness_grace_s = declare_setting(
+            self, "liveliness_grace_s", 4.0, "Lockstep: wall seconds a robot whose liveliness "
+            "was reported lost may stay silent on a step before it is treated as lost (a "
+            "live robot answers within this even when a lossy network delayed its "
+            "liveliness).", 0.01, 1e6)
         step_resend_s = declare_setting(
             self, "step_resend_s", 2.0, "Lockstep: wall seconds between re-sends of a step's "
             "sensor messages to a robot whose answer is missing.", 0.01, 1e6)
@@ -152,7 +157,8 @@ class WorldNode(Node):
         self.num_robots = self.params.world.num_robots
         self.final_step = final_step(self.params, max_sim_time_s)
         self.sim = WorldSimulation(self.params)
-        self.barrier = LockstepBarrier(self.num_robots, robot_timeout_s, step_resend_s)
+        self.barrier = LockstepBarrier(self.num_robots, robot_timeout_s, step_resend_s,
+                                       liveliness_grace_s)
         self._step_messages: list[tuple[SonarScan, Odometry] | None] = [None] * self.num_robots
         self._latest = [STAND_STILL] * self.num_robots
         self.running = False
@@ -273,8 +279,9 @@ class WorldNode(Node):
         for robot in self.barrier.due_for_resend(now):
             self._send_step_messages(robot)
         for robot in self.barrier.expire(now):
-            self._log_lost(robot, f"silent for {self.barrier.robot_timeout_s:g} s on step "
-                                  f"{self.barrier.step}")
+            why = ("liveliness lost and silent" if robot in self.barrier.suspects
+                   else f"silent for {self.barrier.robot_timeout_s:g} s")
+            self._log_lost(robot, f"{why} on step {self.barrier.step}")
         self._check_step_complete()
 
     def _log_lost(self, robot: int, why: str) -> None:
@@ -284,15 +291,13 @@ class WorldNode(Node):
 
     def _on_liveliness(self, robot: int, alive: bool) -> None:
         if alive:
+            self.barrier.trust(robot)
             self.get_logger().info(f"robot {robot}: liveliness asserted")
             return
-        if self.running and not self.stepping_over and self.clock_mode == LOCKSTEP:
-            if self.barrier.stop([robot]):
-                self._log_lost(robot, "its liveliness lease expired (process dead, stopped or "
-                                      "wedged)")
-            self._check_step_complete()
-        else:
-            self.get_logger().warn(f"robot {robot}: liveliness lost")
+        self.barrier.suspect(robot, time.monotonic())
+        self.get_logger().warn(
+            f"robot {robot}: liveliness lost (process dead, stopped or wedged, or its "
+            f"assertions lost on the network)")
 
     def _on_command(self, robot: int, message: MotionCommand) -> None:
         if message.robot_id != robot:

@@ -1,11 +1,12 @@
 """Which robots of the team are alive: status per robot with the times it changed.
 
-A robot is ``active`` from the start, ``lost`` when the middleware reports its liveliness
+A robot is ``active`` from the start; ``lost`` when the middleware reported its liveliness
 lost (its process died, was stopped or wedged: its participant no longer asserts
-liveliness within the lease) or when it stayed silent too long, ``rejoined`` when it is
-heard again after being lost, and ``finished`` when it reports that it has nothing left
-to explore. Every change is kept with the simulation time and the wall time (seconds since
-the tracker was made) at which it was noticed, so a run's summary can show downtimes.
+liveliness within the lease) and did not report it back within ``grace_s`` (on a lossy
+network a liveliness assertion can miss its lease while the robot works on); ``rejoined``
+when it is heard again after being lost; ``finished`` when it reports that it has nothing
+left to explore. Every change is kept with the simulation time and the wall time (seconds
+since the caller's start) at which it happened, so a run's summary can show downtimes.
 """
 from __future__ import annotations
 
@@ -27,8 +28,11 @@ class StatusChange:
 class TeamLiveness:
     """Status of every robot of a team (see module docstring); no clock of its own."""
 
-    def __init__(self, num_robots: int) -> None:
+    def __init__(self, num_robots: int, grace_s: float) -> None:
+        """``grace_s``: wall seconds a liveliness loss must last to count as lost."""
+        self.grace_s = grace_s
         self._changes: list[list[StatusChange]] = [[] for _ in range(num_robots)]
+        self._unconfirmed: dict[int, tuple[float, float]] = {}
 
     def status(self, robot: int) -> str:
         """The robot's current status."""
@@ -39,14 +43,30 @@ class TeamLiveness:
         """The robot's status changes in order (empty: active all along)."""
         return list(self._changes[robot])
 
-    def lost(self, robot: int, sim_time_s: float, wall_s: float, reason: str) -> bool:
-        """Mark a robot lost; True if that is news."""
-        if self.status(robot) == LOST:
-            return False
-        return self._change(robot, LOST, sim_time_s, wall_s, reason)
+    def liveliness_lost(self, robot: int, sim_time_s: float, wall_s: float) -> None:
+        """The middleware reported the robot's liveliness lost at these times [s]."""
+        if self.status(robot) != LOST and robot not in self._unconfirmed:
+            self._unconfirmed[robot] = (sim_time_s, wall_s)
+
+    def liveliness_back(self, robot: int) -> None:
+        """The middleware reported the robot's liveliness again: an unconfirmed loss is void
+        (a lost robot rejoins only when ``heard``)."""
+        self._unconfirmed.pop(robot, None)
+
+    def confirm(self, wall_s: float) -> list[int]:
+        """Robots whose liveliness loss has lasted ``grace_s`` at ``wall_s``: now lost (from
+        the time of the loss); returns them."""
+        confirmed = [r for r, (_, since) in sorted(self._unconfirmed.items())
+                     if wall_s - since >= self.grace_s]
+        for robot in confirmed:
+            sim_time_s, since = self._unconfirmed.pop(robot)
+            self._change(robot, LOST, sim_time_s, since,
+                         f"liveliness lost for {wall_s - since:.1f} s")
+        return confirmed
 
     def heard(self, robot: int, sim_time_s: float, wall_s: float, reason: str) -> bool:
         """A robot gave a sign of life: a lost robot has rejoined; True if that is news."""
+        self._unconfirmed.pop(robot, None)
         if self.status(robot) != LOST:
             return False
         return self._change(robot, REJOINED, sim_time_s, wall_s, reason)

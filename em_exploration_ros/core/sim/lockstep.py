@@ -7,9 +7,13 @@ for step k). The barrier repairs itself before it gives up on anyone:
   previous re-send) is due a re-send of the step's sensor data (``due_for_resend``): a
   robot that missed the start or lost a packet answers then; a robot that already
   answered but whose answer was lost answers again;
-- a robot still silent ``robot_timeout_s`` after the step opened for it, or one whose
-  liveliness the middleware reports lost (``stop``), is *stopped*: it stands still and is
-  not waited for, and keeps its last barrier entry;
+- a robot still silent ``robot_timeout_s`` after the step opened for it is *stopped*: it
+  stands still and is not waited for, and keeps its last barrier entry. A robot whose
+  liveliness the middleware reports lost is *suspect* (``suspect``) until it is reported
+  alive again (``trust``): it gets only ``suspect_timeout_s`` to answer. A live robot
+  answers within a second, so a liveliness report lost on a lossy network changes nothing,
+  while a dead or wedged robot is given up after the lease plus ``suspect_timeout_s``
+  instead of ``robot_timeout_s``;
 - a stopped robot that answers again (a wedged process that recovered, or a process
   restarted with the same id) *rejoins*: an answer to the open step is used at once, an
   answer to an earlier step puts it back on the list of robots the open step waits for,
@@ -44,13 +48,16 @@ class LockstepBarrier:
         "accepted", "rejoined", "stale", "duplicate", "future")
 
     def __init__(self, num_robots: int, robot_timeout_s: float,
-                 resend_period_s: float = math.inf) -> None:
+                 resend_period_s: float = math.inf, suspect_timeout_s: float = math.inf) -> None:
         """``robot_timeout_s``: wall seconds a robot may stay silent on a step before it is
-        stopped; ``resend_period_s``: wall seconds between re-sends of a step to a robot
-        whose answer is missing (inf: never)."""
+        stopped (``suspect_timeout_s`` for a suspect robot, if shorter);
+        ``resend_period_s``: wall seconds between re-sends of a step to a robot whose answer
+        is missing (inf: never)."""
         self.num_robots = num_robots
         self.robot_timeout_s = robot_timeout_s
         self.resend_period_s = resend_period_s
+        self.suspect_timeout_s = suspect_timeout_s
+        self.suspects: set[int] = set()
         self.step = -1
         self.stopped: set[int] = set()
         self.finished = [False] * num_robots
@@ -67,8 +74,25 @@ class LockstepBarrier:
             self._arm(robot, now_s)
 
     def _arm(self, robot: int, now_s: float) -> None:
-        self._deadline_s[robot] = now_s + self.robot_timeout_s
+        self._deadline_s[robot] = now_s + self._timeout_s(robot)
         self._next_resend_s[robot] = now_s + self.resend_period_s
+
+    def _timeout_s(self, robot: int) -> float:
+        if robot in self.suspects:
+            return min(self.robot_timeout_s, self.suspect_timeout_s)
+        return self.robot_timeout_s
+
+    def suspect(self, robot: int, now_s: float) -> None:
+        """The robot's liveliness was reported lost at ``now_s``: it has at most
+        ``suspect_timeout_s`` from now to answer the open step (and each later one) until
+        ``trust``."""
+        self.suspects.add(robot)
+        self._deadline_s[robot] = min(self._deadline_s[robot], now_s + self._timeout_s(robot))
+
+    def trust(self, robot: int) -> None:
+        """The robot's liveliness is reported again: from the next step on it gets
+        ``robot_timeout_s`` again."""
+        self.suspects.discard(robot)
 
     def answer(self, robot_id: int, step: int, answer: StepAnswer, now_s: float) -> str:
         """File a robot's answer; returns how it was taken (ACCEPTED, REJOINED or why not).
@@ -112,8 +136,8 @@ class LockstepBarrier:
         return late
 
     def stop(self, robot_ids: list[int]) -> list[int]:
-        """Treat robots as stopped from now on (never connected, liveliness lost); returns
-        those that were live."""
+        """Treat robots as stopped from now on (e.g. never connected); returns those that
+        were live."""
         newly = [r for r in robot_ids if r not in self.stopped]
         self.stopped.update(newly)
         return newly
