@@ -234,10 +234,12 @@ class EvaluatorNode(Node):
         return (self._stamp_s(max(self.recorded_step, 0)),
                 time.monotonic() - self._started_wall_s)
 
-    def _on_liveliness(self, robot: int, alive: bool) -> None:
+    def _on_liveliness(self, robot: int, alive: bool, restarted: bool) -> None:
         if alive:
-            self.liveness.liveliness_back(robot)
-            self.get_logger().info(f"robot {robot}: liveliness asserted")
+            self.get_logger().info(f"robot {robot}: liveliness asserted"
+                                   + (" by a new process (restarted)" if restarted else ""))
+            if self.liveness.liveliness_back(robot, restarted):
+                self.get_logger().warn(f"robot {robot} lost: its process was restarted")
             return
         self.liveness.liveliness_lost(robot, *self._status_times())
         self.get_logger().warn(f"robot {robot}: liveliness lost (process dead, stopped or "

@@ -154,9 +154,10 @@ class RobotNode(Node):
         self.get_logger().info(f"map anchored at robot 0's launch pose {anchor.round(3).tolist()}")
         self._process_ready_steps()
 
-    def _on_teammate_liveliness(self, teammate: int, alive: bool) -> None:
+    def _on_teammate_liveliness(self, teammate: int, alive: bool, restarted: bool) -> None:
         if alive:
-            self.get_logger().info(f"teammate {teammate}: liveliness asserted")
+            self.get_logger().info(f"teammate {teammate}: liveliness asserted"
+                                   + (" by a new process (restarted)" if restarted else ""))
         else:
             self.get_logger().warn(f"teammate {teammate}: liveliness lost (process dead, stopped "
                                    f"or wedged, or its assertions lost on the network)")

@@ -279,9 +279,9 @@ class WorldNode(Node):
         for robot in self.barrier.due_for_resend(now):
             self._send_step_messages(robot)
         for robot in self.barrier.expire(now):
-            why = ("liveliness lost and silent" if robot in self.barrier.suspects
-                   else f"silent for {self.barrier.robot_timeout_s:g} s")
-            self._log_lost(robot, f"{why} on step {self.barrier.step}")
+            self._log_lost(robot, f"no answer to step {self.barrier.step} in time"
+                                  + (" (liveliness lost)" if robot in self.barrier.suspects
+                                     else ""))
         self._check_step_complete()
 
     def _log_lost(self, robot: int, why: str) -> None:
@@ -289,10 +289,11 @@ class WorldNode(Node):
         self.get_logger().warn(f"robot {robot} lost: {why}; the team goes on without it "
                                f"(zero motion) until it answers again")
 
-    def _on_liveliness(self, robot: int, alive: bool) -> None:
+    def _on_liveliness(self, robot: int, alive: bool, restarted: bool) -> None:
         if alive:
             self.barrier.trust(robot)
-            self.get_logger().info(f"robot {robot}: liveliness asserted")
+            self.get_logger().info(f"robot {robot}: liveliness asserted"
+                                   + (" by a new process (restarted)" if restarted else ""))
             return
         self.barrier.suspect(robot, time.monotonic())
         self.get_logger().warn(

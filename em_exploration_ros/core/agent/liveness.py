@@ -48,10 +48,15 @@ class TeamLiveness:
         if self.status(robot) != LOST and robot not in self._unconfirmed:
             self._unconfirmed[robot] = (sim_time_s, wall_s)
 
-    def liveliness_back(self, robot: int) -> None:
-        """The middleware reported the robot's liveliness again: an unconfirmed loss is void
-        (a lost robot rejoins only when ``heard``)."""
-        self._unconfirmed.pop(robot, None)
+    def liveliness_back(self, robot: int, restarted: bool) -> bool:
+        """The middleware reported the robot's liveliness again: an unconfirmed loss is void,
+        unless the liveliness comes from a new process (``restarted``): then the robot was
+        lost from the time of the loss (returns True). A lost robot rejoins only when
+        ``heard``."""
+        unconfirmed = self._unconfirmed.pop(robot, None)
+        if not (restarted and unconfirmed is not None):
+            return False
+        return self._change(robot, LOST, *unconfirmed, "process restarted")
 
     def confirm(self, wall_s: float) -> list[int]:
         """Robots whose liveliness loss has lasted ``grace_s`` at ``wall_s``: now lost (from
