@@ -36,7 +36,8 @@ def test_a_liveliness_loss_counts_after_the_grace_and_downtime_is_summed():
 def test_a_restart_within_the_grace_counts_as_lost_from_the_loss():
     team = TeamLiveness(2, grace_s=4.0)
     team.liveliness_lost(1, 20.0, 8.0)
-    assert team.liveliness_back(1, restarted=True)   # respawned 2 s later
+    assert not team.heard(1, 20.0, 9.0, "answers")   # the new process answered first ...
+    assert team.liveliness_back(1, restarted=True)   # ... its liveliness came 2 s later
     assert team.status(1) == LOST
     assert team.changes(1) == [StatusChange(LOST, 20.0, 8.0, "process restarted")]
     assert team.heard(1, 26.0, 12.0, "answers again") and team.downtime_s(1, 99.0) == 6.0

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Callable, TypeVar
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
@@ -37,6 +38,10 @@ def run_node(make_node: Callable[[], NodeType], logger_name: str,
             rclpy.spin_until_future_complete(node, done)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():
+            raise
+        # A callback published while Ctrl-C / SIGTERM shut the context down: a shutdown.
     except ValueError as error:
         rclpy.logging.get_logger(logger_name).fatal(f"cannot start: {error}")
         return EXIT_BAD_PARAMETERS

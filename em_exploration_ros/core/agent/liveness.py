@@ -71,7 +71,6 @@ class TeamLiveness:
 
     def heard(self, robot: int, sim_time_s: float, wall_s: float, reason: str) -> bool:
         """A robot gave a sign of life: a lost robot has rejoined; True if that is news."""
-        self._unconfirmed.pop(robot, None)
         if self.status(robot) != LOST:
             return False
         return self._change(robot, REJOINED, sim_time_s, wall_s, reason)
