@@ -41,7 +41,6 @@ from nav_msgs.msg import Odometry, Path as PathMsg
 from builtin_interfaces.msg import Time
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
@@ -58,16 +57,12 @@ from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_position
                                                   time_to_seconds)
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
-from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
+from em_exploration_ros.nodes.qos import (ESTIMATE_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS,
+                                          TEAM_QOS)
 from em_exploration_ros.nodes.ros_params import declare_exploration_params, declare_setting
 from em_exploration_ros.nodes.world_node import final_step
 
 EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
-#: Reader side of the robots' latched estimates (LATCHED_QOS writers): the same durability and
-#: reliability, with a queue, so no keyframe's estimate is overwritten before it is filed.
-ESTIMATE_HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
-                                  reliability=ReliabilityPolicy.RELIABLE,
-                                  durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: Wall period of the silence check [s].
 _WATCH_PERIOD_S = 1.0
 
@@ -176,11 +171,11 @@ class EvaluatorNode(Node):
                                      lambda m, r=robot: self._on_truth(r, m), STREAM_QOS)
             self.create_subscription(
                 PathMsg, f"/{ns}/estimated_path", lambda m, r=robot: self._on_estimate(
-                    self.paths, r, m.header.stamp, path_from_msg(m)), ESTIMATE_HISTORY_QOS)
+                    self.paths, r, m.header.stamp, path_from_msg(m)), ESTIMATE_QOS)
             self.create_subscription(
                 LandmarkArray, f"/{ns}/landmarks", lambda m, r=robot: self._on_estimate(
                     self.landmark_estimates, r, m.header.stamp, landmark_positions_from_msg(m)),
-                ESTIMATE_HISTORY_QOS)
+                ESTIMATE_QOS)
             self.create_subscription(TeamUpdate, f"/{ns}/team/updates",
                                      lambda m, r=robot: self._on_team_update(r, m), TEAM_QOS)
             self.create_subscription(MotionCommand, f"/{ns}/motion_command",

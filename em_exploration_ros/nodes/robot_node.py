@@ -55,7 +55,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_m
                                                   teammate_reading_from_msg, time_to_seconds)
 from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
-from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, TEAM_QOS
+from em_exploration_ros.nodes.qos import ESTIMATE_QOS, LATCHED_QOS, SENSOR_QOS, TEAM_QOS
 from em_exploration_ros.nodes.ros_params import declare_exploration_params
 
 
@@ -113,9 +113,9 @@ class RobotNode(Node):
         self.update_pub = self.create_publisher(TeamUpdate, f"/{ns}/team/updates", TEAM_QOS)
         self.request_pub = self.create_publisher(TeamUpdateRequest, "/team/update_requests",
                                                  TEAM_QOS)
-        self.path_pub = self.create_publisher(Path, f"/{ns}/estimated_path", LATCHED_QOS)
+        self.path_pub = self.create_publisher(Path, f"/{ns}/estimated_path", ESTIMATE_QOS)
         self.landmarks_pub = self.create_publisher(LandmarkArray, f"/{ns}/landmarks",
-                                                   LATCHED_QOS)
+                                                   ESTIMATE_QOS)
         self.grid_pub = self.create_publisher(OccupancyGrid, f"/{ns}/virtual_map", LATCHED_QOS)
         self.markers_pub = self.create_publisher(MarkerArray, f"/{ns}/markers", LATCHED_QOS)
         self.target_pub = self.create_publisher(PointStamped, f"/{ns}/target", LATCHED_QOS)
