@@ -31,7 +31,6 @@ from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg,
                                                   teammate_reading_from_msg, time_to_seconds)
 from em_exploration_ros.nodes.qos import (CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
-from em_exploration_ros.nodes.world_node import final_step
 from ros_process import NodeProcess, ros_args, wait_until
 
 WORLD_MODULE = "em_exploration_ros.nodes.world_node"
@@ -287,11 +286,3 @@ def test_silent_robot_gets_the_step_again_is_lost_and_rejoins(tmp_path, team):
         assert "every robot finished or stopped" in world.output()
         assert world.running()
         assert world.stop() == 0
-
-
-def test_final_step_takes_the_earlier_limit():
-    params = ExplorationParams().replace(run={"max_steps": 50})
-    assert final_step(params, 0.0) == 50
-    assert final_step(params, 3.0) == 15
-    assert final_step(params, 3.1) == 15
-    assert final_step(params, 100.0) == 50
