@@ -460,11 +460,11 @@ class EvaluatorNode(Node):
         wall_s = (0.0 if self._first_step_wall_s is None
                   else time.monotonic() - self._first_step_wall_s)
         summary = self.monitor.summary(self._decisions(), wall_s)
-        until_s = self._stamp_s(max(self.recorded_step, 0))
+        until_s = self._status_times()
         for entry in summary.robots:
             entry.status = self.liveness.status(entry.id)
             entry.status_changes = self.liveness.changes(entry.id)
-            entry.downtime_s = self.liveness.downtime_s(entry.id, until_s)
+            entry.downtime_s, entry.downtime_wall_s = self.liveness.downtime_s(entry.id, *until_s)
         return summary
 
     def map_layers(self, title: str) -> TeamMapLayers:

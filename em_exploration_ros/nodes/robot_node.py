@@ -395,7 +395,6 @@ class RobotNode(Node):
             visualization.landmark_markers(slam.landmark_estimates(),
                                            self.params.world.landmark_radius_m, stamp_s)))
 
-
     def log_team_graph(self) -> None:
         """One line with the keyframes of every robot this robot's graph holds."""
         if self.agent is None:

@@ -81,17 +81,23 @@ class TeamLiveness:
             return False
         return self._change(robot, FINISHED, sim_time_s, wall_s, "reported finished")
 
-    def downtime_s(self, robot: int, until_sim_time_s: float) -> float:
-        """Simulation seconds the robot spent lost up to ``until_sim_time_s``."""
+    def downtime_s(self, robot: int, until_sim_time_s: float, until_wall_s: float
+                   ) -> tuple[float, float]:
+        """(simulation, wall) seconds the robot spent lost up to the given times [s]. The
+        simulated downtime is 0 when the world waited for the robot."""
+        return (self._lost_for(robot, "sim_time_s", until_sim_time_s),
+                self._lost_for(robot, "wall_s", until_wall_s))
+
+    def _lost_for(self, robot: int, clock: str, until_s: float) -> float:
         total, lost_since = 0.0, None
         for change in self._changes[robot]:
             if change.status == LOST and lost_since is None:
-                lost_since = change.sim_time_s
+                lost_since = getattr(change, clock)
             elif change.status != LOST and lost_since is not None:
-                total += change.sim_time_s - lost_since
+                total += getattr(change, clock) - lost_since
                 lost_since = None
         if lost_since is not None:
-            total += max(until_sim_time_s - lost_since, 0.0)
+            total += max(until_s - lost_since, 0.0)
         return total
 
     def _change(self, robot: int, status: str, sim_time_s: float, wall_s: float,

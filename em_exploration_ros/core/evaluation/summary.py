@@ -6,7 +6,8 @@ Top-level keys (units in the names): ``explored_ratio``, ``distance_m`` (all rob
 ``distance_m``, ``decisions``, ``targets`` (in order: ``x``, ``y`` [m, map frame],
 ``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``, ``status``
 (active / finished / lost / rejoined at the end), ``status_changes`` (``status``,
-``sim_time_s``, ``wall_s``, ``reason``) and ``downtime_s`` (simulated seconds lost)), plus ``seed``,
+``sim_time_s``, ``wall_s``, ``reason``), ``downtime_s`` and ``downtime_wall_s`` (simulated and
+wall seconds lost)), plus ``seed``,
 ``planner``, ``num_robots``, ``map_size_m``, ``num_landmarks``, ``stop_reason`` and
 ``history``: samples of the metrics against distance travelled.
 """
@@ -48,6 +49,7 @@ class RobotSummary:
     status: str = ACTIVE
     status_changes: list[StatusChange] = field(default_factory=list)
     downtime_s: float = 0.0
+    downtime_wall_s: float = 0.0
 
 
 @dataclass
