@@ -103,7 +103,7 @@ def test_restarted_agent_resumes_its_stream_graph_and_odometry():
     new.step(step_input(sim.sense(1), PARAMS.motion.time_step_s))
     update = new.take_outgoing()
     assert update.sequence == old.outbox.last_sequence + 1
-    keyframe = update.keyframes[0].measurements
+    keyframe = update.keyframes[0]
     assert not keyframe.is_first and keyframe.previous_index == int(old_indices[-1])
     assert keyframe.index == sim.step // interval
     assert np.linalg.norm(new.current_pose()[:2] - sim.true_pose(1)[:2]) < 1.0

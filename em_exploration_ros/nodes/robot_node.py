@@ -293,8 +293,8 @@ class RobotNode(Node):
                 f"resuming without {recovery.short_of} records of this robot's stream (up to "
                 f"sequence {recovery.needed_sequence}): no teammate sent them")
         self.agent.resume(history)
-        keyframes = np.array([shared.measurements.index for update in history
-                              for shared in update.keyframes], dtype=int)
+        keyframes = np.array([keyframe.index for update in history
+                              for keyframe in update.keyframes], dtype=int)
         self.get_logger().info(
             f"rejoined: recovered {len(history)} records of this robot's stream (keyframes "
             f"{keyframe_ranges(keyframes)}, {len(self.agent.decisions)} targets); continuing "
