@@ -399,6 +399,13 @@ class TeamSlam:
         self._graph = _TeamGraph(num_robots, self.noise, anchor_pose)
         self._isam = gtsam.ISAM2(_isam_params(slam_params))
         self._estimate = gtsam.Values()
+        #: Landmark positions (L, 2) extracted from ``_estimate``, None until asked for
+        #: after the estimate changed (extracting scans every variable of the graph).
+        self._landmark_points: np.ndarray | None = None
+
+    def _set_estimate(self, estimate: gtsam.Values) -> None:
+        self._estimate = estimate
+        self._landmark_points = None
 
     # -- input -------------------------------------------------------------------------
 
@@ -422,7 +429,7 @@ class TeamSlam:
             if result.getVariablesRelinearized() == 0:
                 break
             result = self._isam.update()
-        self._estimate = self._isam.calculateEstimate()
+        self._set_estimate(self._isam.calculateEstimate())
         return added
 
     def converge(self, tolerance: float = 1e-9, max_iterations: int = 50) -> int:
@@ -445,7 +452,7 @@ class TeamSlam:
                     or largest_step >= previous_step):
                 break
             previous_step = largest_step
-        self._estimate = self._isam.calculateEstimate()
+        self._set_estimate(self._isam.calculateEstimate())
         return iterations
 
     # -- graph access (EM planner) ----------------------------------------------------
@@ -509,7 +516,10 @@ class TeamSlam:
 
     def landmark_estimates(self) -> dict[int, np.ndarray]:
         """Map-frame position ``(2,)`` [m] of every landmark in the graph, by id."""
-        points = gtsam.utilities.extractPoint2(self._estimate)
+        if self._landmark_points is None:
+            self._landmark_points = gtsam.utilities.extractPoint2(self._estimate)
+            self._landmark_points.setflags(write=False)
+        points = self._landmark_points
         return {landmark_id: points[row] for row, landmark_id in
                 enumerate(self._graph.landmark_ids)}
 
