@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
-from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid, predicted_observed_mask
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid, observation_counts
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.planners import (EmPlanner, PlanningContext, allocation_utility,
                                               distance_utility, make_planner, trace_sqrt_sum)
 from em_exploration_ros.core.slam.team_slam import TeamSlam
-from test_uncertainty_propagation import straight, team_slam
+from test_em_step import straight, team_slam
 
 PARAMS = ExplorationParams()
 HIGH_NOISE = (0.1, 0.1, 0.02)      # per-keyframe odometry sigmas [m, m, rad]
@@ -155,10 +155,10 @@ def test_u_m_counts_cells_explored_in_both_maps_or_all_cells_for_the_reference()
     assert abs(paper[1] - paper[0]) < 0.05 * paper[0]
     geometry = ctx.grid.geometry
     history = ctx.slam.trajectory(0)[1]
-    seen = predicted_observed_mask(geometry, history, 7.5)
+    seen = observation_counts(geometry, history, 7.5) > 0
     assert reference[0] == pytest.approx(2.88 * np.count_nonzero(~seen) + paper[0], rel=0.02)
     path = np.array([[22.0, 70.0 + d, np.pi / 2] for d in (2.0, 4.0, 6.0, 7.0)])
-    newly_seen = np.count_nonzero(predicted_observed_mask(geometry, path, 7.5) & ~seen)
+    newly_seen = np.count_nonzero((observation_counts(geometry, path, 7.5) > 0) & ~seen)
     assert reference[0] - reference[1] > 2.88 * newly_seen - 5.0
 
 

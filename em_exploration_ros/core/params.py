@@ -265,23 +265,6 @@ class ExplorationParams:
     planner: PlannerParams = field(default_factory=PlannerParams)
     run: RunParams = field(default_factory=RunParams)
 
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Mapping[str, Any]]) -> "ExplorationParams":
-        """Build parameters from nested ``{group: {field: value}}`` data (e.g. parsed YAML).
-
-        Unknown groups or fields raise ``ValueError`` naming them; values are checked
-        against each field's type and range.
-        """
-        groups = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - set(groups))
-        if unknown:
-            raise ValueError(f"unknown parameter group(s): {', '.join(unknown)}; "
-                             f"known: {', '.join(groups)}")
-        built = {}
-        for name, group_field in groups.items():
-            default_group = group_field.default_factory()  # type: ignore[misc]
-            built[name] = replace_checked(default_group, values.get(name, {}))
-        return cls(**built)
 
     def flat(self) -> dict[str, Any]:
         """All parameters as ``{'group.field': value}``, the ROS parameter names."""

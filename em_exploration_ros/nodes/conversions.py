@@ -21,7 +21,7 @@ from em_exploration_ros.core.sim.wire_model import (NANOSECONDS_PER_SECOND,
                                                 planar_yaw, seconds_to_nanoseconds)
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
                                                RendezvousEvent, RendezvousState,
-                                               SharedKeyframe, TargetRecord, TeamUpdate)
+                                               TargetRecord, TeamUpdate)
 
 MAP_FRAME = "map"
 WORLD_FRAME = "world"
@@ -137,24 +137,20 @@ def odometry_twist_covariance(message: Odometry) -> np.ndarray:
 
 # -- team data (robot <-> robot) ----------------------------------------------------------
 
-def _keyframe_to_msg(shared: SharedKeyframe) -> em_msg.Keyframe:
-    kf = shared.measurements
+def _keyframe_to_msg(kf: KeyframeMeasurements) -> em_msg.Keyframe:
     message = em_msg.Keyframe(
         robot_id=kf.robot_id, index=kf.index, is_first=kf.is_first,
         previous_index=max(kf.previous_index, 0),
         odom_x=float(kf.odom_delta[0]), odom_y=float(kf.odom_delta[1]),
         odom_theta=float(kf.odom_delta[2]), odom_covariance=_flat(kf.odom_covariance),
         landmarks=[landmark_reading_to_msg(r) for r in kf.landmarks],
-        teammates=[teammate_reading_to_msg(r) for r in kf.teammates],
-        estimate_x=float(shared.estimate[0]), estimate_y=float(shared.estimate[1]),
-        estimate_theta=float(shared.estimate[2]),
-        estimate_covariance=_flat(shared.estimate_covariance))
+        teammates=[teammate_reading_to_msg(r) for r in kf.teammates])
     message.stamp = seconds_to_time(kf.stamp_s)
     return message
 
 
-def _keyframe_from_msg(message: em_msg.Keyframe) -> SharedKeyframe:
-    kf = KeyframeMeasurements(
+def _keyframe_from_msg(message: em_msg.Keyframe) -> KeyframeMeasurements:
+    return KeyframeMeasurements(
         robot_id=int(message.robot_id), index=int(message.index),
         stamp_s=time_to_seconds(message.stamp), is_first=bool(message.is_first),
         previous_index=-1 if message.is_first else int(message.previous_index),
@@ -162,9 +158,6 @@ def _keyframe_from_msg(message: em_msg.Keyframe) -> SharedKeyframe:
         odom_covariance=_matrix(message.odom_covariance, 3),
         landmarks=tuple(landmark_reading_from_msg(r) for r in message.landmarks),
         teammates=tuple(teammate_reading_from_msg(r) for r in message.teammates))
-    return SharedKeyframe(kf, np.array([message.estimate_x, message.estimate_y,
-                                        message.estimate_theta]),
-                          _matrix(message.estimate_covariance, 3))
 
 
 def landmark_estimate_to_msg(landmark: LandmarkEstimate) -> em_msg.LandmarkEstimate:

@@ -30,8 +30,9 @@ from em_exploration_ros.core.planning.planners import PlanningContext, make_plan
 from em_exploration_ros.core.sim.sensors import OdometryReading, odometry_covariance_per_step
 from em_exploration_ros.core.slam.team_slam import OdometryAccumulator, TeamSlam
 from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
-from em_exploration_ros.core.planning.em_step import (
-    DecisionFactorization, ScenarioBuilder, TeamSnapshot, VirtualNoise, propagate_oracle)
+from em_exploration_ros.core.planning.em_oracle import propagate_oracle
+from em_exploration_ros.core.planning.em_scenario import ScenarioBuilder, TeamSnapshot, VirtualNoise
+from em_exploration_ros.core.planning.em_step import DecisionFactorization
 
 PARAMS = ExplorationParams()
 SIZE_M = 100.0

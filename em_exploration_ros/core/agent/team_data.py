@@ -1,8 +1,8 @@
 """What teammates share, as plain data, and the bookkeeping that keeps the stream whole.
 
 Each robot publishes one ordered stream of ``TeamUpdate`` records: every record carries
-what is new since the previous one (keyframes with their measurements and the sender's
-estimates, landmark estimates, chosen targets, rendezvous events) and a sequence number
+what is new since the previous one (keyframes with their measurements, landmark
+estimates, chosen targets, rendezvous events) and a sequence number
 (1, 2, 3, ...). A receiver applies records strictly in sequence order, buffers records
 that arrive early, asks for the missing range again, and rejects malformed records
 before they touch any state. These types mirror em_exploration_msgs/TeamUpdate; the
@@ -30,15 +30,6 @@ class RendezvousState(IntEnum):
     REQUEST = 0
     ARRIVED = 1
     RELEASE = 2
-
-
-@dataclass(frozen=True)
-class SharedKeyframe:
-    """A keyframe's measurements plus the sender's estimate of it (map frame)."""
-
-    measurements: KeyframeMeasurements
-    estimate: np.ndarray  # (3,) x [m], y [m], theta [rad] in the map frame
-    estimate_covariance: np.ndarray  # (3, 3)
 
 
 @dataclass(frozen=True)
@@ -85,14 +76,10 @@ class TeamUpdate:
     robot_id: int
     sequence: int
     stamp_s: float
-    keyframes: tuple[SharedKeyframe, ...] = ()
+    keyframes: tuple[KeyframeMeasurements, ...] = ()
     landmarks: tuple[LandmarkEstimate, ...] = ()
     targets: tuple[TargetRecord, ...] = ()
     rendezvous: tuple[RendezvousEvent, ...] = ()
-
-    def is_empty(self) -> bool:
-        """True when the update carries nothing."""
-        return not (self.keyframes or self.landmarks or self.targets or self.rendezvous)
 
 
 class InvalidTeamUpdate(ValueError):
@@ -109,8 +96,7 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
     if update.sequence < 1:
         raise InvalidTeamUpdate(f"sequence must be >= 1, got {update.sequence}")
     _check_finite(update.stamp_s, "stamp")
-    for shared in update.keyframes:
-        kf = shared.measurements
+    for kf in update.keyframes:
         if kf.robot_id != update.robot_id:
             raise InvalidTeamUpdate(
                 f"keyframe of robot {kf.robot_id} inside an update of robot {update.robot_id}")
@@ -119,8 +105,6 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
         _check_finite(kf.stamp_s, "keyframe stamp")
         _check_vector(kf.odom_delta, 3, "odometry")
         _check_covariance(kf.odom_covariance, 3, "odometry covariance")
-        _check_vector(shared.estimate, 3, "keyframe estimate")
-        _check_covariance(shared.estimate_covariance, 3, "keyframe estimate covariance")
         for reading in kf.landmarks:
             _check_finite(reading.range_m, "landmark range")
             _check_finite(reading.bearing_rad, "landmark bearing")
@@ -278,10 +262,6 @@ class TeamUpdateInbox:
                 gaps.append(MissingRange(robot, first, latest))
         return gaps
 
-    def next_expected(self, robot_id: int) -> int:
-        """The next sequence number expected from ``robot_id``."""
-        return self._streams[robot_id].next_sequence
-
 
 class TeamUpdateOutbox:
     """Numbers this robot's outgoing updates and keeps them for re-sending on request."""
@@ -295,7 +275,7 @@ class TeamUpdateOutbox:
         """Sequence number of the latest update (0 before the first)."""
         return len(self._sent)
 
-    def publish(self, stamp_s: float, keyframes: tuple[SharedKeyframe, ...] = (),
+    def publish(self, stamp_s: float, keyframes: tuple[KeyframeMeasurements, ...] = (),
                 landmarks: tuple[LandmarkEstimate, ...] = (),
                 targets: tuple[TargetRecord, ...] = (),
                 rendezvous: tuple[RendezvousEvent, ...] = ()) -> TeamUpdate:

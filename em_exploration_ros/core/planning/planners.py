@@ -40,9 +40,9 @@ from em_exploration_ros.core.virtual_map.cell_uncertainty import (CellObservatio
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams, PlannerParams
 from em_exploration_ros.core.slam.team_slam import TeamSlam
-from em_exploration_ros.core.planning.em_step import (DecisionFactorization,
-                                                             ScenarioBuilder, TeamSnapshot,
-                                                             VirtualNoise, VirtualScenario)
+from em_exploration_ros.core.planning.em_scenario import (ScenarioBuilder, TeamSnapshot,
+                                                          VirtualNoise, VirtualScenario)
+from em_exploration_ros.core.planning.em_step import DecisionFactorization
 
 FloatArray = NDArray[np.float64]
 
