@@ -438,3 +438,10 @@ def test_invalid_robot_ids_are_rejected() -> None:
                                           observes=(0,)))
     with pytest.raises(ValueError):
         TeamSlam(2, 2, PARAMS.slam, poses[(0, 0)])
+
+
+def test_pose_keys_equal_pose_key_one_by_one():
+    from em_exploration_ros.core.slam.team_slam import pose_key, pose_keys
+    indices = np.array([0, 1, 7, 2 ** 40])
+    for robot in (0, 3, 25):
+        assert pose_keys(robot, indices).tolist() == [pose_key(robot, int(i)) for i in indices]

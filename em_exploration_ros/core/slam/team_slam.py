@@ -52,6 +52,12 @@ def pose_key(robot_id: int, index: int) -> int:
     return gtsam.symbol(chr(ord("a") + robot_id), index)
 
 
+def pose_keys(robot_id: int, indices: np.ndarray) -> np.ndarray:
+    """:func:`pose_key` of many keyframe indices ``(K,)`` at once, ``(K,)`` int64 (a GTSAM
+    symbol is its character in the top byte and the index below)."""
+    return (np.int64(ord("a") + robot_id) << np.int64(56)) | np.asarray(indices, dtype=np.int64)
+
+
 def landmark_key(landmark_id: int) -> int:
     """GTSAM key of landmark ``landmark_id`` (``'L'``)."""
     return gtsam.symbol("L", landmark_id)
