@@ -16,7 +16,8 @@ from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReadin
                                              TeammateReading)
 from em_exploration_ros.core.slam.team_slam import (KeyframeBuilder, KeyframeMeasurements,
                                           OdometryAccumulator, SlamNoise, TeamSlam,
-                                          body_to_map_covariance, landmark_key, pose_key)
+                                          body_to_map_covariance, landmark_key, pose_key,
+                                          pose_keys)
 from em_exploration_ros.core.sim.world import advance_robot, generate_world, run_seed_sequences
 
 PARAMS = ExplorationParams()
@@ -441,7 +442,6 @@ def test_invalid_robot_ids_are_rejected() -> None:
 
 
 def test_pose_keys_equal_pose_key_one_by_one():
-    from em_exploration_ros.core.slam.team_slam import pose_key, pose_keys
     indices = np.array([0, 1, 7, 2 ** 40])
     for robot in (0, 3, 25):
         assert pose_keys(robot, indices).tolist() == [pose_key(robot, int(i)) for i in indices]
