@@ -10,8 +10,9 @@ import pytest
 from em_exploration_ros.tools.bench_dask import parse_address
 
 REPO = Path(__file__).resolve().parents[1]
-# Two NF trials on a small map, and two on a 12 m map where the world generator fails.
-TRIALS = ["planners", "--planners", "NF", "--landmarks", "4", "--trials", "2",
+# Two nearest-frontier trials on a small map, and two on a 12 m map where the world
+# generator fails.
+TRIALS = ["planners", "--planners", "NEAREST", "--landmarks", "4", "--trials", "2",
           "--max-steps", "800", "--map-size", "40", "12", "--cell-size", "2", "2"]
 #: Summary entries that measure the host, not the exploration.
 HOST_TIMES = ("wall_s", "decision_time_median_s", "decision_time_max_s")
@@ -57,16 +58,16 @@ def test_dask_cluster_writes_the_records_of_the_local_pool(pool_and_dask):
         assert mine == exploration_record(path)
         statuses.append(mine["status"])
     assert statuses == ["failed", "failed", "done", "done"]  # 12m_cell2m, then 40m_cell2m
-    record = exploration_record(dask / "trials/40m_cell2m/NF/seed_1.json")
+    record = exploration_record(dask / "trials/40m_cell2m/NEAREST/seed_1.json")
     assert record["summary"]["decisions"] > 0
     assert (dask / "results.csv").read_text() == (pool / "results.csv").read_text()
 
 
 def test_dask_rerun_runs_only_what_is_missing(pool_and_dask):
     _, dask, _ = pool_and_dask
-    done = dask / "trials/40m_cell2m/NF/seed_0.json"
+    done = dask / "trials/40m_cell2m/NEAREST/seed_0.json"
     before = done.read_text()
-    (dask / "trials/40m_cell2m/NF/seed_1.json").unlink()
+    (dask / "trials/40m_cell2m/NEAREST/seed_1.json").unlink()
     result = run_cli(*TRIALS, "--dask", "local:1", "--out", str(dask))
     assert result.returncode == 0, result.stderr
     # The failed trials are retried, the missing one is run, the finished one is kept.
@@ -74,7 +75,7 @@ def test_dask_rerun_runs_only_what_is_missing(pool_and_dask):
     assert done.read_text() == before
     summary = json.loads((dask / "summary.json").read_text())
     assert summary["last_invocation"]["ran"] == 3
-    assert summary["settings"]["40m_cell2m"]["planners"]["NF"]["trials_done"] == 2
+    assert summary["settings"]["40m_cell2m"]["planners"]["NEAREST"]["trials_done"] == 2
 
 
 @pytest.mark.parametrize("address", ["local:0", "local:x", "8786", "host:8786"])

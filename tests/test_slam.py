@@ -16,8 +16,8 @@ from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReadin
                                              TeammateReading)
 from em_exploration_ros.core.slam.team_slam import (KeyframeBuilder, KeyframeMeasurements,
                                           OdometryAccumulator, SlamNoise, TeamSlam,
-                                          body_to_map_covariance, landmark_key, pose_key,
-                                          pose_keys)
+                                          body_to_map_covariance, is_landmark_key,
+                                          landmark_key, pose_key, pose_keys)
 from em_exploration_ros.core.sim.world import advance_robot, generate_world, run_seed_sequences
 
 PARAMS = ExplorationParams()
@@ -445,3 +445,9 @@ def test_pose_keys_equal_pose_key_one_by_one():
     indices = np.array([0, 1, 7, 2 ** 40])
     for robot in (0, 3, 25):
         assert pose_keys(robot, indices).tolist() == [pose_key(robot, int(i)) for i in indices]
+
+
+def test_landmark_keys_are_told_from_pose_keys() -> None:
+    assert is_landmark_key(landmark_key(0)) and is_landmark_key(landmark_key(10**6))
+    assert not any(is_landmark_key(pose_key(robot, index))
+                   for robot in range(26) for index in (0, 7, 10**6))

@@ -85,7 +85,15 @@ def test_inbox_rejects_own_id_and_implausible_sequence():
      "2 elements"),
     (lambda u: dict(landmarks=(LandmarkEstimate(1, np.zeros(2), -np.eye(2)),)), "not a covariance"),
     (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.array([np.inf, 0.0]),
-                                          FrontierType.EXPLORATION, 1, 0.0, 0.0),)), "target"),
+                                          FrontierType.EXPLORATION, None, 0.0, 0.0),)), "target"),
+    (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.EXPLORATION,
+                                          1, 0.0, 0.0),)), "EXPLORATION target with partner 1"),
+    (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.RENDEZVOUS,
+                                          None, 0.0, 0.0),)), "rendezvous target without"),
+    (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.RENDEZVOUS,
+                                          1, 0.0, 0.0),)), "robot itself as partner"),
+    (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.RENDEZVOUS,
+                                          9, 0.0, 0.0),)), "partner id 9 is not a robot"),
 ])
 def test_validation_rejects_malformed_updates(corrupt, message):
     good = updates_from(1, 1)[0]

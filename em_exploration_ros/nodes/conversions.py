@@ -172,24 +172,30 @@ def landmark_estimate_from_msg(message: em_msg.LandmarkEstimate) -> LandmarkEsti
 
 
 def target_to_msg(target: TargetRecord) -> em_msg.TargetRecord:
+    partner = em_msg.TargetRecord.NO_PARTNER if target.partner_id is None else target.partner_id
     message = em_msg.TargetRecord(
         robot_id=target.robot_id, decision_index=target.decision_index,
         x=float(target.position[0]), y=float(target.position[1]),
-        frontier_type=int(target.kind), partner_id=int(target.partner_id),
+        frontier_type=int(target.kind), partner_id=int(partner),
         utility=float(target.utility), planning_time=float(target.planning_time_s))
     message.stamp = seconds_to_time(target.stamp_s)
     return message
 
 
 def target_from_msg(message: em_msg.TargetRecord) -> TargetRecord:
+    """The core record; ``partner_id`` NO_PARTNER becomes None, and so does a non-RENDEZVOUS
+    target's own robot id (how recordings made before NO_PARTNER marked "no partner")."""
     try:
         kind = FrontierType(message.frontier_type)
     except ValueError:
         raise InvalidTeamUpdate(f"unknown frontier type {message.frontier_type}") from None
+    partner: int | None = int(message.partner_id)
+    legacy_none = kind != FrontierType.RENDEZVOUS and partner == message.robot_id
+    if partner == em_msg.TargetRecord.NO_PARTNER or legacy_none:
+        partner = None
     return TargetRecord(int(message.robot_id), int(message.decision_index),
                         time_to_seconds(message.stamp), np.array([message.x, message.y]), kind,
-                        int(message.partner_id), float(message.utility),
-                        float(message.planning_time))
+                        partner, float(message.utility), float(message.planning_time))
 
 
 def _rendezvous_to_msg(event: RendezvousEvent) -> em_msg.Rendezvous:

@@ -33,6 +33,7 @@ from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
 from em_exploration_ros.core.planning.em_oracle import propagate_oracle
 from em_exploration_ros.core.planning.em_scenario import ScenarioBuilder, TeamSnapshot, VirtualNoise
 from em_exploration_ros.core.planning.em_step import DecisionFactorization
+from em_exploration_ros.tools.sim_cli import PLANNER_NAMES, PLANNER_TYPE
 
 PARAMS = ExplorationParams()
 SIZE_M = 100.0
@@ -169,14 +170,17 @@ def fit_line(x: Sequence[float], y: Sequence[float]) -> tuple[float, float]:
     return float(intercept), float(slope)
 
 
-def add_latency_command(commands: argparse._SubParsersAction) -> None:
-    """The ``latency`` subcommand of em-bench."""
-    latency = commands.add_parser(
-        "latency", help="planner decision time against the number of poses in the graph",
-        description=__doc__.split("\n\n")[1].replace("\n", " "))
+#: One-line help of the ``latency`` subcommand of em-bench.
+LATENCY_HELP = "planner decision time against the number of poses in the graph"
+
+
+def add_latency_arguments(latency: argparse.ArgumentParser) -> None:
+    """Description, options and handler of ``latency``, the em-bench subcommand's parser."""
+    latency.description = __doc__.split("\n\n")[1].replace("\n", " ")
     latency.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000, 2000, 4000],
                          help="numbers of poses in the team graph")
-    latency.add_argument("--planners", nargs="+", default=["EM_2", "EM_3", "BSP", "CE", "NF"],
+    latency.add_argument("--planners", nargs="+", type=PLANNER_TYPE, choices=PLANNER_NAMES,
+                         default=["EM_2", "EM_3", "BSP", "CE", "NEAREST"],
                          help="planners to time")
     latency.add_argument("--repeats", type=int, default=7, help="timed decisions per size")
     latency.add_argument("--seed", type=int, default=3, help="seed of the synthetic team")

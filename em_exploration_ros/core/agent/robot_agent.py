@@ -64,12 +64,17 @@ class MotionCommand:
 
 @dataclass(frozen=True)
 class DecisionRecord:
-    """One planning decision of this robot."""
+    """One planning decision of this robot at simulation time ``stamp_s`` [s].
+
+    ``planning_time_s``: wall time of the whole decision [s]: the map rebuild from the SLAM
+    estimate, the candidates and the planner (``Decision.choose_time_s`` is the planner's
+    part).
+    """
 
     decision_index: int
     stamp_s: float
     target: Frontier
-    elapsed_s: float
+    planning_time_s: float
     num_candidates: int
     explored_ratio: float
 
@@ -95,7 +100,7 @@ class RobotAgent:
         self.grid = OccupancyGrid(params.world.width_m, params.world.height_m, params.map,
                                   params.sensors.sonar_max_range_m)
         self.planner = make_planner(params)
-        self._fallback_planner = make_planner(params, "NF")
+        self._fallback_planner = make_planner(params, "NEAREST")
         self.controller = ApfController(params.motion, params.world.landmark_radius_m,
                                         params.world.robot_radius_m)
         self.rendezvous = RendezvousBook(params.frontiers.rendezvous_timeout_s)
@@ -235,26 +240,26 @@ class RobotAgent:
             _LOG.error("robot %d: planner %s failed (%s); nearest frontier this time",
                        self.robot_id, self.planner.name, str(error).splitlines()[0][:120])
             decision = self._fallback_planner.choose(context)
-        elapsed = time.perf_counter() - started
+        planning_time_s = time.perf_counter() - started
         chosen = next(u.total for u in decision.utilities if u.frontier is decision.target)
-        self._set_target(decision.target, pose, elapsed, len(candidates), chosen)
+        self._set_target(decision.target, pose, planning_time_s, len(candidates), chosen)
 
-    def _set_target(self, target: Frontier, pose: np.ndarray, elapsed_s: float,
+    def _set_target(self, target: Frontier, pose: np.ndarray, planning_time_s: float,
                     num_candidates: int, utility: float) -> None:
         index = len(self.decisions)
         self.target = target
-        self.decisions.append(DecisionRecord(index, self._stamp_s, target, elapsed_s,
+        self.decisions.append(DecisionRecord(index, self._stamp_s, target, planning_time_s,
                                              num_candidates, self.explored_ratio))
         distance = float(np.linalg.norm(target.position - pose[:2]))
         motion = self.params.motion
         self._target_deadline_s = (self._stamp_s + motion.target_timeout_factor * distance
                                    / motion.speed_mps + motion.target_timeout_margin_s)
-        partner = self.robot_id if target.partner_id is None else target.partner_id
+        partner = target.partner_id if target.kind == FrontierType.RENDEZVOUS else None
         record = TargetRecord(self.robot_id, index, self._stamp_s, target.position.copy(),
-                              target.kind, partner, utility, elapsed_s)
+                              target.kind, partner, utility, planning_time_s)
         self.team_targets[self.robot_id].append(record)
         self._pending.targets.append(record)
-        if target.kind == FrontierType.RENDEZVOUS:
+        if partner is not None:
             self._send_rendezvous(RendezvousState.REQUEST, index, self.robot_id, partner,
                                   target.position)
             self.rendezvous.request(self.robot_id, partner, target.position, self._stamp_s, index)

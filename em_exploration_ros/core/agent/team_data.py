@@ -43,14 +43,19 @@ class LandmarkEstimate:
 
 @dataclass(frozen=True)
 class TargetRecord:
-    """A target chosen by a robot's planner (map frame)."""
+    """A target chosen by a robot's planner (map frame).
+
+    ``partner_id``: the teammate to meet for a RENDEZVOUS target, None for every other
+    target. ``planning_time_s``: wall time of the whole decision [s] (map rebuild,
+    candidates and planner).
+    """
 
     robot_id: int
     decision_index: int
     stamp_s: float
     position: np.ndarray  # (2,) [m]
     kind: FrontierType
-    partner_id: int
+    partner_id: int | None
     utility: float
     planning_time_s: float
 
@@ -123,7 +128,7 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
     for target in update.targets:
         if target.robot_id != update.robot_id:
             raise InvalidTeamUpdate("target of another robot inside an update")
-        _check_robot_id(target.partner_id, num_robots, "target partner id")
+        _check_partner(target, num_robots)
         _check_vector(target.position, 2, "target position")
         _check_finite(target.stamp_s, "target stamp")
     for event in update.rendezvous:
@@ -133,6 +138,19 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
             raise InvalidTeamUpdate("rendezvous event sent on behalf of another robot")
         _check_vector(event.meeting_point, 2, "meeting point")
         _check_finite(event.timeout_s, "rendezvous timeout")
+
+
+def _check_partner(target: TargetRecord, num_robots: int) -> None:
+    """A RENDEZVOUS target names a teammate to meet; every other target has no partner."""
+    if target.kind != FrontierType.RENDEZVOUS:
+        if target.partner_id is not None:
+            raise InvalidTeamUpdate(f"{target.kind.name} target with partner {target.partner_id}")
+        return
+    if target.partner_id is None:
+        raise InvalidTeamUpdate("rendezvous target without a partner")
+    _check_robot_id(target.partner_id, num_robots, "target partner id")
+    if target.partner_id == target.robot_id:
+        raise InvalidTeamUpdate("rendezvous target with the robot itself as partner")
 
 
 def _check_robot_id(robot_id: int, num_robots: int, what: str) -> None:

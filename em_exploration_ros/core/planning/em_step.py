@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 
 from em_exploration_ros.core.planning.em_scenario import (TeamSnapshot, VirtualFactors,
                                                           VirtualScenario, graph_with_virtual)
+from em_exploration_ros.core.slam.team_slam import is_landmark_key
 
 _LOG = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -47,13 +48,10 @@ T = TypeVar("T")
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-_LANDMARK_CHAR = ord("L")
-
 
 def _key_dim(key: int) -> int:
-    """Tangent dimension of a team-graph variable: 2 for a landmark, 3 for a pose (the
-    symbol character is the key's top byte)."""
-    return 2 if int(key) >> 56 == _LANDMARK_CHAR else 3
+    """Tangent dimension of a team-graph variable: 2 for a landmark, 3 for a pose."""
+    return 2 if is_landmark_key(key) else 3
 
 
 def _key_dims(keys: Sequence[int]) -> IntArray:

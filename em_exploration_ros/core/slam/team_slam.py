@@ -63,6 +63,11 @@ def landmark_key(landmark_id: int) -> int:
     return gtsam.symbol("L", landmark_id)
 
 
+def is_landmark_key(key: int) -> bool:
+    """True for the key of a landmark, False for a pose's (by the key's symbol character)."""
+    return gtsam.symbolChr(int(key)) == ord("L")
+
+
 def body_to_map_covariance(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     """Pose covariances ``(..., 3, 3)`` from the body (GTSAM tangent) frame to additive
     map-frame ``(x, y, theta)`` errors: the position block rotated by ``+theta``."""
