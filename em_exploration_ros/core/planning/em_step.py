@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from em_exploration_ros.core.planning.em_scenario import (TeamSnapshot, VirtualFactors,
                                                           VirtualScenario, graph_with_virtual)
-from em_exploration_ros.core.slam.team_slam import is_landmark_key
+from em_exploration_ros.core.slam.team_slam import is_landmark_key, landmark_key_mask
 
 _LOG = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -56,8 +56,7 @@ def _key_dim(key: int) -> int:
 
 def _key_dims(keys: Sequence[int]) -> IntArray:
     """:func:`_key_dim` of many keys, ``(K,)``."""
-    keys = np.asarray(keys, dtype=np.int64).reshape(-1)
-    return np.where(keys >> 56 == _LANDMARK_CHAR, 2, 3)
+    return np.where(landmark_key_mask(np.asarray(keys, dtype=np.int64).reshape(-1)), 2, 3)
 
 
 @dataclass(frozen=True)

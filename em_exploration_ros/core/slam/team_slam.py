@@ -68,6 +68,12 @@ def is_landmark_key(key: int) -> bool:
     return gtsam.symbolChr(int(key)) == ord("L")
 
 
+def landmark_key_mask(keys: np.ndarray) -> np.ndarray:
+    """:func:`is_landmark_key` of many keys ``(K,)`` at once (the symbol character is the
+    key's top byte), ``(K,)`` bool."""
+    return np.asarray(keys, dtype=np.int64) >> np.int64(56) == ord("L")
+
+
 def body_to_map_covariance(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     """Pose covariances ``(..., 3, 3)`` from the body (GTSAM tangent) frame to additive
     map-frame ``(x, y, theta)`` errors: the position block rotated by ``+theta``."""
