@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import re
 import time
+import uuid
 from contextlib import contextmanager
 from typing import Any, Iterator, Sequence
 
@@ -90,8 +91,10 @@ def run_on_cluster(client: Client, specs: Sequence[bench.TrialSpec],
     submitted = time.perf_counter()
     for spec in specs:
         spec.path.unlink(missing_ok=True)
-        future = client.submit(checked_trial_record, spec, pure=False,
-                               key=f"em-trial-{spec.setting}-{spec.planner}-{spec.seed}")
+        # A unique key: another em-bench on a shared cluster may run the same seed with
+        # other parameters, and dask would hand it this task's result under an equal key.
+        key = f"em-trial-{spec.setting}-{spec.planner}-{spec.seed}-{uuid.uuid4().hex}"
+        future = client.submit(checked_trial_record, spec, pure=False, key=key)
         spec_of[future.key] = (future, spec)
     waiting = list(specs)
     try:
