@@ -12,11 +12,12 @@ and the reference behaviour is an option; the field's description says which is 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import warnings
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 #: Ratio between a 95% error bound and the standard deviation of a Gaussian.
 BOUND_95_TO_SIGMA = 1.96
@@ -49,7 +50,13 @@ class WorldParams:
         2.0, "Minimum distance between two robots' start positions [m].", 0.0, 10.0)
     start_max_separation_m: float = _param(
         6.0, "Maximum distance between two robots' start positions [m]; must stay below "
-        "the sonar range so every robot sees every other at the start.", 0.0, 100.0)
+        "the sonar range so a robot senses those teammates at the start.", 0.0, 100.0)
+    start_group_robots: int = _param(
+        5, "Largest team whose robots all start within start_max_separation_m of each other "
+        "in the start region. A larger team's start region grows with the team (sides "
+        "scaled by sqrt(num_robots / start_group_robots) about the same centre, clipped to "
+        "the map) and each robot starts within that distance of the start_group_robots - 1 "
+        "robots placed before it (a chain of readings anchors every robot).", 2, 26)
     landmark_clearance_from_start_m: float = _param(
         3.0, "Minimum distance between a landmark and a robot's start position [m].", 0.0, 50.0)
     landmark_edge_margin_m: float = _param(
@@ -241,6 +248,11 @@ class PlannerParams:
     q_min: float = _param(
         0.55, "Algorithm 2: minimum probability of being observed for a cell to count "
         "(the explored threshold as a probability of observation).", 0.0, 1.0)
+    history_change_tolerance: float = _param(
+        1e-12, "U_M: a history pose whose covariance trace a candidate reduces by at most "
+        "this fraction keeps its current virtual-map contribution. The default is round-off "
+        "(exact U_M); a larger value (e.g. 1e-3) is an approximation that recomputes only the "
+        "cells of materially changed poses (error measured by em-bench latency).", 0.0, 1.0)
     utility_variant: str = _param(
         "paper", "'paper': Eq. (13) with U_M over cells observed in both maps; 'reference': "
         "the reference implementation's weights (U_M over all cells, U_T * 100 max(1-r, 0), "
@@ -361,10 +373,7 @@ class ExplorationParams:
         (``upgrade_deprecated``)."""
         group_overrides = _upgraded_with_warnings(group_overrides)
         groups = {f.name for f in dataclasses.fields(self)}
-        unknown = sorted(set(group_overrides) - groups)
-        if unknown:
-            raise ValueError(f"unknown parameter group(s): {', '.join(unknown)}; "
-                             f"known: {', '.join(sorted(groups))}")
+        _refuse_unknown(group_overrides, groups, "parameter group")
         changed = {name: replace_checked(getattr(self, name), overrides)
                    for name, overrides in group_overrides.items()}
         return dataclasses.replace(self, **changed)
@@ -373,12 +382,24 @@ class ExplorationParams:
 def replace_checked(group: Any, overrides: Mapping[str, Any]) -> Any:
     """Copy of a parameter group with ``overrides`` applied after type and range checks."""
     fields = {f.name: f for f in dataclasses.fields(group)}
-    unknown = sorted(set(overrides) - set(fields))
-    if unknown:
-        raise ValueError(f"unknown parameter(s) in {type(group).__name__}: {', '.join(unknown)}")
+    _refuse_unknown(overrides, fields, f"parameter in {type(group).__name__}")
     checked = {name: _checked_value(type(group).__name__, fields[name], getattr(group, name), value)
                for name, value in overrides.items()}
     return dataclasses.replace(group, **checked)
+
+
+def closest_name_hint(name: str, known: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` for the known name closest to a misspelt ``name``, or ''."""
+    matches = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return f" (did you mean '{matches[0]}'?)" if matches else ""
+
+
+def _refuse_unknown(names: Iterable[str], known: Iterable[str], what: str) -> None:
+    """``ValueError`` for the first of ``names`` not in ``known``, with the closest name."""
+    known = sorted(known)
+    for name in sorted(set(names) - set(known)):
+        raise ValueError(f"unknown {what}: '{name}'{closest_name_hint(name, known)}; "
+                         f"known: {', '.join(known)}")
 
 
 def _checked_value(group_name: str, f: dataclasses.Field, default: Any, value: Any) -> Any:

@@ -4,11 +4,14 @@ Top-level keys (units in the names): ``explored_ratio``, ``distance_m`` (all rob
 ``loc_rmse_m``, ``landmark_rmse_m``, ``decisions``, ``wall_s``, ``sim_time_s``,
 ``decision_time_median_s``, ``decision_time_max_s``, ``robots`` (per robot: ``id``,
 ``distance_m``, ``decisions``, ``targets`` (in order: ``x``, ``y`` [m, map frame],
-``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``, ``given_up``
-(targets the robot gave up, in order: ``x``, ``y`` [m, map frame], ``stamp_s``,
-``reason``: blocked / no progress / deadline) and ``blocked_s`` (simulation time during
-which the robot's odometry showed it blocked while it commanded forward motion); null
-where the writer cannot know them), plus ``seed``,
+``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``, ``status``
+(active / finished / lost / rejoined at the end), ``status_changes`` (``status``,
+``sim_time_s``, ``wall_s``, ``reason``), ``downtime_s`` and ``downtime_wall_s`` (simulated and
+wall seconds lost), ``given_up`` (targets the robot gave up, in order: ``x``, ``y`` [m, map
+frame], ``stamp_s``, ``reason``: blocked / no progress / deadline) and ``blocked_s``
+(simulation time during which the robot's odometry showed it blocked while it commanded
+forward motion; ``given_up`` and ``blocked_s`` are null where the writer cannot know them)),
+plus ``seed``,
 ``planner``, ``num_robots``, ``map_size_m``, ``num_landmarks``, ``stop_reason`` and
 ``history``: samples of the metrics against distance travelled.
 """
@@ -19,6 +22,8 @@ import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+from em_exploration_ros.core.agent.liveness import ACTIVE, StatusChange
 
 REQUIRED_KEYS = ("explored_ratio", "distance_m", "loc_rmse_m", "landmark_rmse_m", "decisions",
                  "wall_s", "sim_time_s", "decision_time_median_s", "decision_time_max_s",
@@ -55,6 +60,10 @@ class RobotSummary:
     decisions: int = 0
     targets: list[TargetEntry] = field(default_factory=list)
     decision_times_s: list[float] = field(default_factory=list)
+    status: str = ACTIVE
+    status_changes: list[StatusChange] = field(default_factory=list)
+    downtime_s: float = 0.0
+    downtime_wall_s: float = 0.0
     given_up: list[GivenUpEntry] | None = None
     blocked_s: float = math.nan
 
