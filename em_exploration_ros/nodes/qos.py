@@ -6,6 +6,7 @@
 | ``TEAM_QOS`` (reliable, keep all, volatile) | /robot_<i>/team/updates, /team/update_requests | team data must arrive; losses and late joins are repaired by the sequence-number resend protocol, so durability is not needed |
 | ``LATCHED_QOS`` (reliable, keep last 1, transient local) | /world/landmarks, /robot_<i>/virtual_map, /robot_<i>/estimated_path, /robot_<i>/markers, /robot_<i>/target, /robot_<i>/landmarks | state whose last value a late subscriber (RViz, Foxglove, the evaluator) needs at once |
 | ``CLOCK_QOS`` (best effort, keep last 1) | /clock | the ROS 2 convention for /clock; only the newest time matters |
+| ``TF_QOS``, ``TF_STATIC_QOS`` | /tf, /tf_static | tf2's own profiles (below), which every tf2 listener, RViz and Foxglove expect |
 | ``STREAM_QOS`` (reliable, keep all, volatile) | /world/ground_truth/robot_<i>, /evaluation/metrics | evaluation streams: the evaluator needs every true pose even when it lags behind a fast lockstep world (a keep-last-100 queue lost 100 steps at a real-time factor of 7) |
 """
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -23,3 +24,13 @@ CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                        durability=DurabilityPolicy.VOLATILE)
 STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
+#: /tf as tf2's TransformBroadcaster offers it (reliable, keep last 100, volatile): transforms
+#: that change are re-sent all the time, so a late subscriber only waits for the next ones.
+TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                    reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.VOLATILE)
+#: /tf_static as tf2's StaticTransformBroadcaster offers it (reliable, transient local, keep
+#: last 1): published once, kept for every late subscriber.
+TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                           reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)

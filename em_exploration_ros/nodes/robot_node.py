@@ -2,7 +2,9 @@
 
 A thin shell around ``core.agent.robot_agent.RobotAgent``. Inputs: its own sonar and dead
 reckoning from the world simulator, robot 0's launch pose (the mission's map anchor), and
-its teammates' team updates. It never subscribes to ground truth.
+its teammates' team updates. It never subscribes to ground truth. Besides its team
+updates and what users see, it publishes its TF ``map`` -> ``robot_i/odom`` ->
+``robot_i/base_link`` every step (nodes/tf_publishing.py).
 
 Lockstep: each SonarScan carries the world's barrier (``team_sequences``). The node
 processes a step only when it holds every teammate's updates up to the barrier, asking
@@ -34,7 +36,7 @@ from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, Landmark
                                                TeamUpdateInbox)
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, sim_time_s,
                                                 twist_to_increment_covariance)
-from em_exploration_ros.nodes import visualization
+from em_exploration_ros.nodes import tf_publishing, visualization
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_msg,
                                                   landmark_reading_from_msg,
                                                   odometry_pose, odometry_twist_covariance,
@@ -94,6 +96,7 @@ class RobotNode(Node):
         self.grid_pub = self.create_publisher(OccupancyGrid, f"/{ns}/virtual_map", LATCHED_QOS)
         self.markers_pub = self.create_publisher(MarkerArray, f"/{ns}/markers", LATCHED_QOS)
         self.target_pub = self.create_publisher(PointStamped, f"/{ns}/target", LATCHED_QOS)
+        self.tf_pub = tf_publishing.create_tf_publisher(self)
         self.create_subscription(PoseStamped, "/mission/anchor_pose", self._on_anchor,
                                  LATCHED_QOS)
         self.create_subscription(SonarScan, f"/{ns}/sonar", self._on_scan, SENSOR_QOS)
@@ -217,6 +220,7 @@ class RobotNode(Node):
         update = agent.take_outgoing()
         if update is not None:
             self.update_pub.publish(team_update_to_msg(update))
+        self._publish_transforms(stamp_s, odometry)
         linear_x, angular_z = command_to_twist(command.turn_rad, command.forward_m,
                                                self.time_step_s)
         reply = MotionCommand(robot_id=self.robot_id, step=step,
@@ -230,6 +234,13 @@ class RobotNode(Node):
             self._publish_decision(stamp_s)
 
     # -- what users see --------------------------------------------------------------------
+
+    def _publish_transforms(self, stamp_s: float, odometry: Odometry) -> None:
+        """/tf ``map`` -> ``odom`` -> ``base_link`` of this step, once the robot is anchored."""
+        pose = self.agent.current_pose()
+        if pose is not None:
+            self.tf_pub.publish(tf_publishing.tf_message(stamp_s, tf_publishing.robot_transforms(
+                self.robot_id, pose, odometry_pose(odometry))))
 
     def _publish_estimates(self, stamp_s: float) -> None:
         agent = self.agent
@@ -262,6 +273,7 @@ class RobotNode(Node):
             geometry, poses, pose_covariances, self.params.sensors, self.params.map)
         centres = geometry.cell_centers().reshape(-1, 2)[observed.ravel()]
         self.markers_pub.publish(visualization.marker_array(
+            stamp_s,
             visualization.ellipse_markers(centres, covariances.reshape(-1, 2, 2)[observed.ravel()],
                                           stamp_s),
             visualization.frontier_markers(agent.last_candidates, target, stamp_s),
