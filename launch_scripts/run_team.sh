@@ -43,8 +43,8 @@ options:
   --summary FILE          summary JSON (default: runs/<date>_seed<S>_<planner>/summary.json);
                           the map picture goes beside it (<stem>_map.png), logs in logs/
   --domain-id ID          ROS_DOMAIN_ID, 0..232 (default: a free id in 1..101, held by a lock)
-  --record [PATH]         record every topic with em-record
-                          (default PATH: bags/<date>_seed<S>_<planner>.mcap)
+  --record [PATH]         record every topic with em-record into the bag directory PATH
+                          (default: bags/<date>_seed<S>_<planner>; must not exist)
   -h, --help              show this help and exit
 EOF
 }
@@ -183,7 +183,7 @@ MAP_PNG="$(dirname "$SUMMARY")/${SUMMARY_STEM%.*}_map.png"
 LOG_DIR="$(dirname "$SUMMARY")/logs"
 mkdir -p "$LOG_DIR"
 rm -f "$SUMMARY" "$MAP_PNG"
-[[ -n $RECORD ]] && RECORD_PATH=${RECORD_PATH:-"$EM_REPO_ROOT/bags/$RUN_NAME.mcap"}
+[[ -n $RECORD ]] && RECORD_PATH=${RECORD_PATH:-"$EM_REPO_ROOT/bags/$RUN_NAME"}
 
 if [[ -n $DOMAIN_ID ]]; then
     export ROS_DOMAIN_ID=$DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -237,7 +237,7 @@ report_results() {
     [[ -f $SUMMARY ]] && echo "$PROG: summary: $SUMMARY"
     [[ -f $MAP_PNG ]] && echo "$PROG: map:     $MAP_PNG"
     echo "$PROG: logs:    $LOG_DIR"
-    [[ -n $RECORD && -f $RECORD_PATH ]] && echo "$PROG: bag:     $RECORD_PATH"
+    [[ -n $RECORD && -d $RECORD_PATH ]] && echo "$PROG: bag:     $RECORD_PATH"
 }
 
 # shellcheck disable=SC2317  # called through the traps below
