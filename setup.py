@@ -13,6 +13,7 @@ CONSOLE_SCRIPTS = {
     "em-record": "em_exploration_ros.tools.record:main",
     "em-replay": "em_exploration_ros.tools.replay:main",
     "em-bag": "em_exploration_ros.tools.bag:main",
+    "em-foxglove": "em_exploration_ros.tools.foxglove_bridge:main",
 }
 
 setup(
@@ -24,7 +25,10 @@ setup(
         (f"share/{PACKAGE_NAME}", ["package.xml"]),
         (f"share/{PACKAGE_NAME}/config", ["config/exploration.yaml"]),
     ],
-    install_requires=["numpy", "gtsam", "mcap", "mcap-ros2-support", "PyYAML", "matplotlib"],
+    # foxglove-sdk: the WebSocket server of em-foxglove (tools/foxglove_bridge.py), the live view;
+    # no node imports it.
+    install_requires=["numpy", "gtsam", "mcap", "mcap-ros2-support", "PyYAML", "matplotlib",
+                      "foxglove-sdk"],
     python_requires=">=3.11",
     zip_safe=False,
     maintainer="em_exploration_ros maintainers",

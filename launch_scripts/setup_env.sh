@@ -13,10 +13,16 @@
 #   2. em_exploration_msgs   the interface package msg_schemas/ built with ament_cmake and
 #                        rosidl_default_generators and installed into the venv prefix (Python
 #                        package in site-packages, libraries in .venv/lib, ament index entry and
-#                        .msg files in .venv/share). Inputs: msg_schemas/ and step 1.
-#   3. em_exploration_ros    editable install (pip install -e .) of this project, so the venv
-#                        imports the working tree. Inputs: PROJECT_INPUTS and step 1. Skipped
-#                        while the repository has no setup.py or pyproject.toml.
+#                        .msg files in .venv/share). Inputs: MSGS_INPUTS and step 1.
+#   3. tf2_msgs          the same for msg_schemas/tf2_msgs/ (TFMessage of /tf), only when the
+#                        venv's Python cannot import a tf2_msgs already (one that a ROS 2 install
+#                        or a wheel provides is used as it is, never shadowed). Inputs:
+#                        TF2_MSGS_INPUTS and step 1.
+#   4. em_exploration_ros    editable install (pip install -e .) of this project, so the venv
+#                        imports the working tree, then the layout colcon gives an ament_python
+#                        package (ament index marker, share/em_exploration_ros/, executables in
+#                        lib/em_exploration_ros/ for `ros2 run`). Inputs: PROJECT_INPUTS and
+#                        step 1. Skipped while the repository has no setup.py or pyproject.toml.
 # Logs go to build/*.log. A failed step names itself, its log and a fix, and exits non-zero.
 #
 # --update-constraints installs REQUIREMENTS (and the project) into a scratch venv under the
@@ -56,6 +62,10 @@ REQUIREMENTS=(
     mcap
     mcap-ros2-support
     pytest
+    # Test-only: rosbags reads bag directories independently of this project (recording
+    # tests); websockets is the client that checks the Foxglove bridge's WebSocket server.
+    rosbags
+    websockets
 )
 
 # Inputs of the interface packages' builds (steps 2 and 3).
@@ -64,7 +74,8 @@ TF2_MSGS_INPUTS=(msg_schemas/tf2_msgs msg_schemas/cmake)
 
 # Files of the repository whose content the editable install copies or reads (setup.py's
 # metadata, entry points and data_files); a change to any of them redoes step 3.
-PROJECT_INPUTS=(setup.py setup.cfg pyproject.toml package.xml resource config)
+PROJECT_INPUTS=(setup.py setup.cfg pyproject.toml package.xml resource config
+                em_exploration_ros/tools/ament_install.py)
 
 # Print the path of the machine's Python 3.11 with its C headers (the msgs build compiles a
 # Python extension), or fail. The base interpreter is printed, also when the python3.11 or
@@ -244,6 +255,10 @@ print(list(spec.submodule_search_locations)[0])' 2>/dev/null
 step_project() {
     pip_install "$EM_VENV" --editable "$EM_REPO_ROOT"
     check_pins
+    # The ament_python layout colcon would install (ament index marker, share/, executables
+    # in lib/em_exploration_ros/ for `ros2 run`), see em_exploration_ros/tools/ament_install.py.
+    "$EM_VENV/bin/python" -m em_exploration_ros.tools.ament_install --prefix "$EM_VENV" \
+        --manifest "$STAMP_DIR/project_install_manifest.txt"
 }
 
 update_constraints() {
