@@ -30,7 +30,5 @@ TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                     reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.VOLATILE)
 #: /tf_static as tf2's StaticTransformBroadcaster offers it (reliable, transient local, keep
-#: last 1): published once, kept for every late subscriber.
-TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                           reliability=ReliabilityPolicy.RELIABLE,
-                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: last 1): published once, kept for every late subscriber. The same profile as LATCHED_QOS.
+TF_STATIC_QOS = LATCHED_QOS

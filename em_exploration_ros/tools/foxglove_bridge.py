@@ -38,13 +38,12 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.topic_endpoint_info import TopicEndpointInfo
 
-from em_exploration_ros.bag_format.mcap_ros2_schema import (
-    DefinitionNotFoundError, build_message_definition)
 from em_exploration_ros.bag_format.qos_yaml import (
     KEEP_LAST, RELIABLE, TRANSIENT_LOCAL, QosProfile, request_for_offers)
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.tools.bag_ros import (
-    MessageTypeError, cli_args, import_message_class, number_type, qos_from_rclpy, qos_to_rclpy)
+    MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
+    qos_from_rclpy, qos_to_rclpy)
 
 #: What a viewer of the team needs (the default selection).
 VIEW_TOPICS = (r"^/(tf|tf_static|mission/anchor_pose|evaluation/metrics|world/(markers|landmarks)|"
@@ -166,20 +165,14 @@ class FoxgloveBridge(Node):
             self.server.broadcast_time(now)
 
     def _discover(self) -> None:
-        for topic, types in self.get_topic_names_and_types():
-            if topic in self._served or topic in self._skipped:
-                continue
-            if not self._options.selection.matches(topic):
-                continue
-            publishers = self.get_publishers_info_by_topic(topic)
-            if publishers:
-                self._serve(topic, types[0], publishers)
+        known = self._served | self._skipped
+        for topic, types, publishers in new_selected_topics(self, self._options.selection, known):
+            self._serve(topic, types[0], publishers)
 
     def _serve(self, topic: str, type_name: str, publishers: list[TopicEndpointInfo]) -> None:
         try:
-            message_class = import_message_class(type_name)
-            definition = build_message_definition(type_name)
-        except (MessageTypeError, DefinitionNotFoundError) as error:
+            message_class, definition = message_type_support(type_name)
+        except MessageTypeError as error:
             self._skipped.add(topic)
             self.get_logger().warning(f"not serving {topic}: {error}")
             return

@@ -34,12 +34,11 @@ from rclpy.topic_endpoint_info import TopicEndpointInfo
 from em_exploration_ros.bag_format.bag_directory import BagDirectoryWriter
 from em_exploration_ros.bag_format.bag_writer import COMPRESSIONS, DEFAULT_CHUNK_SIZE
 from em_exploration_ros.bag_format.interface_index import read_type_hash
-from em_exploration_ros.bag_format.mcap_ros2_schema import (
-    DefinitionNotFoundError, build_message_definition)
 from em_exploration_ros.bag_format.qos_yaml import request_for_offers
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.tools.bag_ros import (
-    MessageTypeError, cli_args, import_message_class, number_type, qos_from_rclpy, qos_to_rclpy)
+    MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
+    qos_from_rclpy, qos_to_rclpy)
 
 EXIT_USAGE = 2
 
@@ -124,14 +123,9 @@ class Recorder(Node):
 
     def _discover(self) -> None:
         """Subscribe to every selected topic that has publishers and is not recorded yet."""
-        for topic, types in self.get_topic_names_and_types():
-            if topic in self._recorded or topic in self._skipped:
-                continue
-            if not self._options.selection.matches(topic):
-                continue
-            publishers = self.get_publishers_info_by_topic(topic)
-            if publishers:
-                self._subscribe(topic, types, publishers)
+        known = self._recorded.keys() | self._skipped
+        for topic, types, publishers in new_selected_topics(self, self._options.selection, known):
+            self._subscribe(topic, types, publishers)
 
     def _skip(self, topic: str, reason: str) -> None:
         self._skipped.add(topic)
@@ -143,9 +137,8 @@ class Recorder(Node):
         if len(types) > 1:
             self.get_logger().warning(f"{topic} has several types {types}; recording {type_name}")
         try:
-            message_class = import_message_class(type_name)
-            definition = build_message_definition(type_name)
-        except (MessageTypeError, DefinitionNotFoundError) as error:
+            message_class, definition = message_type_support(type_name)
+        except MessageTypeError as error:
             self._skip(topic, str(error))
             return
         offers = tuple(qos_from_rclpy(p.qos_profile) for p in publishers)
