@@ -17,6 +17,7 @@ PROG=run_team.sh
 PLANNERS=(EM_2 EM_3 CE BSP NF)
 NODES=em_exploration_ros.nodes
 RECORD_MODULE=em_exploration_ros.tools.record
+FOXGLOVE_MODULE=em_exploration_ros.tools.foxglove_bridge
 # Grace periods [s] of a stop: after SIGINT (nodes write their results), after SIGTERM.
 STOP_GRACE_S=10
 KILL_GRACE_S=3
@@ -45,6 +46,8 @@ options:
   --domain-id ID          ROS_DOMAIN_ID, 0..232 (default: a free id in 1..101, held by a lock)
   --record [PATH]         record every topic with em-record into the bag directory PATH
                           (default: bags/<date>_seed<S>_<planner>; must not exist)
+  --foxglove [PORT]       serve the team live to the Foxglove app with em-foxglove on
+                          ws://127.0.0.1:PORT (default PORT: 8765); the run goes on if it stops
   -h, --help              show this help and exit
 EOF
 }
@@ -80,7 +83,7 @@ as_double() { if [[ $1 =~ [.eE] ]]; then printf '%s' "$1"; else printf '%s.0' "$
 # -- arguments -------------------------------------------------------------------------------
 ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME=""
 PARAMS_FILE="$EM_REPO_ROOT/config/exploration.yaml"
-REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH=""
+REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH="" FOXGLOVE_PORT=""
 
 while (( $# )); do
     arg=$1
@@ -119,6 +122,11 @@ while (( $# )); do
         --record)
             RECORD=1
             if (( $# )) && [[ $inline_value == 1 || $1 != -* ]]; then RECORD_PATH=$1; shift; fi ;;
+        --foxglove)
+            FOXGLOVE_PORT=8765
+            if (( $# )) && { [[ $inline_value == 1 ]] || is_int "$1"; }; then
+                check_number "$arg" "$1" 1 65535 int; FOXGLOVE_PORT=$1; shift
+            fi ;;
         *) usage_error "unknown argument '$arg'" ;;
     esac
 done
@@ -269,6 +277,11 @@ if [[ -n $RECORD ]]; then
     mkdir -p "$(dirname "$RECORD_PATH")"
     start record -m "$RECORD_MODULE" -o "$RECORD_PATH" --ros-args -p use_sim_time:=true
 fi
+if [[ -n $FOXGLOVE_PORT ]]; then
+    start foxglove -m "$FOXGLOVE_MODULE" --port "$FOXGLOVE_PORT" --ros-args -p use_sim_time:=true
+    echo "$PROG: Foxglove: open a Foxglove WebSocket connection to ws://127.0.0.1:$FOXGLOVE_PORT" \
+         "(layout: config/foxglove_layout.json)"
+fi
 start evaluator -m "$NODES.evaluator_node" "${COMMON[@]}" -p use_sim_time:=true \
     -p "summary_path:=$SUMMARY" -p "map_png_path:=$MAP_PNG" "${SIM_LIMIT[@]}"
 EVALUATOR_PID=${PIDS[-1]}
@@ -284,7 +297,8 @@ tail -n +1 -F --pid="$EVALUATOR_PID" "$LOG_DIR/evaluator.log" 2>/dev/null &
 TAIL_PID=$!
 
 # A robot that dies leaves its teammates to finish (the world stops waiting for it after
-# robot_timeout_s); the world or the recorder dying ends the run.
+# robot_timeout_s), the Foxglove bridge is only a viewer; the world or the recorder dying
+# ends the run.
 FAILED=""
 declare -A REPORTED=()
 while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
@@ -295,7 +309,7 @@ while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
             wait "$pid"
             status=$?
             REPORTED[$pid]=1
-            if [[ ${NAMES[$index]} == robot_* ]]; then
+            if [[ ${NAMES[$index]} == robot_* || ${NAMES[$index]} == foxglove ]]; then
                 echo "$PROG: warning: ${NAMES[$index]} exited with code $status; the team goes on" \
                     "without it (see $LOG_DIR/${NAMES[$index]}.log)" >&2
                 continue
