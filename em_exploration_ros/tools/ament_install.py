@@ -5,9 +5,11 @@ launch_scripts/setup_env.sh runs it after the editable pip install, with the ven
 - ``share/ament_index/resource_index/packages/em_exploration_ros``: the ament index marker
   (``ament_index_python.get_package_prefix`` and ``ros2 pkg`` find the package by it);
 - ``share/em_exploration_ros/package.xml`` and ``share/em_exploration_ros/config/*``;
-- ``lib/em_exploration_ros/<name>``: one executable per console script of the project, the
-  same small Python launcher that colcon (and pip) writes for a console script, whose first
-  line runs the venv's Python. ``ros2 run em_exploration_ros <name>`` looks for executables
+- ``lib/em_exploration_ros/<name>``: one executable per console script of the project, a
+  small shell launcher that runs the console script's function with the venv's Python in
+  the venv's own ROS 2 environment (what launch_scripts/_common.sh ``em_activate`` exports),
+  so it works from a shell that sourced a full ROS 2 install (whose PYTHONPATH and libraries
+  belong to another Python). ``ros2 run em_exploration_ros <name>`` looks for executables
   exactly there (``<prefix>/lib/<package>/``); the console scripts in ``bin/`` stay.
 
 Every file it writes is listed in a manifest; the next run removes the listed files first,
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
+import shlex
 import shutil
 import sys
 from pathlib import Path
@@ -34,17 +37,20 @@ def console_scripts() -> dict[str, str]:
             if entry.dist is not None and entry.dist.name == PACKAGE}
 
 
-def launcher_text(python: Path, target: str) -> str:
-    """A console-script launcher: runs ``module:function`` with ``python``, exits with its
-    return value (as the launchers colcon and pip write)."""
+def launcher_text(prefix: Path, python: Path, target: str) -> str:
+    """A shell launcher that runs ``module:function`` with ``python`` (in the venv
+    ``prefix``) and the arguments it was given, exiting with the function's return value."""
     module, function = target.split(":")
-    return (f"#!{python}\n"
-            f"# Launcher of the em_exploration_ros executable {module}:{function} "
-            "(written by em_exploration_ros.tools.ament_install).\n"
-            "import sys\n"
-            f"from {module} import {function}\n"
-            "if __name__ == \"__main__\":\n"
-            f"    sys.exit({function}())\n")
+    code = f"import sys; from {module} import {function}; sys.exit({function}())"
+    venv = shlex.quote(str(prefix))
+    return ("#!/bin/sh\n"
+            f"# em_exploration_ros executable: {module}:{function} with the venv's Python in\n"
+            "# the venv's ROS 2 environment (written by em_exploration_ros.tools.ament_install).\n"
+            f"export VIRTUAL_ENV={venv} AMENT_PREFIX_PATH={venv} CMAKE_PREFIX_PATH={venv}\n"
+            f"export PATH={venv}/bin:\"$PATH\" RMW_IMPLEMENTATION=rmw_fastrtps_cpp\n"
+            "unset PYTHONPATH PYTHONHOME LD_LIBRARY_PATH COLCON_PREFIX_PATH "
+            "_ROS_WHEELS_BOOTSTRAP_COMPLETE\n"
+            f"exec {shlex.quote(str(python))} -c {shlex.quote(code)} \"$@\"\n")
 
 
 def _uninstall(manifest: Path) -> None:
@@ -66,7 +72,8 @@ def install(prefix: Path, manifest: Path, python: Path, repo: Path = REPO_ROOT) 
         written.append(target)
 
     share = prefix / "share"
-    copy(repo / "resource" / PACKAGE, share / "ament_index" / "resource_index" / "packages" / PACKAGE)
+    index = share / "ament_index" / "resource_index" / "packages"
+    copy(repo / "resource" / PACKAGE, index / PACKAGE)
     copy(repo / "package.xml", share / PACKAGE / "package.xml")
     for config in sorted((repo / "config").glob("*")):
         if config.is_file():
@@ -75,7 +82,7 @@ def install(prefix: Path, manifest: Path, python: Path, repo: Path = REPO_ROOT) 
     executables.mkdir(parents=True, exist_ok=True)
     for name, target in sorted(console_scripts().items()):
         path = executables / name
-        path.write_text(launcher_text(python, target), encoding="utf-8")
+        path.write_text(launcher_text(prefix, python, target), encoding="utf-8")
         path.chmod(0o755)
         written.append(path)
     manifest.parent.mkdir(parents=True, exist_ok=True)
