@@ -9,7 +9,6 @@ PYTHONPATH, libraries and ament prefix belong to another Python: the launchers s
 """
 from __future__ import annotations
 
-import importlib.metadata
 import os
 import subprocess
 import sys
@@ -19,6 +18,8 @@ from ament_index_python.packages import get_package_prefix, get_package_share_di
 from catkin_pkg.package import parse_package
 
 from ros_process import REPO_ROOT, NodeProcess, ProcessSet, ros_args
+
+from em_exploration_ros.tools.ament_install import console_scripts
 
 PACKAGE = "em_exploration_ros"
 STARTUP_S = 40.0
@@ -50,8 +51,7 @@ def test_package_is_in_the_ament_index_with_its_manifest_and_config() -> None:
 
 
 def test_every_console_script_is_an_executable_of_the_package() -> None:
-    scripts = {entry.name for entry in importlib.metadata.entry_points(group="console_scripts")
-               if entry.dist is not None and entry.dist.name == PACKAGE}
+    scripts = set(console_scripts())
     executables = package_executables(PACKAGE)
     assert set(executables) == scripts
     assert {"em-world", "em-robot", "em-evaluator", "em-record", "em-foxglove"} <= scripts

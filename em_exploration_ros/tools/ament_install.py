@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
+import re
 import shlex
 import shutil
 import sys
@@ -30,11 +31,16 @@ PACKAGE = "em_exploration_ros"
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
+def _normalized(distribution_name: str) -> str:
+    """A distribution name as PEP 503 compares them (``em-exploration-ros``)."""
+    return re.sub(r"[-_.]+", "-", distribution_name).lower()
+
+
 def console_scripts() -> dict[str, str]:
     """``{name: "module:function"}`` of the installed project's console scripts."""
     return {entry.name: entry.value
             for entry in importlib.metadata.entry_points(group="console_scripts")
-            if entry.dist is not None and entry.dist.name == PACKAGE}
+            if entry.dist is not None and _normalized(entry.dist.name) == _normalized(PACKAGE)}
 
 
 def launcher_text(prefix: Path, python: Path, target: str) -> str:
