@@ -17,7 +17,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
 from rclpy.serialization import deserialize_message
 from tf2_msgs.msg import TFMessage
 from websockets.sync.client import connect
