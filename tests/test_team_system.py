@@ -63,10 +63,21 @@ def test_robots_are_separate_processes_blind_to_ground_truth_and_survive_a_dead_
     with run:
         expected = {f"/robot_{i}/em_robot" for i in range(3)}
         wait_until(lambda: robot_nodes(graph_node) >= expected, 60.0, "three robot nodes")
-        for robot in range(3):
+
+        def subscribed(robot: int) -> set[str]:
             topics = graph_node.get_subscriber_names_and_types_by_node("em_robot",
                                                                        f"/robot_{robot}")
-            names = {name for name, _ in topics}
+            return {name for name, _ in topics}
+
+        # a node is discovered before all of its subscriptions are
+        def needed(robot: int) -> set[str]:
+            return {f"/robot_{robot}/sonar", f"/robot_{robot}/odom"} | {
+                f"/robot_{j}/team/updates" for j in range(3) if j != robot}
+
+        wait_until(lambda: all(needed(r) <= subscribed(r) for r in range(3)), 60.0,
+                   "the robots' sensor and team subscriptions")
+        for robot in range(3):
+            names = subscribed(robot)
             assert not any(name.startswith("/world") for name in names), names
             assert f"/robot_{robot}/sonar" in names and f"/robot_{robot}/odom" in names
             teammates = {f"/robot_{j}/team/updates" for j in range(3) if j != robot}

@@ -30,8 +30,7 @@ from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg,
                                                   teammate_reading_from_msg, time_to_seconds)
 from em_exploration_ros.nodes.qos import (CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
-from em_exploration_ros.nodes.world_node import (STAND_STILL, LockstepBarrier, StepAnswer,
-                                                 final_step)
+from em_exploration_ros.nodes.world_node import STAND_STILL, LockstepBarrier, StepAnswer
 from ros_process import NodeProcess, ros_args, wait_until
 
 WORLD_MODULE = "em_exploration_ros.nodes.world_node"
@@ -298,10 +297,3 @@ def test_lockstep_barrier_bookkeeping():
     barrier.close()
     assert barrier.team_sequences == [6, 3, 0] and barrier.all_done
 
-
-def test_final_step_takes_the_earlier_limit():
-    params = ExplorationParams().replace(run={"max_steps": 50})
-    assert final_step(params, 0.0) == 50
-    assert final_step(params, 3.0) == 15
-    assert final_step(params, 3.1) == 15
-    assert final_step(params, 100.0) == 50

@@ -12,8 +12,12 @@ are recorded in order. Every ``metrics_interval_s`` of simulation time (default 
 (waiting up to ``estimate_wait_s`` for those of the last keyframe), so a seeded lockstep run
 gives the same metrics every time, whatever the message timing. They are published on
 ``/evaluation/metrics`` (ExplorationMetrics) and kept; a progress line is logged every
-``progress_interval_s``. The run ends, with the summary JSON (``core.evaluation.summary.RunSummary``,
-em-sim's schema) and the final map PNG written, when:
+``progress_interval_s``. Each evaluation goes to the run monitor
+(``core.evaluation.run_monitor.RunMonitor``, the same stop rule and summary as em-sim). Once a
+stop rule fired, the evaluator waits (up to ``estimate_wait_s``) until every robot's update
+stream is complete up to the sequence the robot reported, so that the summary lists every
+decision made before the stop step; the summary holds the values of that step. The run ends,
+with the summary JSON (em-sim's schema) and the final map PNG written, when:
 
 - the team explored ratio reaches ``run.until_explored``, the team distance reaches
   ``run.max_distance_m``, or every robot reports ``finished``: exit code 0;
@@ -44,12 +48,14 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
+from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, MissingRange, TargetRecord,
+                                                     TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
-                                                stamp_key)
+                                                          stamp_key)
 from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, render_team_map
-from em_exploration_ros.core.evaluation.summary import HistorySample, RobotSummary, RunSummary, TargetEntry
-from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TargetRecord, TeamUpdateInbox
-from em_exploration_ros.core.sim.team_runner import FRONTIER_TYPE_NAMES
+from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RunMonitor,
+                                                            frontier_type_name)
+from em_exploration_ros.core.evaluation.summary import RunSummary, TargetEntry
 from em_exploration_ros.core.sim.wire_model import sim_time_s
 from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_positions_from_msg,
                                                   odometry_pose, path_from_msg, robot_namespace,
@@ -58,7 +64,6 @@ from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_position
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
 from em_exploration_ros.nodes.ros_params import declare_exploration_params, declare_setting
-from em_exploration_ros.nodes.world_node import final_step
 
 EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
 #: Reader side of the robots' latched estimates (LATCHED_QOS writers): the same durability and
@@ -132,9 +137,8 @@ class EvaluatorNode(Node):
         self.num_robots = self.params.world.num_robots
         self.time_step_s = self.params.motion.time_step_s
         self.interval_steps = max(1, round(metrics_interval_s / self.time_step_s))
-        self.final_step = final_step(self.params, max_sim_time_s)
+        self.monitor = RunMonitor(self.params, max_sim_time_s)
         self.evaluator: TeamEvaluator | None = None
-        self.history: list[TeamMetrics] = []
         self.paths = StampedEstimates()
         self.landmark_estimates = StampedEstimates()
         self.targets: list[dict[int, TargetRecord]] = [{} for _ in range(self.num_robots)]
@@ -147,6 +151,7 @@ class EvaluatorNode(Node):
         self._pending: tuple[int, float] | None = None
         self._last_command: list[MotionCommand | None] = [None] * self.num_robots
         self._all_finished_step: int | None = None
+        self._stream_wait_deadline_s = math.inf
         self._evaluated: tuple[dict, dict] = ({}, {})
         self._next_progress_s = self.progress_interval_s
         self._first_step_wall_s: float | None = None
@@ -154,7 +159,8 @@ class EvaluatorNode(Node):
         self._create_interfaces()
         self.get_logger().info(
             f"evaluating {self.num_robots} robots every {self.interval_steps} steps; stop at "
-            f"explored ratio {self.params.run.until_explored:g} or step {self.final_step}; "
+            f"explored ratio {self.params.run.until_explored:g} or step "
+            f"{self.monitor.final_step}; "
             f"summary -> {self.summary_path}")
 
     def _create_interfaces(self) -> None:
@@ -221,6 +227,8 @@ class EvaluatorNode(Node):
         for update in self.team_updates.pop_ready():
             for record in update.targets:
                 self.targets[update.robot_id][record.decision_index] = record
+        if self.monitor.stopped:
+            self._process()
 
     def _on_command(self, robot: int, message: MotionCommand) -> None:
         self._last_command[robot] = message
@@ -239,12 +247,16 @@ class EvaluatorNode(Node):
             self.finish(f"no ground truth for {silent_s:.0f} s (world or robots stopped)",
                         EXIT_SILENCE)
 
-    def _request_missing_updates(self) -> None:
-        """Ask robots again for team updates this evaluator missed (as robots do), up to
-        the latest sequence each robot reported in its motion commands."""
+    def _missing_updates(self) -> list[MissingRange]:
+        """Gaps in the robots' update streams up to the latest sequence each robot reported
+        in its motion commands."""
         latest = {robot: int(command.team_sequence)
                   for robot, command in enumerate(self._last_command) if command is not None}
-        for gap in self.team_updates.missing(latest):
+        return self.team_updates.missing(latest)
+
+    def _request_missing_updates(self) -> None:
+        """Ask robots again for team updates this evaluator missed (as robots do)."""
+        for gap in self._missing_updates():
             request = TeamUpdateRequest(requester_id=TeamUpdateRequest.OBSERVER,
                                         robot_id=gap.robot_id,
                                         first_sequence=gap.first_sequence,
@@ -263,12 +275,15 @@ class EvaluatorNode(Node):
         so that the result does not depend on message timing.
         """
         while self.evaluator is not None and self.exit_code is None:
+            if self.monitor.stopped:
+                self._finish_when_streams_complete()
+                return
             if self._pending is None:
                 if not self._complete_steps:
                     return
                 step = self._complete_steps.popleft()
                 self._record_step(step)
-                if step >= self.final_step or step == self._all_finished_step or (
+                if step >= self.monitor.final_step or step == self._all_finished_step or (
                         step > 0 and step % self.interval_steps == 0):
                     self._pending = (step, time.monotonic())
                 continue
@@ -277,9 +292,26 @@ class EvaluatorNode(Node):
                     and time.monotonic() - queued_wall_s < self.estimate_wait_s):
                 return
             self._pending = None
-            reason = self._stop_reason(step, self.evaluate(step))
-            if reason:
-                self.finish(reason, EXIT_OK)
+            metrics = self.evaluate(step)
+            all_finished = (self._all_finished_step is not None
+                            and step >= self._all_finished_step)
+            if self.monitor.observe(step, metrics, all_finished):
+                self._stream_wait_deadline_s = time.monotonic() + self.estimate_wait_s
+                self._request_missing_updates()
+
+    def _finish_when_streams_complete(self) -> None:
+        """After the stop rule fired: finish once every robot's update stream is complete up
+        to what it reported (so the summary holds every decision made before the stop
+        step), or after ``estimate_wait_s`` wall seconds, saying what is missing."""
+        missing = self._missing_updates()
+        if missing and time.monotonic() < self._stream_wait_deadline_s:
+            return
+        if missing:
+            self.get_logger().warn(
+                "summary written without team updates that never arrived: " + ", ".join(
+                    f"robot {g.robot_id} #{g.first_sequence}-{g.last_sequence}"
+                    for g in missing))
+        self.finish(self.monitor.stop_reason, EXIT_OK)
 
     def _record_step(self, step: int) -> None:
         stamp_s = self._stamp_s(step)
@@ -308,35 +340,18 @@ class EvaluatorNode(Node):
         last_step = -1 if last is None else int(last.step)
         return last_step < step - 2 * self.params.slam.keyframe_interval_steps
 
-    def _stop_reason(self, step: int, metrics: TeamMetrics) -> str:
-        run = self.params.run
-        if metrics.explored_ratio >= run.until_explored:
-            return f"explored ratio {metrics.explored_ratio:.3f} >= {run.until_explored}"
-        if metrics.distance_m >= run.max_distance_m:
-            return f"distance {metrics.distance_m:.0f} m >= {run.max_distance_m:.0f} m"
-        if step == self._all_finished_step:
-            return "every robot finished"
-        if step >= self.final_step:
-            return f"final step {self.final_step} (t = {self._stamp_s(step):g} s) reached"
-        return ""
-
     def _stamp_s(self, step: int) -> float:
         return sim_time_s(step, self.time_step_s)
 
-    def _targets_before(self, step: int) -> list[list[TargetRecord]]:
-        """Each robot's targets chosen before ``step`` (decisions of steps < step), in order."""
-        limit = stamp_key(self._stamp_s(step - 1))
-        return [[t for _, t in sorted(records.items()) if stamp_key(t.stamp_s) <= limit]
-                for records in self.targets]
-
     def evaluate(self, step: int, publish: bool = True) -> TeamMetrics:
-        """Team metrics at ``step`` (its ground truth recorded), kept and published."""
+        """Team metrics at ``step`` (its ground truth recorded), published; the caller hands
+        them to the run monitor."""
         stamp_s = self._stamp_s(step)
         as_of_s = self._stamp_s(max(step - 1, 0))
         self._evaluated = (self.paths.as_of(as_of_s), self.landmark_estimates.as_of(as_of_s))
         metrics = self.evaluator.evaluate(stamp_s, *self._evaluated)
-        self.history.append(metrics)
-        decisions = sum(len(t) for t in self._targets_before(step))
+        decisions = sum(len(self.monitor.decisions_counted(chosen, until=metrics))
+                        for chosen in self._decisions())
         if publish:
             message = ExplorationMetrics(
                 explored_ratio=metrics.explored_ratio, distance_m=metrics.distance_m,
@@ -355,67 +370,47 @@ class EvaluatorNode(Node):
     # -- the end ---------------------------------------------------------------------------
 
     def finish(self, reason: str, exit_code: int, publish: bool = True) -> None:
-        """Final evaluation, summary JSON and map PNG; then ``done`` completes."""
+        """Summary JSON and map PNG; then ``done`` completes.
+
+        After a stop rule fired the summary holds the values of that step. Otherwise (Ctrl-C,
+        silence) the steps recorded so far are evaluated once more, so the summary holds the
+        latest complete step."""
         if self.exit_code is not None:
             return
         self.exit_code = exit_code
-        if self.evaluator is not None:
+        self.monitor.end(reason)
+        if self.evaluator is not None and not self.monitor.stopped:
             while self._complete_steps:
                 self._record_step(self._complete_steps.popleft())
-            if self.recorded_step >= 0 and (not self.history or self.history[-1].stamp_s
-                                            != self._stamp_s(self.recorded_step)):
-                self.evaluate(self.recorded_step, publish)
-        summary = self.summary(reason)
+            last = self.monitor.final_metrics
+            if self.recorded_step >= 0 and (
+                    last is None or last.stamp_s != self._stamp_s(self.recorded_step)):
+                self.monitor.history.append(self.evaluate(self.recorded_step, publish))
+        summary = self.summary()
         summary.write(self.summary_path)
         log = self.get_logger()
-        log.info(f"done ({reason}): explored {summary.explored_ratio:.3f}, distance "
-                 f"{summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, landmark "
-                 f"RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, sim "
-                 f"{summary.sim_time_s:.1f} s, wall {summary.wall_s:.1f} s")
+        log.info(f"done ({summary.stop_reason}): explored {summary.explored_ratio:.3f}, "
+                 f"distance {summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, "
+                 f"landmark RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} "
+                 f"decisions, sim {summary.sim_time_s:.1f} s, wall {summary.wall_s:.1f} s")
         log.info(f"summary: {self.summary_path}")
         if self.evaluator is not None:
-            render_team_map(self.map_layers(reason), self.map_png_path)
+            render_team_map(self.map_layers(summary.stop_reason), self.map_png_path)
             log.info(f"map: {self.map_png_path}")
         if not self.done.done():
             self.done.set_result(exit_code)
 
-    def _final_targets(self) -> list[list[TargetRecord]]:
-        """Each robot's targets up to the last evaluation (all of them if none was made)."""
-        if not self.history:
-            return [[t for _, t in sorted(records.items())] for records in self.targets]
-        return self._targets_before(round(self.history[-1].stamp_s / self.time_step_s))
+    def _decisions(self) -> list[list[DecisionEntry]]:
+        """Each robot's decisions received so far, in order."""
+        return [[DecisionEntry(t.stamp_s, (float(t.position[0]), float(t.position[1])), t.kind,
+                               t.planning_time_s) for _, t in sorted(records.items())]
+                for records in self.targets]
 
-    def summary(self, stop_reason: str) -> RunSummary:
-        """The run's summary in em-sim's schema (NaN where nothing was measured)."""
-        world = self.params.world
-        summary = RunSummary(seed=self.params.run.seed, planner=self.params.planner.name,
-                             num_robots=world.num_robots,
-                             map_size_m=(world.width_m, world.height_m),
-                             num_landmarks=world.num_landmarks, stop_reason=stop_reason)
-        targets = self._final_targets()
-        distances = (self.evaluator.robot_distances_m if self.evaluator is not None
-                     else np.zeros(self.num_robots))
-        summary.robots = [RobotSummary(
-            id=robot, distance_m=float(distances[robot]), decisions=len(chosen),
-            targets=[_target_entry(t) for t in chosen],
-            decision_times_s=[t.planning_time_s for t in chosen])
-            for robot, chosen in enumerate(targets)]
-        times = [t.planning_time_s for chosen in targets for t in chosen]
-        summary.decisions = len(times)
-        if times:
-            summary.decision_time_median_s = float(np.median(times))
-            summary.decision_time_max_s = float(np.max(times))
-        if self._first_step_wall_s is not None:
-            summary.wall_s = time.monotonic() - self._first_step_wall_s
-        if self.history:
-            final = self.history[-1]
-            summary.explored_ratio, summary.distance_m = final.explored_ratio, final.distance_m
-            summary.loc_rmse_m, summary.landmark_rmse_m = final.loc_rmse_m, final.landmark_rmse_m
-            summary.sim_time_s = final.stamp_s
-            summary.history = [HistorySample(m.stamp_s, m.distance_m, m.explored_ratio,
-                                             m.loc_rmse_m, m.landmark_rmse_m)
-                               for m in self.history]
-        return summary
+    def summary(self) -> RunSummary:
+        """The run's summary (the run monitor's, em-sim's schema)."""
+        wall_s = (0.0 if self._first_step_wall_s is None
+                  else time.monotonic() - self._first_step_wall_s)
+        return self.monitor.summary(self._decisions(), wall_s)
 
     def map_layers(self, title: str) -> TeamMapLayers:
         """The final map's layers: the truth and the estimates of the last evaluation."""
@@ -431,15 +426,15 @@ class EvaluatorNode(Node):
             estimated_paths={r: poses for r, (_, poses) in paths.items()},
             estimated_landmarks={r: np.array(list(e.values())).reshape(-1, 2)
                                  for r, e in landmarks.items()},
-            targets={r: [_target_entry(t) for t in chosen]
-                     for r, chosen in enumerate(self._final_targets())},
+            targets={r: [_target_entry(d) for d in self.monitor.decisions_counted(chosen)]
+                     for r, chosen in enumerate(self._decisions())},
             title=f"{self.params.planner.name}, {self.num_robots} robots, seed "
                   f"{self.params.run.seed}: {title}")
 
 
-def _target_entry(target: TargetRecord) -> TargetEntry:
-    return TargetEntry(float(target.position[0]), float(target.position[1]),
-                       FRONTIER_TYPE_NAMES[target.kind])
+def _target_entry(decision: DecisionEntry) -> TargetEntry:
+    return TargetEntry(decision.position[0], decision.position[1],
+                       frontier_type_name(decision.kind))
 
 
 def _progress_line(metrics: TeamMetrics, decisions: int) -> str:

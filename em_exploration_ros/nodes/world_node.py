@@ -46,6 +46,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
+from em_exploration_ros.core.evaluation.run_monitor import final_step
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.simulation import WorldSimulation
 from em_exploration_ros.core.agent.team_data import LandmarkEstimate
@@ -67,15 +68,6 @@ _POLL_PERIOD_S = 0.05
 _LOG_EVERY_STEPS = 500
 #: Height of the landmark cylinders drawn in /world/markers [m].
 _MARKER_HEIGHT_M = 1.0
-
-
-def final_step(params: ExplorationParams, max_sim_time_s: float) -> int:
-    """Index of the last step a run publishes: ``run.max_steps`` (as em-sim), or earlier
-    when ``max_sim_time_s`` > 0 [s] ends it first (the last step with time <= the limit)."""
-    last = params.run.max_steps
-    if max_sim_time_s > 0.0:
-        last = min(last, int(math.floor(max_sim_time_s / params.motion.time_step_s + 1e-9)))
-    return last
 
 
 @dataclass(frozen=True)

@@ -53,13 +53,15 @@ def landmark_truth(world_params: WorldParams, landmark_ids: np.ndarray,
 
 @dataclass(frozen=True)
 class TeamMetrics:
-    """Metrics of the team at one moment."""
+    """Metrics of the team at one simulation time ``stamp_s`` [s]: team and per-robot true
+    distance [m], explored ratio, robot localization and landmark RMSE [m]."""
 
     stamp_s: float
     distance_m: float
     explored_ratio: float
     loc_rmse_m: float
     landmark_rmse_m: float
+    robot_distances_m: tuple[float, ...] = ()
 
 
 class TeamEvaluator:
@@ -132,4 +134,4 @@ class TeamEvaluator:
         self._grid.rebuild(np.concatenate(all_poses) if all_poses else np.zeros((0, 3)),
                            np.concatenate(all_landmarks) if all_landmarks else np.zeros((0, 2)))
         return TeamMetrics(stamp_s, float(self._distance.sum()), self._grid.explored_ratio(),
-                           loc_rmse, landmark_error)
+                           loc_rmse, landmark_error, tuple(float(d) for d in self._distance))

@@ -10,30 +10,22 @@ the same targets as the ROS system in lockstep mode.
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from typing import Callable
 
-import numpy as np
-
-from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
-from em_exploration_ros.core.planning.frontiers import FrontierType
-from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
-from em_exploration_ros.core.evaluation.summary import (HistorySample, RobotSummary, RunSummary,
-                                             TargetEntry)
 from em_exploration_ros.core.agent.team_data import TeamUpdateInbox
+from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
+from em_exploration_ros.core.evaluation.run_monitor import DecisionEntry, RunMonitor
+from em_exploration_ros.core.evaluation.summary import RunSummary
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
-                                                twist_to_increment_covariance)
+                                                    twist_to_increment_covariance)
 
 #: Team metrics are evaluated every this many steps (and at the end).
 METRICS_INTERVAL_STEPS = 10
-
-FRONTIER_TYPE_NAMES = {FrontierType.EXPLORATION: "exploration",
-                       FrontierType.REVISITING: "revisiting",
-                       FrontierType.RENDEZVOUS: "rendezvous"}
 
 
 def step_input(frame: SensorFrame, time_step_s: float) -> StepInput:
@@ -64,26 +56,21 @@ class TeamRunner:
         self.evaluator = TeamEvaluator(world, params)
         self._inboxes = [TeamUpdateInbox(i, n) for i in range(n)]
         self._barrier = {i: 0 for i in range(n)}
-        self.history: list[TeamMetrics] = []
+        self.monitor = RunMonitor(params)
 
     def run(self, progress: Callable[[Progress], None] | None = None) -> RunSummary:
         """Explore until the stop rule; report progress every metrics evaluation."""
         started = time.perf_counter()
-        run = self.params.run
-        stop_reason = f"max_steps {run.max_steps} reached"
-        for _ in range(run.max_steps):
+        monitor = self.monitor
+        while not monitor.stopped and self.simulation.step < monitor.final_step:
             self.step_once()
-            if self.simulation.step % METRICS_INTERVAL_STEPS == 0:
+            step = self.simulation.step
+            if step % METRICS_INTERVAL_STEPS == 0 or step >= monitor.final_step:
                 metrics = self.evaluate()
                 if progress is not None:
-                    progress(Progress(self.simulation.step, metrics, self.num_decisions))
-                reason = self._stop_reason(metrics)
-                if reason:
-                    stop_reason = reason
-                    break
-        if not self.history or self.history[-1].stamp_s != self.simulation.stamp_s:
-            self.evaluate()
-        return self.summary(time.perf_counter() - started, stop_reason)
+                    progress(Progress(step, metrics, self.num_decisions))
+                monitor.observe(step, metrics, all(agent.finished for agent in self.agents))
+        return self.summary(time.perf_counter() - started)
 
     def step_once(self) -> None:
         """One lockstep cycle: sense, deliver team data, decide, move."""
@@ -117,7 +104,7 @@ class TeamRunner:
         return sum(len(agent.decisions) for agent in self.agents)
 
     def evaluate(self) -> TeamMetrics:
-        """Team metrics now, appended to the history."""
+        """Team metrics now (the truth of this step recorded first)."""
         interval = self.params.slam.keyframe_interval_steps
         time_step = self.params.motion.time_step_s
         for agent in self.agents:  # the truth of this step (distance up to now)
@@ -128,43 +115,12 @@ class TeamRunner:
             indices, poses = agent.slam.trajectory(agent.robot_id)
             trajectories[agent.robot_id] = (indices * interval * time_step, poses)
             landmarks[agent.robot_id] = agent.slam.landmark_estimates()
-        metrics = self.evaluator.evaluate(self.simulation.stamp_s, trajectories, landmarks)
-        self.history.append(metrics)
-        return metrics
+        return self.evaluator.evaluate(self.simulation.stamp_s, trajectories, landmarks)
 
-    def _stop_reason(self, metrics: TeamMetrics) -> str:
-        run = self.params.run
-        if metrics.explored_ratio >= run.until_explored:
-            return f"explored ratio {metrics.explored_ratio:.3f} >= {run.until_explored}"
-        if metrics.distance_m >= run.max_distance_m:
-            return f"distance {metrics.distance_m:.0f} m >= {run.max_distance_m:.0f} m"
-        if all(agent.finished for agent in self.agents):
-            return "every robot finished"
-        return ""
-
-    def summary(self, wall_s: float, stop_reason: str) -> RunSummary:
-        """The run's summary in the shared JSON schema."""
-        final = self.history[-1]
-        distances = self.evaluator.robot_distances_m
-        times = [d.elapsed_s for agent in self.agents for d in agent.decisions]
-        world = self.params.world
-        return RunSummary(
-            seed=self.params.run.seed, planner=self.params.planner.name,
-            num_robots=world.num_robots, map_size_m=(world.width_m, world.height_m),
-            num_landmarks=world.num_landmarks, explored_ratio=final.explored_ratio,
-            distance_m=final.distance_m, loc_rmse_m=final.loc_rmse_m,
-            landmark_rmse_m=final.landmark_rmse_m, decisions=len(times), wall_s=wall_s,
-            sim_time_s=self.simulation.stamp_s,
-            decision_time_median_s=float(np.median(times)) if times else math.nan,
-            decision_time_max_s=float(np.max(times)) if times else math.nan,
-            stop_reason=stop_reason,
-            robots=[RobotSummary(
-                id=agent.robot_id, distance_m=float(distances[agent.robot_id]),
-                decisions=len(agent.decisions),
-                targets=[TargetEntry(float(d.target.position[0]), float(d.target.position[1]),
-                                     FRONTIER_TYPE_NAMES[d.target.kind])
-                         for d in agent.decisions],
-                decision_times_s=[d.elapsed_s for d in agent.decisions])
-                for agent in self.agents],
-            history=[HistorySample(m.stamp_s, m.distance_m, m.explored_ratio, m.loc_rmse_m,
-                                   m.landmark_rmse_m) for m in self.history])
+    def summary(self, wall_s: float) -> RunSummary:
+        """The run's summary in the shared JSON schema (the run monitor's)."""
+        decisions = [[DecisionEntry(d.stamp_s, (float(d.target.position[0]),
+                                                float(d.target.position[1])),
+                                    d.target.kind, d.elapsed_s) for d in agent.decisions]
+                     for agent in self.agents]
+        return self.monitor.summary(decisions, wall_s)

@@ -1,0 +1,160 @@
+"""The run monitor: one stop rule and one run summary for em-sim, the benchmark and em-evaluator.
+
+Whoever watches a run (``core.sim.team_runner.TeamRunner`` in process, the
+``em-evaluator`` node over ROS) evaluates the team metrics at some steps and hands each
+evaluation to ``RunMonitor.observe``, which keeps the history and applies the stop rule:
+
+- the team explored ratio reached ``run.until_explored``;
+- the team's true distance reached ``run.max_distance_m``;
+- every robot reported that it finished;
+- the run's final step (``final_step``: ``run.max_steps`` or an earlier simulation-time
+  limit) was evaluated.
+
+Once a rule fired the monitor is closed: later evaluations are ignored, and the summary
+(``RunMonitor.summary``) reports the values of the step at which the rule fired (metrics,
+per-robot distances, and the decisions made before that step), whatever the world did
+afterwards. A run that ends without a rule (Ctrl-C, a silent world) is summarized at its
+last evaluation.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from em_exploration_ros.core.evaluation.evaluator import TeamMetrics, stamp_key
+from em_exploration_ros.core.evaluation.summary import (HistorySample, RobotSummary, RunSummary,
+                                                        TargetEntry)
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.planning.frontiers import FrontierType
+
+
+def final_step(params: ExplorationParams, max_sim_time_s: float = 0.0) -> int:
+    """Index of the last step of a run: ``run.max_steps``, or earlier when
+    ``max_sim_time_s`` > 0 [s] ends it first (the last step with time <= the limit)."""
+    last = params.run.max_steps
+    if max_sim_time_s > 0.0:
+        last = min(last, int(math.floor(max_sim_time_s / params.motion.time_step_s + 1e-9)))
+    return last
+
+
+def frontier_type_name(kind: FrontierType) -> str:
+    """The summary's name of a frontier type: exploration / revisiting / rendezvous."""
+    return FrontierType(kind).name.lower()
+
+
+@dataclass(frozen=True)
+class DecisionEntry:
+    """One decision of a robot as the monitor sees it.
+
+    ``stamp_s`` [s] is the simulation time at which it was made, ``position`` the target
+    (x, y) [m] in the map frame, ``kind`` its frontier type and ``planning_time_s`` the
+    wall time [s] the robot spent deciding.
+    """
+
+    stamp_s: float
+    position: tuple[float, float]
+    kind: FrontierType
+    planning_time_s: float
+
+
+class RunMonitor:
+    """Stop rule, history and summary of one run (see module docstring)."""
+
+    def __init__(self, params: ExplorationParams, max_sim_time_s: float = 0.0) -> None:
+        """Args: the run's parameters; an optional simulation-time limit [s] (0: none)."""
+        self.params = params
+        self.final_step = final_step(params, max_sim_time_s)
+        self.history: list[TeamMetrics] = []
+        self.stop_reason = ""
+        self._stop_metrics: TeamMetrics | None = None
+
+    @property
+    def stopped(self) -> bool:
+        """Whether a stop rule fired."""
+        return self._stop_metrics is not None
+
+    @property
+    def final_metrics(self) -> TeamMetrics | None:
+        """Metrics at the step where the stop rule fired, else the last evaluation."""
+        if self._stop_metrics is not None:
+            return self._stop_metrics
+        return self.history[-1] if self.history else None
+
+    def observe(self, step: int, metrics: TeamMetrics, all_finished: bool = False) -> str:
+        """Record the metrics evaluated at ``step``; returns the stop reason ("" to go on).
+
+        ``all_finished`` tells whether every robot had reported ``finished`` by that step.
+        After a rule fired, further evaluations are ignored and the reason is returned again.
+        """
+        if self.stopped:
+            return self.stop_reason
+        self.history.append(metrics)
+        reason = self._stop_rule(step, metrics, all_finished)
+        if reason:
+            self.stop_reason = reason
+            self._stop_metrics = metrics
+        return reason
+
+    def end(self, reason: str) -> None:
+        """End the run without a stop rule (interrupted, world silent); keeps a fired rule."""
+        if not self.stop_reason:
+            self.stop_reason = reason
+
+    def _stop_rule(self, step: int, metrics: TeamMetrics, all_finished: bool) -> str:
+        run = self.params.run
+        if metrics.explored_ratio >= run.until_explored:
+            return f"explored ratio {metrics.explored_ratio:.3f} >= {run.until_explored}"
+        if metrics.distance_m >= run.max_distance_m:
+            return f"distance {metrics.distance_m:.0f} m >= {run.max_distance_m:.0f} m"
+        if all_finished:
+            return "every robot finished"
+        if step >= self.final_step:
+            return f"final step {self.final_step} (t = {metrics.stamp_s:g} s) reached"
+        return ""
+
+    def decisions_counted(self, decisions: Sequence[DecisionEntry],
+                          until: TeamMetrics | None = None) -> list[DecisionEntry]:
+        """The decisions made before the evaluation ``until`` (default: the final one); all
+        of them when nothing was evaluated. Decisions are stamped at the step they were made;
+        an evaluation at step k counts those of steps < k."""
+        until = until or self.final_metrics
+        if until is None:
+            return list(decisions)
+        limit = stamp_key(until.stamp_s)
+        return [d for d in decisions if stamp_key(d.stamp_s) < limit]
+
+    def summary(self, decisions: Sequence[Sequence[DecisionEntry]], wall_s: float) -> RunSummary:
+        """The run's summary from each robot's decisions (in order, indexed by robot id)
+        and the wall time [s]; values at the final metrics (NaN where nothing was measured)."""
+        world = self.params.world
+        summary = RunSummary(seed=self.params.run.seed, planner=self.params.planner.name,
+                             num_robots=world.num_robots,
+                             map_size_m=(world.width_m, world.height_m),
+                             num_landmarks=world.num_landmarks, stop_reason=self.stop_reason,
+                             wall_s=wall_s)
+        final = self.final_metrics
+        counted = [self.decisions_counted(robot_decisions) for robot_decisions in decisions]
+        distances = (final.robot_distances_m if final is not None
+                     else (0.0,) * len(counted))
+        summary.robots = [RobotSummary(
+            id=robot, distance_m=float(distances[robot]), decisions=len(chosen),
+            targets=[TargetEntry(float(d.position[0]), float(d.position[1]),
+                                 frontier_type_name(d.kind)) for d in chosen],
+            decision_times_s=[d.planning_time_s for d in chosen])
+            for robot, chosen in enumerate(counted)]
+        times = [d.planning_time_s for chosen in counted for d in chosen]
+        summary.decisions = len(times)
+        if times:
+            summary.decision_time_median_s = float(np.median(times))
+            summary.decision_time_max_s = float(np.max(times))
+        if final is not None:
+            summary.explored_ratio, summary.distance_m = final.explored_ratio, final.distance_m
+            summary.loc_rmse_m, summary.landmark_rmse_m = final.loc_rmse_m, final.landmark_rmse_m
+            summary.sim_time_s = final.stamp_s
+            summary.history = [HistorySample(m.stamp_s, m.distance_m, m.explored_ratio,
+                                             m.loc_rmse_m, m.landmark_rmse_m)
+                               for m in self.history if m.stamp_s <= final.stamp_s]
+        return summary

@@ -1,0 +1,71 @@
+"""The run monitor: one stop rule and one summary for em-sim and the evaluator node."""
+import math
+
+from em_exploration_ros.core.evaluation.evaluator import TeamMetrics
+from em_exploration_ros.core.evaluation.run_monitor import DecisionEntry, RunMonitor, final_step
+from em_exploration_ros.core.evaluation.summary import check_summary
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.planning.frontiers import FrontierType
+
+STEP_S = ExplorationParams().motion.time_step_s
+
+
+def metrics(step: int, explored: float, distances=(1.0, 2.0)) -> TeamMetrics:
+    return TeamMetrics(step * STEP_S, float(sum(distances)), explored, 0.5, 0.4,
+                       tuple(float(d) for d in distances))
+
+
+def decision(step: int, x: float) -> DecisionEntry:
+    return DecisionEntry(step * STEP_S, (x, 1.0), FrontierType.EXPLORATION, 0.01)
+
+
+def test_final_step_takes_the_earlier_limit():
+    params = ExplorationParams().replace(run={"max_steps": 50})
+    assert final_step(params, 0.0) == 50
+    assert final_step(params, 3.0) == 15
+    assert final_step(params, 3.1) == 15
+    assert final_step(params, 100.0) == 50
+
+
+def test_summary_holds_the_values_of_the_step_where_the_rule_fired():
+    monitor = RunMonitor(ExplorationParams().replace(run={"until_explored": 0.8}))
+    assert monitor.observe(10, metrics(10, 0.5)) == ""
+    reason = monitor.observe(20, metrics(20, 0.803, (3.0, 4.0)))
+    assert reason.startswith("explored ratio 0.803") and monitor.stopped
+    # the world went on: later evaluations change nothing
+    assert monitor.observe(30, metrics(30, 0.84, (9.0, 9.0))) == reason
+    summary = monitor.summary([[decision(5, 1.0), decision(19, 2.0), decision(20, 3.0),
+                                decision(25, 4.0)], [decision(12, 5.0)]], wall_s=1.5)
+    assert summary.explored_ratio == 0.803 and summary.distance_m == 7.0
+    assert summary.sim_time_s == 20 * STEP_S and summary.stop_reason == reason
+    assert [r.distance_m for r in summary.robots] == [3.0, 4.0]
+    # decisions made before the stop step count, later ones do not
+    assert [t.x for t in summary.robots[0].targets] == [1.0, 2.0]
+    assert summary.decisions == 3 and len(summary.history) == 2
+    assert check_summary(summary.to_dict()) == []
+
+
+def test_every_robot_finished_and_the_final_step_stop_the_run():
+    params = ExplorationParams().replace(run={"max_steps": 40})
+    finished = RunMonitor(params)
+    assert finished.observe(10, metrics(10, 0.3), all_finished=True) == "every robot finished"
+    limited = RunMonitor(params)
+    assert limited.observe(30, metrics(30, 0.3)) == ""
+    assert limited.observe(40, metrics(40, 0.3)).startswith("final step 40")
+
+
+def test_distance_limit_stops_the_run():
+    monitor = RunMonitor(ExplorationParams().replace(run={"max_distance_m": 5.0}))
+    assert monitor.observe(10, metrics(10, 0.1, (2.0, 3.0))).startswith("distance 5 m")
+
+
+def test_a_run_ended_from_outside_is_summarized_at_its_last_evaluation():
+    monitor = RunMonitor(ExplorationParams())
+    empty = monitor.summary([[], []], wall_s=0.0)
+    assert empty.decisions == 0 and math.isnan(empty.loc_rmse_m)
+    monitor.observe(10, metrics(10, 0.2))
+    monitor.observe(20, metrics(20, 0.4))
+    monitor.end("interrupted")
+    summary = monitor.summary([[decision(3, 1.0)], []], wall_s=2.0)
+    assert summary.stop_reason == "interrupted" and summary.explored_ratio == 0.4
+    assert not monitor.stopped and summary.decisions == 1
