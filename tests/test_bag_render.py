@@ -24,7 +24,10 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Reader as RosbagsReader
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
+from visualization_msgs.msg import MarkerArray
 from std_msgs.msg import String
 
 from em_exploration_ros.bag_format.bag_directory import mcap_file, read_metadata_yaml
@@ -110,6 +113,28 @@ def same_values(ros_value: Any, decoded: Any) -> bool:
     if isinstance(ros_value, float) and math.isnan(ros_value):
         return math.isnan(decoded)
     return ros_value == decoded
+
+
+def test_sample_stamps_are_simulation_times() -> None:
+    """Markers (the clearing entry included), the mission anchor and the odometry carry the
+    simulation time of their content; the odometry carries its noise's covariance."""
+    clock_ns = 10**9 * SAMPLE_PARAMS.motion.time_step_s
+    last_odom, marker_stamps = None, []
+    for channel, message in BagScanner(SAMPLE).messages():
+        if channel.topic == "/mission/anchor_pose":
+            anchor = deserialize_message(message.data, PoseStamped)
+            assert (anchor.header.stamp.sec, anchor.header.stamp.nanosec) == (0, 0)  # step 0
+        elif channel.topic == "/robot_0/markers":
+            markers = deserialize_message(message.data, MarkerArray).markers
+            stamps = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in markers}
+            assert len(stamps) == 1, stamps  # one decision, one time
+            [stamp] = stamps
+            assert round(stamp / clock_ns) * clock_ns == stamp  # the time of a step
+            marker_stamps.append(stamp)
+        elif channel.topic == "/robot_0/odom":
+            last_odom = deserialize_message(message.data, Odometry)
+    assert marker_stamps == sorted(marker_stamps) and marker_stamps[-1] > 0
+    assert last_odom is not None and last_odom.pose.covariance[0] > 0.0
 
 
 # ----- em-bag info ------------------------------------------------------------------------
