@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import signal
+import socket
 import subprocess
 
 import pytest
@@ -21,6 +22,7 @@ from em_exploration_ros.core.sim.team_runner import TeamRunner
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, processes_in_domain,
                          start_team_run)
 from rosbags.rosbag2 import Reader as RosbagsReader
+from websockets.sync.client import connect
 
 from em_exploration_ros.bag_format.bag_directory import read_metadata_yaml
 from em_exploration_ros.bag_format.bag_reader import scan_bag
@@ -124,12 +126,24 @@ def test_three_robots_explore_end_to_end(tmp_path):
     assert_frame_chains(bag, num_robots=3, max_error_m=2.0)
 
 
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
 def test_ctrl_c_stops_every_process_and_keeps_the_summary(tmp_path):
     summary_path = tmp_path / "summary.json"
+    port = _free_port()
     run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NF", "--map-size", "100",
-                            "--until-explored", "0.95", "--summary", str(summary_path))
+                            "--until-explored", "0.95", "--summary", str(summary_path),
+                            "--foxglove", str(port))
     with run:
         run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+        # --foxglove: the live view answers on its port (it is one of the run's processes).
+        with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],
+                     open_timeout=20) as viewer:
+            assert json.loads(viewer.recv(timeout=20))["op"] == "serverInfo"
         run.signal_group(signal.SIGINT)  # what a terminal's Ctrl-C does
         code = run.wait(30.0)
     assert code == 130, run.output()[-3000:]
