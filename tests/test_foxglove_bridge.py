@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import re
+import socket
 import struct
 import subprocess
 import sys
@@ -132,3 +133,16 @@ def test_client_sees_the_team_live(tmp_path: Path) -> None:
         assert server_times == sorted(server_times)  # the simulation clock, moving forward
         wait_until(lambda: "serving /tf [" in bridge.output(), 5.0, "the bridge's log")
         assert "Traceback" not in bridge.output()
+
+
+def test_a_taken_port_is_refused_in_one_line(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = subprocess.run(
+            [sys.executable, "-m", "em_exploration_ros.tools.foxglove_bridge", "--port",
+             str(port)], cwd=REPO_ROOT, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    assert f"cannot serve on 127.0.0.1:{port}" in result.stderr
+    assert "Traceback" not in result.stderr

@@ -31,16 +31,15 @@ import threading
 from dataclasses import dataclass
 
 import foxglove
-import rclpy
 from foxglove.websocket import Capability, ChannelView, Client
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from em_exploration_ros.bag_format.qos_yaml import (
     KEEP_LAST, RELIABLE, TRANSIENT_LOCAL, QosProfile, request_for_offers)
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
+from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
     qos_from_rclpy, qos_to_rclpy)
@@ -148,10 +147,13 @@ class FoxgloveBridge(Node):
         self._served: set[str] = set()
         self._skipped: set[str] = set()
         self._latest = LatestMessages()
-        self.server = foxglove.start_server(
-            name="em_exploration_ros", host=options.host, port=options.port,
-            capabilities=[Capability.Time],
-            server_listener=_ReplayLatestOnSubscribe(self._channels, self._latest))
+        try:
+            self.server = foxglove.start_server(
+                name="em_exploration_ros", host=options.host, port=options.port,
+                capabilities=[Capability.Time],
+                server_listener=_ReplayLatestOnSubscribe(self._channels, self._latest))
+        except RuntimeError as error:  # port taken, address not of this machine
+            raise ValueError(f"cannot serve on {options.host}:{options.port}: {error}") from None
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(POLL_PERIOD_S, self._discover, clock=steady)
         self.create_timer(TIME_PERIOD_S, self._broadcast_time, clock=steady)
@@ -201,28 +203,18 @@ class FoxgloveBridge(Node):
         self.server.stop()
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of em-foxglove."""
+def _stop(bridge: FoxgloveBridge) -> int:
+    bridge.stop()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of em-foxglove; returns the exit code (2: bad arguments, or the server
+    cannot listen on the address and port)."""
     full_args, tool_args = cli_args(argv)
     options = parse_options(tool_args)
-    rclpy.init(args=full_args)
-    bridge = None
-    try:
-        try:
-            bridge = FoxgloveBridge(options)
-        except RuntimeError as error:  # the server cannot listen (port taken, bad address)
-            sys.stderr.write(f"em-foxglove: cannot serve on {options.host}:{options.port}: "
-                             f"{error}\n")
-            sys.exit(1)
-        rclpy.spin(bridge)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if bridge is not None:
-            bridge.stop()
-            bridge.destroy_node()
-        rclpy.try_shutdown()
+    return run_node(lambda: FoxgloveBridge(options), "em_foxglove", full_args, _stop)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
