@@ -4,7 +4,7 @@
 #
 #   launch_scripts/run_team.sh                       3 robots, EM_3, 100 m x 100 m, 20 landmarks,
 #                                                    until explored ratio 0.85, lockstep
-#   launch_scripts/run_team.sh --robots 2 --planner NF --map-size 40 --landmarks 4 --seed 3
+#   launch_scripts/run_team.sh --robots 2 --planner NEAREST --map-size 40 --landmarks 4 --seed 3
 #
 # Run with --help for the options. Exit code: the evaluator's (0 done, 3 the robots or the world
 # stopped publishing), 1 if a process failed, 2 for bad arguments, 130 on Ctrl-C, 143 on SIGTERM.
@@ -14,7 +14,9 @@ set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/_common.sh"
 
 PROG=run_team.sh
-PLANNERS=(EM_2 EM_3 CE BSP NF)
+PLANNERS=(EM_2 EM_3 CE BSP NEAREST)
+# Deprecated planner names, still accepted with a warning: old name -> new name.
+declare -A RENAMED_PLANNERS=([NF]=NEAREST)
 NODES=em_exploration_ros.nodes
 RECORD_MODULE=em_exploration_ros.tools.record
 FOXGLOVE_MODULE=em_exploration_ros.tools.foxglove_bridge
@@ -101,6 +103,11 @@ while (( $# )); do
         --seed) needs_value "$@"; check_number "$arg" "$1" 0 2147483647 int; SEED=$1; shift ;;
         --planner)
             needs_value "$@"
+            if [[ -n $1 && -n ${RENAMED_PLANNERS[$1]:-} ]]; then
+                echo "$PROG: warning: planner name '$1' is deprecated; using" \
+                     "'${RENAMED_PLANNERS[$1]}' (write ${RENAMED_PLANNERS[$1]})" >&2
+                set -- "${RENAMED_PLANNERS[$1]}" "${@:2}"
+            fi
             [[ " ${PLANNERS[*]} " == *" $1 "* ]] \
                 || usage_error "unknown planner '$1' (one of: ${PLANNERS[*]})"
             PLANNER=$1; shift ;;
@@ -154,8 +161,9 @@ OVERRIDES=()
 [[ -n $UNTIL ]] && OVERRIDES+=(-p "run.until_explored:=$(as_double "$UNTIL")")
 
 # Check the file with the overrides as the nodes will read them (and that the world can be
-# built), and learn the values the run's names need: "<robots> <seed> <planner>".
-if ! RESOLVED=$("$PYTHON" - "$PARAMS_FILE" "${OVERRIDES[@]}" 2>&1 <<'PY'
+# built), and learn the values the run's names need: "<robots> <seed> <planner>". Errors are
+# printed to stdout (captured); warnings (deprecated parameters) go to stderr.
+if ! RESOLVED=$("$PYTHON" - "$PARAMS_FILE" "${OVERRIDES[@]}" <<'PY'
 import sys
 
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params, nest_dotted

@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[1]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # Two settings: a small map, and a 12 m map too small for the world generator (start poses
 # and 4 landmarks 10 m apart), so every trial of it fails while the others finish.
-SHORT_RUN = ["planners", "--planners", "NF", "CE", "--landmarks", "4", "--trials", "2",
+SHORT_RUN = ["planners", "--planners", "NEAREST", "CE", "--landmarks", "4", "--trials", "2",
              "--jobs", "2", "--max-steps", "1500"]
 GOOD = ["--map-size", "40", "--cell-size", "2"]
 GOOD_AND_BAD = ["--map-size", "40", "12", "--cell-size", "2", "2"]
@@ -37,7 +37,7 @@ def bench_out(tmp_path_factory) -> Path:
 
 def test_every_trial_has_a_record(bench_out):
     for setting, status in (("40m_cell2m", "done"), ("12m_cell2m", "failed")):
-        for planner in ("NF", "CE"):
+        for planner in ("NEAREST", "CE"):
             for seed in (0, 1):
                 record = json.loads(
                     (bench_out / "trials" / setting / planner / f"seed_{seed}.json").read_text())
@@ -54,7 +54,7 @@ def test_csv_has_one_row_per_history_sample(bench_out):
         rows = list(csv.reader(stream))
     assert tuple(rows[0]) == bench_plots.CSV_COLUMNS
     expected = 0
-    for planner in ("NF", "CE"):
+    for planner in ("NEAREST", "CE"):
         for seed in (0, 1):
             record = json.loads(
                 (bench_out / "trials/40m_cell2m" / planner / f"seed_{seed}.json").read_text())
@@ -74,7 +74,7 @@ def test_summary_json_has_counts_finals_and_paired_differences(bench_out):
     good, bad = summary["settings"]["40m_cell2m"], summary["settings"]["12m_cell2m"]
     assert good["map_size_m"] == [40.0, 40.0] and good["cell_size_m"] == 2.0
     assert good["num_landmarks"] == 4 and good["num_robots"] == 3
-    for planner in ("NF", "CE"):
+    for planner in ("NEAREST", "CE"):
         entry = good["planners"][planner]
         assert (entry["trials_done"], entry["trials_failed"]) == (2, 0)
         assert set(entry["final"]) == set(bench.FINAL_METRICS)
@@ -86,7 +86,7 @@ def test_summary_json_has_counts_finals_and_paired_differences(bench_out):
         assert (bad["planners"][planner]["trials_done"],
                 bad["planners"][planner]["trials_failed"]) == (0, 2)
     pairs = {(d["a"], d["b"], d["metric"]) for d in good["paired_differences"]}
-    assert pairs == {("CE", "NF", m) for m in bench.PAIRED_METRICS}
+    assert pairs == {("CE", "NEAREST", m) for m in bench.PAIRED_METRICS}
     assert summary["last_invocation"]["ran"] == 8
 
 
@@ -96,10 +96,10 @@ def test_plots_and_markdown_are_written(bench_out):
         assert png.startswith(PNG_SIGNATURE) and len(png) > 10_000
     assert not list(bench_out.glob("12m_cell2m_*.png"))
     markdown = (bench_out / "results.md").read_text()
-    assert "| NF | 2 (0) |" in markdown and "| CE | 2 (0) |" in markdown
-    assert "| CE − NF |" in markdown
+    assert "| NEAREST | 2 (0) |" in markdown and "| CE | 2 (0) |" in markdown
+    assert "| CE − NEAREST |" in markdown
     assert "![40m_cell2m_loc_rmse](40m_cell2m_loc_rmse.png)" in markdown
-    assert "NF seed 1: `ValueError" in markdown
+    assert "NEAREST seed 1: `ValueError" in markdown
 
 
 def test_rerun_skips_finished_trials_and_plot_remakes_outputs(bench_out):
@@ -159,7 +159,7 @@ def test_error_description_is_one_short_line():
 
 
 def test_worker_that_dies_without_a_record_is_recorded_as_failed(tmp_path):
-    spec = bench.TrialSpec("s", "NF", 3, ExplorationParams(), tmp_path / "seed_3.json")
+    spec = bench.TrialSpec("s", "NEAREST", 3, ExplorationParams(), tmp_path / "seed_3.json")
     record = bench.record_after_exit(spec, -9, 12.5)
     assert record["status"] == "failed" and "code -9" in record["error"]
     assert bench.read_record(spec.path) == record
@@ -169,7 +169,7 @@ def test_progress_reports_each_trial_and_estimates_time_left(tmp_path):
     now = [0.0]
     stream = io.StringIO()
     specs = [bench.TrialSpec("s", planner, seed, ExplorationParams(), tmp_path / f"{seed}.json")
-             for seed in (0, 1) for planner in ("NF", "CE")]
+             for seed in (0, 1) for planner in ("NEAREST", "CE")]
     progress = bench.ProgressBar(4, 2, stream, clock=lambda: now[0])
     progress.queue(specs)
     assert progress.eta_s() is None
@@ -178,10 +178,10 @@ def test_progress_reports_each_trial_and_estimates_time_left(tmp_path):
     now[0] = 10.0
     progress.finished(specs[0], {"status": "done", "wall_s": 10.0,
                                  "summary": {"explored_ratio": 0.85, "distance_m": 120.0}})
-    # pending NF 10 s + CE (overall mean 10 s) + running CE (10 s expected, 10 s spent)
+    # pending NEAREST 10 s + CE (overall mean 10 s) + running CE (10 s expected, 10 s spent)
     assert progress.eta_s() == pytest.approx(10.0)
     progress.finished(specs[1], {"status": "failed", "wall_s": 30.0, "error": "KeyError: 1"})
     lines = stream.getvalue().splitlines()
-    assert lines[0].startswith("[1/4] s/NF/seed 0: done in 10.0 s (explored 0.850, 120 m)")
+    assert lines[0].startswith("[1/4] s/NEAREST/seed 0: done in 10.0 s (explored 0.850, 120 m)")
     assert lines[1].startswith("[2/4] s/CE/seed 0: FAILED after 30.0 s: KeyError: 1")
     assert "left ~0:00:20" in lines[1]

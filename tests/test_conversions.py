@@ -5,14 +5,16 @@ from em_exploration_msgs.msg import TeamUpdate as TeamUpdateMsg
 from rclpy.serialization import deserialize_message, serialize_message
 
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, LandmarkEstimate
+from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
+                                                     TargetRecord)
+from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.sim.team_runner import TeamRunner, step_input
 from em_exploration_ros.core.sim.wire_model import sim_time_s, twist_to_increment_covariance
 from em_exploration_ros.nodes import conversions as conv
 
 PARAMS = ExplorationParams().replace(world={"width_m": 50.0, "height_m": 50.0,
                                             "num_landmarks": 5},
-                                     planner={"name": "NF"}, run={"seed": 4})
+                                     planner={"name": "NEAREST"}, run={"seed": 4})
 
 
 def through_dds(message):
@@ -63,15 +65,12 @@ def test_sensor_frame_over_the_wire_equals_em_sim_input(running_team):
 def _assert_same_update(a, b):
     assert (a.robot_id, a.sequence, a.stamp_s) == (b.robot_id, b.sequence, b.stamp_s)
     assert len(a.keyframes) == len(b.keyframes)
-    for x, y in zip(a.keyframes, b.keyframes):
-        mx, my = x.measurements, y.measurements
+    for mx, my in zip(a.keyframes, b.keyframes):
         assert (mx.robot_id, mx.index, mx.stamp_s, mx.is_first, mx.previous_index) == \
             (my.robot_id, my.index, my.stamp_s, my.is_first, my.previous_index)
         for name in ("odom_delta", "odom_covariance"):
             assert np.array_equal(getattr(mx, name), getattr(my, name))
         assert mx.landmarks == my.landmarks
-        assert np.array_equal(x.estimate, y.estimate)
-        assert np.array_equal(x.estimate_covariance, y.estimate_covariance)
     for x, y in zip(a.targets, b.targets):
         assert (x.robot_id, x.decision_index, x.stamp_s, x.kind, x.partner_id, x.utility,
                 x.planning_time_s) == (y.robot_id, y.decision_index, y.stamp_s, y.kind,
@@ -89,6 +88,21 @@ def test_team_updates_survive_the_wire(running_team):
         message = through_dds(conv.team_update_to_msg(update))
         assert message.header.frame_id == "map"
         _assert_same_update(conv.team_update_from_msg(message), update)
+
+
+def test_no_partner_is_explicit_on_the_wire():
+    def target(kind, partner):
+        return TargetRecord(1, 0, 2.0, np.array([1.0, 2.0]), kind, partner, 0.5, 0.1)
+
+    exploring = conv.target_to_msg(target(FrontierType.EXPLORATION, None))
+    assert exploring.partner_id == conv.em_msg.TargetRecord.NO_PARTNER
+    assert conv.target_from_msg(through_dds(exploring)).partner_id is None
+    meeting = conv.target_to_msg(target(FrontierType.RENDEZVOUS, 2))
+    assert conv.target_from_msg(through_dds(meeting)).partner_id == 2
+    # Recordings made before NO_PARTNER marked "no partner" with the robot's own id.
+    legacy = conv.em_msg.TargetRecord(robot_id=1, frontier_type=1, partner_id=1)
+    assert conv.target_from_msg(legacy).partner_id is None
+    assert conv.em_msg.TargetRecord().partner_id == conv.em_msg.TargetRecord.NO_PARTNER
 
 
 def test_malformed_team_update_messages_are_rejected():

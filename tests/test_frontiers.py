@@ -1,14 +1,14 @@
-"""Tests of frontier cells, candidate targets and the rendezvous book."""
+"""Tests of frontier cells and candidate targets."""
 import dataclasses
 
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType, RendezvousBook,
-                                               candidate_targets, exploration_frontiers,
-                                               frontier_cells, nearest_frontier,
-                                               rendezvous_frontiers, revisiting_frontiers,
-                                               segment_point_distances)
+from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType,
+                                                        candidate_targets, exploration_frontiers,
+                                                        frontier_cells, rendezvous_frontiers,
+                                                        revisiting_frontiers,
+                                                        segment_point_distances)
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import FrontierParams, MapParams
 
@@ -70,12 +70,11 @@ def test_exploration_frontiers() -> None:
     assert exploration_frontiers(np.zeros((0, 2)), robot, 0.5, params) == []
 
 
-def test_nearest_frontier_tie_break() -> None:
+def test_exploration_frontiers_tie_break_keeps_row_major_order() -> None:
     cells = np.array([[5.0, 1.0], [5.0, 9.0], [1.0, 5.0], [9.0, 5.0]])
-    chosen = nearest_frontier(cells, np.array([5.0, 5.0]))
-    assert chosen is not None
-    np.testing.assert_allclose(chosen.position, [5.0, 1.0])
-    assert nearest_frontier(np.zeros((0, 2)), np.zeros(2)) is None
+    chosen = exploration_frontiers(cells, np.array([5.0, 5.0]), 0.5, FrontierParams())
+    np.testing.assert_allclose([f.position for f in chosen],
+                               [[5.0, 1.0], [5.0, 9.0], [1.0, 5.0], [9.0, 5.0]])
 
 
 def test_segment_point_distances() -> None:
@@ -119,10 +118,6 @@ def test_rendezvous_frontiers() -> None:
     np.testing.assert_allclose(found[0].position, [20.0, 0.0])
     assert found[0].waiting_penalty_m == pytest.approx(10.0)
     assert found[1].waiting_penalty_m == pytest.approx(10.0)
-    fast_partner = rendezvous_frontiers(0, np.zeros(2), teammates, FrontierParams(),
-                                        speeds_mps={0: 1.0, 3: 2.0})
-    assert fast_partner[0].waiting_penalty_m == pytest.approx(15.0)
-    assert fast_partner[1].waiting_penalty_m == pytest.approx(10.0)
 
 
 def test_candidate_targets_dedup_cap_and_rendezvous_kept() -> None:
@@ -153,51 +148,3 @@ def test_frontier_is_immutable() -> None:
     with pytest.raises(dataclasses.FrozenInstanceError):
         frontier.kind = FrontierType.EXPLORATION  # type: ignore[misc]
     assert [int(k) for k in FrontierType] == [0, 1, 2]
-
-
-def test_rendezvous_completes_when_both_arrive() -> None:
-    book = RendezvousBook(goal_tolerance_m=1.0, timeout_s=120.0)
-    point = np.array([20.0, 10.0])
-    meeting = book.request(requester_id=0, partner_id=2, meeting_point=point, time_s=5.0,
-                           rendezvous_id=7)
-    assert meeting.deadline_s == pytest.approx(125.0)
-    np.testing.assert_allclose(book.is_waiting(2), point)
-    assert book.is_waiting(0) is None and book.is_waiting(1) is None
-    assert book.report_position(2, np.array([20.5, 10.5]), 30.0) == []
-    assert book.report_position(0, np.array([15.0, 10.0]), 31.0) == []  # not there yet
-    np.testing.assert_allclose(book.is_waiting(2), point)
-    done = book.report_position(0, np.array([19.2, 10.0]), 40.0)
-    assert [m.rendezvous_id for m in done] == [7]
-    assert book.is_waiting(2) is None and book.open_meetings() == []
-
-
-def test_requester_waits_after_arriving_first() -> None:
-    book = RendezvousBook(goal_tolerance_m=1.0, timeout_s=120.0)
-    book.request(1, 0, np.array([5.0, 5.0]), time_s=0.0)
-    assert book.arrived(1, time_s=10.0) == []
-    np.testing.assert_allclose(book.is_waiting(1), [5.0, 5.0])
-    assert len(book.arrived(0, time_s=20.0, requester_id=1)) == 1
-    assert book.is_waiting(1) is None
-
-
-def test_rendezvous_timeout_release_and_replacement() -> None:
-    book = RendezvousBook(goal_tolerance_m=1.0, timeout_s=100.0)
-    book.request(0, 1, np.array([1.0, 1.0]), time_s=0.0)
-    book.request(2, 1, np.array([9.0, 9.0]), time_s=50.0)
-    np.testing.assert_allclose(book.is_waiting(1), [1.0, 1.0])  # earliest request wins
-    assert book.expire(99.0) == []
-    expired = book.expire(100.0)
-    assert [m.requester_id for m in expired] == [0]
-    np.testing.assert_allclose(book.is_waiting(1), [9.0, 9.0])
-    # Requester 2 is declared dead: the partner stops waiting.
-    assert [m.requester_id for m in book.release(2)] == [2]
-    assert book.is_waiting(1) is None
-    # A new request of the same requester replaces its previous one.
-    book.request(0, 1, np.array([1.0, 1.0]), time_s=200.0)
-    book.request(0, 2, np.array([3.0, 3.0]), time_s=210.0)
-    assert [m.partner_id for m in book.open_meetings()] == [2]
-    assert book.is_waiting(1) is None
-    # An arrival after the deadline does not complete the meeting.
-    assert book.arrived(2, 400.0) == [] and book.open_meetings() == []
-    with pytest.raises(ValueError):
-        book.request(3, 3, np.zeros(2), 0.0)

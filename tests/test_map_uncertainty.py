@@ -3,13 +3,13 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.geometry import range_bearing
-from em_exploration_ros.core.virtual_map.cell_uncertainty import (CellObservations, VirtualMap,
-                                                     cell_covariances_from_poses,
-                                                     covariance_intersection, inverse_2x2,
-                                                     information_to_covariance,
-                                                     inverse_sensor_model,
-                                                     observation_confidence)
-from em_exploration_ros.core.virtual_map.occupancy import GridGeometry, predicted_observed_mask
+from em_exploration_ros.core.virtual_map.cell_uncertainty import (CellObservations,
+                                                                  cell_covariances_from_poses,
+                                                                  inverse_2x2,
+                                                                  information_to_covariance,
+                                                                  inverse_sensor_model,
+                                                                  observation_confidence)
+from em_exploration_ros.core.virtual_map.occupancy import GridGeometry, observation_counts
 from em_exploration_ros.core.params import MapParams, SensorParams
 
 SENSORS = SensorParams()
@@ -68,6 +68,17 @@ def test_inverse_2x2_closed_form() -> None:
     np.testing.assert_allclose(det, np.linalg.det(matrices), rtol=1e-9, atol=1e-12)
 
 
+def covariance_intersection(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance intersection of 2x2 covariances ``(P, 2, 2)`` of one cell: observations
+    whose pair covariance is the given one whatever the pose covariance. Returns the fused
+    information ``(1, 2, 2)`` and the observed flag ``(1,)``."""
+    count = len(covariances)
+    same_cell = np.zeros(count, dtype=np.int64)
+    observations = CellObservations(same_cell, same_cell, np.zeros((count, 3, 6)),
+                                    covariances[:, [0, 0, 1], [0, 1, 1]], 1)
+    return observations.fused_information(np.zeros((1, 3, 3)), num_cells=1)
+
+
 def test_one_pose_one_cell_hand_computed() -> None:
     # Pose at (1, 1) heading +x; cell (row 0, col 2) has its centre 4 m ahead at (5, 1).
     # Hl^+ Hx = -[[1, 0, -dy], [0, 1, dx]] and Hl^+ R Hl^+^T = diag(sr^2, dx^2 sb^2).
@@ -106,7 +117,7 @@ def test_two_poses_fused_by_covariance_intersection_hand_computed() -> None:
 
 def test_identical_observations_are_not_double_counted() -> None:
     cov = np.array([[[0.3, 0.1], [0.1, 0.2]]] * 4)
-    information, observed = covariance_intersection(np.zeros(4, dtype=np.int64), cov, 1)
+    information, observed = covariance_intersection(cov)
     assert observed[0]
     np.testing.assert_allclose(np.linalg.inv(information[0]), cov[0], rtol=1e-12)
 
@@ -117,7 +128,7 @@ def test_covariance_intersection_is_consistent_for_any_correlation() -> None:
         count = int(rng.integers(2, 6))
         roots = rng.normal(size=(count, 2, 2))
         covariances = roots @ np.swapaxes(roots, 1, 2) + 0.05 * np.eye(2)
-        information, _ = covariance_intersection(np.zeros(count, dtype=np.int64), covariances, 1)
+        information, _ = covariance_intersection(covariances)
         fused = np.linalg.inv(information[0])
         individual = np.linalg.inv(covariances)
         # The fused estimate is x = P sum_k w_k I_k x_k, i.e. gains P w_k I_k.
@@ -156,14 +167,13 @@ def test_observed_mask_matches_the_occupancy_rule_and_traces_agree() -> None:
     poses = np.column_stack([rng.uniform(0, 20, (15, 2)), rng.uniform(-3, 3, 15)])
     roots = rng.normal(scale=0.1, size=(15, 3, 3))
     covs = roots @ np.swapaxes(roots, 1, 2) + 1e-4 * np.eye(3)
-    virtual_map = VirtualMap(GEOMETRY, MAP, SENSORS)
-    covariances, observed = virtual_map.update(poses, covs)
-    np.testing.assert_array_equal(observed, predicted_observed_mask(GEOMETRY, poses, 7.5))
+    covariances, observed = cell_covariances_from_poses(GEOMETRY, poses, covs, SENSORS, MAP)
+    np.testing.assert_array_equal(observed, observation_counts(GEOMETRY, poses, 7.5) > 0)
     observations = CellObservations.from_poses(GEOMETRY, poses, SENSORS)
     sums = observations.intersection_sums(covs, GEOMETRY.rows * GEOMETRY.cols)
     information, flat_observed = sums.information(), sums.observed
     np.testing.assert_allclose(sums.covariance_traces()[flat_observed],
-                               virtual_map.traces().ravel()[flat_observed], rtol=1e-10)
+                               np.trace(covariances, axis1=-2, axis2=-1).ravel()[flat_observed], rtol=1e-10)
     assert np.all(sums.covariance_traces()[~flat_observed] == 0.0)
     np.testing.assert_allclose(
         information_to_covariance(information, flat_observed, 1.2).reshape(covariances.shape),
@@ -178,19 +188,19 @@ def test_split_observations_sum_to_observations_of_all_poses() -> None:
     covs = roots @ np.swapaxes(roots, 1, 2) + 1e-4 * np.eye(3)
     cells = GEOMETRY.rows * GEOMETRY.cols
     whole = CellObservations.from_poses(GEOMETRY, poses, SENSORS, "body")
-    joined = CellObservations.from_poses(GEOMETRY, poses[:5], SENSORS, "body").concatenate(
-        whole.pose_range(5, 8))
     summed = (whole.pose_range(0, 5).intersection_sums(covs[:5], cells)
               + whole.pose_range(5, 8).intersection_sums(covs[5:], cells))
     expected = whole.fused_information(covs, cells)[0]
-    np.testing.assert_allclose(joined.fused_information(covs, cells)[0], expected, rtol=1e-12)
     np.testing.assert_allclose(summed.information(), expected, rtol=1e-12)
     # The linear coefficients reproduce G Sigma G^T + N of the explicit Jacobians.
-    np.testing.assert_allclose(whole.pair_covariances(covs)[whole.pose_index == 2],
-                               cell_covariances_from_poses(GEOMETRY, poses[2:3], covs[2:3],
-                                                           SENSORS, MAP, "body")[0].reshape(
-                                   -1, 2, 2)[whole.flat_cell[whole.pose_index == 2]],
-                               rtol=1e-12)
+    pose_two = whole.pose_range(2, 3)
+    centres = GEOMETRY.cell_center(np.stack(np.divmod(pose_two.flat_cell, GEOMETRY.cols), axis=-1))
+    gain, noise = inverse_sensor_model(np.repeat(poses[2:3], len(centres), axis=0), centres,
+                                       SENSORS, "body")
+    explicit = gain @ covs[2] @ np.swapaxes(gain, 1, 2) + noise
+    information, _ = pose_two.fused_information(covs[2:3], cells)
+    np.testing.assert_allclose(np.linalg.inv(information[pose_two.flat_cell]), explicit,
+                               rtol=1e-10)
 
 
 def test_observation_confidence_follows_the_log_odds_update() -> None:

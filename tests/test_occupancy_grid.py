@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.virtual_map.occupancy import (GridGeometry, OccupancyGrid,
-                                                    observation_counts, observation_pairs,
-                                                    predicted_observed_mask)
+                                                           observation_counts, observation_pairs)
 from em_exploration_ros.core.params import MapParams
 
 
@@ -103,14 +102,14 @@ def test_counts_match_brute_force() -> None:
     np.testing.assert_array_equal(distance[rows, cols, pose_index] <= 4.2, True)
 
 
-def test_predicted_observed_mask() -> None:
+def test_cells_observed_by_two_waypoints() -> None:
     geometry = GridGeometry(20.0, 20.0, 2.0)
     waypoints = np.array([[3.0, 3.0, 0.0], [5.0, 3.0, 0.0]])
-    mask = predicted_observed_mask(geometry, waypoints, 2.0)
+    mask = observation_counts(geometry, waypoints, 2.0) > 0
     assert mask.shape == (10, 10)
     np.testing.assert_array_equal(np.argwhere(mask),
                                   [[0, 1], [0, 2], [1, 0], [1, 1], [1, 2], [1, 3], [2, 1], [2, 2]])
-    assert not predicted_observed_mask(geometry, np.zeros((0, 3)), 2.0).any()
+    assert not observation_counts(geometry, np.zeros((0, 3)), 2.0).any()
 
 
 def test_invalid_parameters_rejected() -> None:

@@ -1,10 +1,14 @@
 """Parameters: defaults, checks, and the ROS 2 parameter YAML files."""
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
-from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.params import (ExplorationParams, ParameterDeprecationWarning,
+                                            upgrade_deprecated)
 from em_exploration_ros.core.params_yaml import ParamsFileError, dump_params, load_params
+from em_exploration_ros.tools import sim_cli
 
 SHIPPED_CONFIG = Path(__file__).resolve().parents[1] / "config" / "exploration.yaml"
 
@@ -65,3 +69,43 @@ def test_bad_files_give_clear_errors(tmp_path, text, message):
 def test_missing_file_is_a_clear_error(tmp_path):
     with pytest.raises(ParamsFileError, match="cannot read"):
         load_params(tmp_path / "absent.yaml")
+
+
+def test_deprecated_planner_name_still_selects_its_planner(tmp_path):
+    path = tmp_path / "old.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    planner.name: NF\n")
+    with pytest.warns(ParameterDeprecationWarning, match="'NF' is deprecated; using 'NEAREST'"):
+        assert load_params(path).planner.name == "NEAREST"
+    with pytest.warns(ParameterDeprecationWarning, match="'NF' is deprecated"):
+        assert ExplorationParams().replace(planner={"name": "NF"}).planner.name == "NEAREST"
+    with pytest.warns(ParameterDeprecationWarning, match="'NF' is deprecated"):
+        args = sim_cli.build_parser().parse_args(["--planner", "NF"])
+    assert args.planner == "NEAREST"
+
+
+def test_deprecation_warning_is_shown_once_per_process(tmp_path):
+    path = tmp_path / "old.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    planner.name: NF\n")
+    script = ("import sys; from em_exploration_ros.core.params_yaml import load_params\n"
+              "for _ in range(3): assert load_params(sys.argv[1]).planner.name == 'NEAREST'\n")
+    done = subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True,
+                          text=True, timeout=60, check=True)
+    assert done.stderr.count("'NF' is deprecated") == 1
+
+
+def test_upgrade_deprecated_reports_each_replacement():
+    groups, messages = upgrade_deprecated({"planner": {"name": "NF"}, "world": {"width_m": 5.0}})
+    assert groups == {"planner": {"name": "NEAREST"}, "world": {"width_m": 5.0}}
+    assert len(messages) == 1 and "NEAREST" in messages[0]
+    assert upgrade_deprecated({"planner": {"name": "CE"}}) == ({"planner": {"name": "CE"}}, [])
+
+
+def test_removed_parameter_loads_with_a_warning(tmp_path):
+    path = tmp_path / "old.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    planner:\n"
+                    "      allocation_waypoint_spacing_m: 10.0\n      name: CE\n")
+    with pytest.warns(ParameterDeprecationWarning,
+                      match="allocation_waypoint_spacing_m is deprecated and ignored"):
+        params = load_params(path)
+    assert params == ExplorationParams().replace(planner={"name": "CE"})
+    assert "planner.allocation_waypoint_spacing_m" not in params.flat()

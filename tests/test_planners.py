@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
-from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid, predicted_observed_mask
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid, observation_counts
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.planners import (EmPlanner, PlanningContext, allocation_utility,
                                               distance_utility, make_planner, trace_sqrt_sum)
 from em_exploration_ros.core.slam.team_slam import TeamSlam
-from test_uncertainty_propagation import straight, team_slam
+from test_em_step import straight, team_slam
 
 PARAMS = ExplorationParams()
 HIGH_NOISE = (0.1, 0.1, 0.02)      # per-keyframe odometry sigmas [m, m, rad]
@@ -85,8 +85,8 @@ def test_trace_sqrt_sum_is_rotation_invariant() -> None:
 
 def test_make_planner_names_and_weights() -> None:
     assert make_planner(PARAMS).name == PARAMS.planner.name == "EM_3"
-    assert [make_planner(PARAMS, n).name for n in ("EM_2", "CE", "BSP", "NF")] == \
-        ["EM_2", "CE", "BSP", "NF"]
+    assert [make_planner(PARAMS, n).name for n in ("EM_2", "CE", "BSP", "NEAREST")] == \
+        ["EM_2", "CE", "BSP", "NEAREST"]
     with pytest.raises(ValueError):
         make_planner(PARAMS, "GREEDY")
     em3 = EmPlanner(PARAMS, "EM_3")
@@ -99,10 +99,11 @@ def test_make_planner_names_and_weights() -> None:
 
 def test_nearest_frontier_ignores_other_kinds() -> None:
     revisit = Frontier(np.array([22.0, 67.0]), FrontierType.REVISITING)
-    decision = make_planner(PARAMS, "NF").choose(context(LOW_NOISE, {}, [revisit, EXPLORE], {}))
+    decision = make_planner(PARAMS, "NEAREST").choose(
+        context(LOW_NOISE, {}, [revisit, EXPLORE], {}))
     assert decision.target is EXPLORE
     assert [u.frontier for u in decision.utilities] == [revisit, EXPLORE]
-    assert decision.elapsed_s > 0.0
+    assert decision.choose_time_s > 0.0
 
 
 def test_high_uncertainty_and_a_known_landmark_make_em_revisit() -> None:
@@ -116,7 +117,7 @@ def test_high_uncertainty_and_a_known_landmark_make_em_revisit() -> None:
         u_explore, u_revisit = decision.utilities
         assert u_revisit.u_m < 0.6 * u_explore.u_m
     assert make_planner(PARAMS, "CE").choose(ctx).target is EXPLORE
-    assert make_planner(PARAMS, "NF").choose(ctx).target is EXPLORE
+    assert make_planner(PARAMS, "NEAREST").choose(ctx).target is EXPLORE
 
 
 def test_high_uncertainty_without_landmarks_makes_em_rendezvous() -> None:
@@ -155,10 +156,10 @@ def test_u_m_counts_cells_explored_in_both_maps_or_all_cells_for_the_reference()
     assert abs(paper[1] - paper[0]) < 0.05 * paper[0]
     geometry = ctx.grid.geometry
     history = ctx.slam.trajectory(0)[1]
-    seen = predicted_observed_mask(geometry, history, 7.5)
+    seen = observation_counts(geometry, history, 7.5) > 0
     assert reference[0] == pytest.approx(2.88 * np.count_nonzero(~seen) + paper[0], rel=0.02)
     path = np.array([[22.0, 70.0 + d, np.pi / 2] for d in (2.0, 4.0, 6.0, 7.0)])
-    newly_seen = np.count_nonzero(predicted_observed_mask(geometry, path, 7.5) & ~seen)
+    newly_seen = np.count_nonzero((observation_counts(geometry, path, 7.5) > 0) & ~seen)
     assert reference[0] - reference[1] > 2.88 * newly_seen - 5.0
 
 

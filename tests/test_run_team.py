@@ -1,7 +1,7 @@
 """launch_scripts/run_team.sh: refuses bad arguments at once; runs a whole team end to end.
 
 The end-to-end run starts the real processes (em-world, three em-robot, em-evaluator,
-em-record) in this test run's ROS domain, on a small map with the cheap NF planner, and
+em-record) in this test run's ROS domain, on a small map with the cheap NEAREST planner, and
 checks what the user gets: the summary JSON in em-sim's schema, the map picture, exit code 0,
 no process of the run left behind, the same decisions as em-sim for the same seed, and a bag
 directory that rosbags reads whole, whose /tf holds every robot's frame chain.
@@ -73,10 +73,10 @@ def test_three_robots_explore_end_to_end(tmp_path):
     summary_path = tmp_path / "run" / "summary.json"
     bag = tmp_path / "run_bag"
     until = 0.85
-    run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NF", "--map-size", "40",
-                            "--landmarks", "4", "--seed", "2", "--until-explored", str(until),
-                            "--max-sim-time", "600", "--summary", str(summary_path),
-                            "--record", str(bag))
+    run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
+                            "--map-size", "40", "--landmarks", "4", "--seed", "2",
+                            "--until-explored", str(until), "--max-sim-time", "600",
+                            "--summary", str(summary_path), "--record", str(bag))
     with run:
         try:
             code = run.wait(RUN_TIMEOUT_S)
@@ -89,7 +89,7 @@ def test_three_robots_explore_end_to_end(tmp_path):
 
     summary = json.loads(summary_path.read_text())
     assert check_summary(summary) == []
-    assert summary["num_robots"] == 3 and summary["planner"] == "NF" and summary["seed"] == 2
+    assert summary["num_robots"] == 3 and summary["planner"] == "NEAREST" and summary["seed"] == 2
     assert summary["explored_ratio"] >= until, summary["stop_reason"]
     assert "explored ratio" in summary["stop_reason"] or "every robot finished" in \
         summary["stop_reason"]
@@ -103,7 +103,7 @@ def test_three_robots_explore_end_to_end(tmp_path):
     # The ROS system in lockstep makes em-sim's decisions (same seed, same parameters).
     reference = TeamRunner(load_params(REPO_ROOT / "config" / "exploration.yaml").replace(
         world={"num_robots": 3, "width_m": 40.0, "height_m": 40.0, "num_landmarks": 4},
-        planner={"name": "NF"}, run={"seed": 2, "until_explored": until})).run().to_dict()
+        planner={"name": "NEAREST"}, run={"seed": 2, "until_explored": until})).run().to_dict()
     assert [r["targets"] for r in summary["robots"]] == [r["targets"] for r in
                                                          reference["robots"]]
     assert (summary["stop_reason"], summary["sim_time_s"]) == (reference["stop_reason"],
@@ -135,9 +135,9 @@ def _free_port() -> int:
 def test_ctrl_c_stops_every_process_and_keeps_the_summary(tmp_path):
     summary_path = tmp_path / "summary.json"
     port = _free_port()
-    run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NF", "--map-size", "100",
-                            "--until-explored", "0.95", "--summary", str(summary_path),
-                            "--foxglove", str(port))
+    run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
+                            "--map-size", "100", "--until-explored", "0.95",
+                            "--summary", str(summary_path), "--foxglove", str(port))
     with run:
         run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
         # --foxglove: the live view answers on its port (it is one of the run's processes).

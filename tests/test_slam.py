@@ -16,8 +16,8 @@ from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReadin
                                              TeammateReading)
 from em_exploration_ros.core.slam.team_slam import (KeyframeBuilder, KeyframeMeasurements,
                                           OdometryAccumulator, SlamNoise, TeamSlam,
-                                          batch_solve, body_to_map_covariance, landmark_key,
-                                          pose_key)
+                                          body_to_map_covariance, is_landmark_key,
+                                          landmark_key, pose_key)
 from em_exploration_ros.core.sim.world import advance_robot, generate_world, run_seed_sequences
 
 PARAMS = ExplorationParams()
@@ -26,6 +26,31 @@ EXACT_SLAM = dataclasses.replace(PARAMS.slam, relinearize_threshold=0.0)
 #: Agreement with the batch optimum; the conditioning of the graph (1e-6 rad prior)
 #: limits both solvers to about 1e-7.
 BATCH_TOLERANCE = 1e-6
+
+
+def batch_solve(keyframes: list[KeyframeMeasurements], num_robots: int,
+                slam_params: SlamParams, anchor_pose: np.ndarray
+                ) -> tuple[dict[tuple[int, int], np.ndarray], dict[int, np.ndarray]]:
+    """The test oracle: Levenberg-Marquardt optimum of the team graph ``TeamSlam`` builds
+    from ``keyframes`` (fed in order, one update). Returns map-frame
+    ``poses[(robot_id, index)] -> (3,)`` and ``landmarks[landmark_id] -> (2,)``."""
+    slam = TeamSlam(0, num_robots, slam_params, anchor_pose)
+    for keyframe in keyframes:
+        slam.add_keyframe(keyframe)
+    slam.update()
+    lm_params = gtsam.LevenbergMarquardtParams()
+    lm_params.setRelativeErrorTol(1e-14)
+    lm_params.setAbsoluteErrorTol(1e-14)
+    lm_params.setMaxIterations(200)
+    result = gtsam.LevenbergMarquardtOptimizer(slam.graph(), slam.values(), lm_params).optimize()
+    poses = {}
+    for robot_id in range(num_robots):
+        for index in slam.trajectory(robot_id)[0]:
+            pose = result.atPose2(pose_key(robot_id, int(index)))
+            poses[(robot_id, int(index))] = np.array([pose.x(), pose.y(), pose.theta()])
+    landmarks = {landmark_id: np.asarray(result.atPoint2(landmark_key(landmark_id)), dtype=float)
+                 for landmark_id in slam.landmark_estimates()}
+    return poses, landmarks
 
 
 @dataclass
@@ -267,7 +292,7 @@ def test_final_pose_nees_lies_in_the_95_percent_band() -> None:
             error = run.truth[(robot, index)] - slam.pose(robot, index)
             error[2] = wrap_angle(error[2])
             nees[run_index, robot] = error @ np.linalg.solve(
-                slam.pose_covariance(robot, index), error)
+                slam.trajectory_covariances(robot)[-1], error)
     band = np.array([chi_square_quantile(p, 3 * runs) for p in (0.025, 0.975)]) / runs
     mean_nees = nees.mean(axis=0)
     assert np.all(mean_nees > band[0]) and np.all(mean_nees < band[1]), (mean_nees, band)
@@ -315,11 +340,11 @@ def test_teammate_keyframe_waits_for_its_predecessor_and_duplicates_are_ignored(
     assert slam.update() == 2
     slam.add_keyframe(_exact_keyframe(1, 2, poses))
     assert slam.update() == 0 and slam.num_pending() == 1
-    assert slam.known_keyframes(1) == [0] and slam.latest_index(1) == 0
+    assert list(slam.trajectory(1)[0]) == [0] and slam.latest_index(1) == 0
     slam.add_keyframe(_exact_keyframe(1, 1, poses))
     slam.add_keyframe(_exact_keyframe(1, 1, poses))
     assert slam.update() == 2 and slam.num_pending() == 0
-    assert slam.known_keyframes(1) == [0, 1, 2]
+    assert list(slam.trajectory(1)[0]) == [0, 1, 2]
     factors = slam.graph().size()
     slam.add_keyframe(_exact_keyframe(1, 2, poses))
     assert slam.update() == 0 and slam.graph().size() == factors
@@ -370,16 +395,16 @@ def test_accessors_agree_with_each_other_and_with_full_marginals(noisy_run: Team
     _feed(slam, noisy_run.keyframes)
     slam.converge()
     indices, trajectory = slam.trajectory(1)
-    assert list(indices) == slam.known_keyframes(1) and slam.latest_index(1) == indices[-1]
+    assert list(indices) == sorted(indices) and slam.latest_index(1) == indices[-1]
     for index, pose in zip(indices, trajectory):
         np.testing.assert_array_equal(slam.pose(1, int(index)), pose)
     landmarks = slam.landmark_estimates()
     assert slam.num_variables() == len(noisy_run.keyframes) + len(landmarks)
     values = slam.values()
     assert values.size() == slam.num_variables()
-    np.testing.assert_allclose(values.atPoint2(slam.landmark_key(min(landmarks))),
+    np.testing.assert_allclose(values.atPoint2(landmark_key(min(landmarks))),
                                landmarks[min(landmarks)])
-    assert slam.pose_key(2, 5) == pose_key(2, 5) == gtsam.symbol("c", 5)
+    assert pose_key(2, 5) == gtsam.symbol("c", 5)
     assert landmark_key(3) == gtsam.symbol("L", 3)
 
     marginals = gtsam.Marginals(slam.graph(), values)
@@ -390,7 +415,6 @@ def test_accessors_agree_with_each_other_and_with_full_marginals(noisy_run: Team
         # Both are exact up to the conditioning of the graph (relative ~1e-5).
         np.testing.assert_allclose(body[row], marginals.marginalCovariance(key),
                                    rtol=1e-4, atol=1e-12)
-        np.testing.assert_allclose(mapped[row], slam.pose_covariance(1, int(indices[row])))
     # Map frame: the position block is the body block rotated by the heading.
     heading = trajectory[-1, 2]
     rotation = np.array([[math.cos(heading), -math.sin(heading)],
@@ -401,7 +425,7 @@ def test_accessors_agree_with_each_other_and_with_full_marginals(noisy_run: Team
     np.testing.assert_allclose(slam.landmark_covariance(landmark_id),
                                marginals.marginalCovariance(landmark_key(landmark_id)),
                                rtol=1e-4, atol=1e-12)
-    virtual = slam.virtual_robot_observation_noise().sigmas()
+    virtual = slam.noise.virtual_robot_observation.sigmas()
     np.testing.assert_allclose(virtual, PARAMS.slam.virtual_robot_obs_sigmas)
 
 
@@ -415,3 +439,9 @@ def test_invalid_robot_ids_are_rejected() -> None:
                                           observes=(0,)))
     with pytest.raises(ValueError):
         TeamSlam(2, 2, PARAMS.slam, poses[(0, 0)])
+
+
+def test_landmark_keys_are_told_from_pose_keys() -> None:
+    assert is_landmark_key(landmark_key(0)) and is_landmark_key(landmark_key(10**6))
+    assert not any(is_landmark_key(pose_key(robot, index))
+                   for robot in range(26) for index in (0, 7, 10**6))

@@ -8,21 +8,21 @@ from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.sim.sensors import LandmarkReading, TeammateReading
 from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
-                                               MissingRange, SharedKeyframe, TargetRecord,
+                                               MissingRange, TargetRecord,
                                                TeamUpdateInbox, TeamUpdateOutbox,
                                                validate_team_update)
 
 NUM_ROBOTS = 3
 
 
-def keyframe(robot_id: int = 1, index: int = 2, odom=(2.0, 0.0, 0.1)) -> SharedKeyframe:
-    measurements = KeyframeMeasurements(
+def keyframe(robot_id: int = 1, index: int = 2,
+             odom=(2.0, 0.0, 0.1)) -> KeyframeMeasurements:
+    return KeyframeMeasurements(
         robot_id=robot_id, index=index, stamp_s=4.0, is_first=False, previous_index=index - 1,
         odom_delta=np.array(odom), odom_covariance=np.diag([1e-4, 1e-4, 1e-5]),
         landmarks=(LandmarkReading(3, 5.0, 0.2, 1e-6, 1e-5),),
         teammates=(TeammateReading((robot_id + 1) % NUM_ROBOTS, np.array([3.0, 1.0, 0.2]),
                                    np.eye(3) * 1e-6),))
-    return SharedKeyframe(measurements, np.array([1.0, 2.0, 0.3]), np.eye(3) * 1e-3)
 
 
 def updates_from(robot_id: int, count: int) -> list:
@@ -42,7 +42,7 @@ def test_outbox_numbers_from_one_and_resends_ranges():
 
 def test_inbox_delivers_in_order_and_ignores_duplicates():
     inbox = TeamUpdateInbox(own_robot_id=0, num_robots=NUM_ROBOTS)
-    first, second, third = updates_from(1, 3)
+    first, second, third, fourth = updates_from(1, 4)
     assert inbox.receive(third) and inbox.receive(first)
     assert inbox.pop_ready() == [first]  # 2 is missing: 3 waits
     assert inbox.missing() == [MissingRange(1, 2, 2)]
@@ -51,7 +51,7 @@ def test_inbox_delivers_in_order_and_ignores_duplicates():
     assert not inbox.receive(second)  # duplicate of a buffered update
     assert inbox.pop_ready() == [second, third]
     assert inbox.missing() == []
-    assert inbox.next_expected(1) == 4
+    assert inbox.receive(fourth) and inbox.pop_ready() == [fourth]  # 4 is next
 
 
 def test_inbox_barrier_limits_release_and_reports_known_gaps():
@@ -85,7 +85,15 @@ def test_inbox_rejects_own_id_and_implausible_sequence():
      "2 elements"),
     (lambda u: dict(landmarks=(LandmarkEstimate(1, np.zeros(2), -np.eye(2)),)), "not a covariance"),
     (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.array([np.inf, 0.0]),
-                                          FrontierType.EXPLORATION, 1, 0.0, 0.0),)), "target"),
+                                          FrontierType.EXPLORATION, None, 0.0, 0.0),)), "target"),
+    (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.EXPLORATION,
+                                          1, 0.0, 0.0),)), "EXPLORATION target with partner 1"),
+    (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.RENDEZVOUS,
+                                          None, 0.0, 0.0),)), "rendezvous target without"),
+    (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.RENDEZVOUS,
+                                          1, 0.0, 0.0),)), "robot itself as partner"),
+    (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.RENDEZVOUS,
+                                          9, 0.0, 0.0),)), "partner id 9 is not a robot"),
 ])
 def test_validation_rejects_malformed_updates(corrupt, message):
     good = updates_from(1, 1)[0]

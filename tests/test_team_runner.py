@@ -15,7 +15,7 @@ SMALL = dict(world={"width_m": 50.0, "height_m": 50.0, "num_landmarks": 5},
              run={"seed": 3, "max_steps": 1500})
 
 
-def small_params(planner: str = "NF") -> ExplorationParams:
+def small_params(planner: str = "NEAREST") -> ExplorationParams:
     return ExplorationParams().replace(planner={"name": planner}, **SMALL)
 
 
@@ -55,12 +55,12 @@ def test_agents_see_no_ground_truth():
 def test_em_sim_command_writes_summary(tmp_path):
     out = tmp_path / "run.json"
     result = subprocess.run(
-        [sys.executable, "-m", "em_exploration_ros.tools.sim_cli", "--planner", "NF",
+        [sys.executable, "-m", "em_exploration_ros.tools.sim_cli", "--planner", "NEAREST",
          "--map-size", "50", "--landmarks", "5", "--seed", "2", "--max-steps", "300",
          "--summary", str(out), "--quiet"], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     data = json.loads(out.read_text())
-    assert check_summary(data) == [] and data["planner"] == "NF" and data["seed"] == 2
+    assert check_summary(data) == [] and data["planner"] == "NEAREST" and data["seed"] == 2
     assert data["num_robots"] == 3 and math.isfinite(data["explored_ratio"])
 
 

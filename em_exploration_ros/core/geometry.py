@@ -23,6 +23,13 @@ def wrap_angle(angle: ArrayLike) -> FloatArray:
     return np.where(wrapped <= -np.pi, wrapped + _TWO_PI, wrapped)
 
 
+def read_only_point(value: ArrayLike) -> FloatArray:
+    """A read-only float copy (2,) of a 2-D point [m]."""
+    point = np.array(value, dtype=float).reshape(2)
+    point.flags.writeable = False
+    return point
+
+
 def _rotate(cos_t: FloatArray, sin_t: FloatArray, x: FloatArray,
             y: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Rotate the vector (x, y) by the angle whose cosine and sine are given."""

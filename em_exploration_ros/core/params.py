@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, Mapping
 
 #: Ratio between a 95% error bound and the standard deviation of a Gaussian.
@@ -199,14 +201,13 @@ class FrontierParams:
 
 @dataclass(frozen=True)
 class PlannerParams:
-    """Utility-based target selection: EM_2, EM_3, CE, BSP and nearest frontier (NF)."""
+    """Utility-based target selection: EM_2, EM_3, CE, BSP and the nearest frontier rule
+    (NEAREST)."""
 
     name: str = _param("EM_3", "Planner to use.",
-                       choices=("EM_2", "EM_3", "CE", "BSP", "NF"))
+                       choices=("EM_2", "EM_3", "CE", "BSP", "NEAREST"))
     virtual_waypoint_spacing_m: float = _param(
         2.0, "Spacing of virtual waypoints along a candidate path in the EM step [m].", 0.1, 100.0)
-    allocation_waypoint_spacing_m: float = _param(
-        10.0, "Spacing of waypoints used by task allocation [m].", 0.1, 100.0)
     allocation_d_max_m: float = _param(
         30.0, "Task allocation h(d) = 1 - d / d_max below d_max [m].", 0.1, 1000.0)
     allocation_history: int = _param(
@@ -241,6 +242,65 @@ class RunParams:
         0.0, 1e9)
 
 
+#: Planner names that were renamed, old -> new. The old name still selects its planner,
+#: with a deprecation warning ("NF" read like the paper's cited Next Frontier method).
+RENAMED_PLANNERS: Mapping[str, str] = MappingProxyType({"NF": "NEAREST"})
+
+#: Parameters that were removed, ``'group.field'`` -> why. A file that still sets one loads
+#: with a deprecation warning; the value is ignored.
+REMOVED_PARAMETERS: Mapping[str, str] = MappingProxyType({
+    "planner.allocation_waypoint_spacing_m": "task allocation uses the targets themselves"})
+
+
+class ParameterDeprecationWarning(FutureWarning):
+    """A deprecated parameter name or value was used (shown once per message and process)."""
+
+
+def upgrade_deprecated(groups: Mapping[str, Mapping[str, Any]]
+                       ) -> tuple[dict[str, dict[str, Any]], list[str]]:
+    """``groups`` (``{group: {field: value}}``) with the removed parameters dropped and
+    renamed planner names replaced by the new ones, and one message per replacement."""
+    upgraded = {group: dict(values) if isinstance(values, Mapping) else values
+                for group, values in groups.items()}
+    messages = []
+    for name, reason in REMOVED_PARAMETERS.items():
+        group, _, field_name = name.partition(".")
+        if isinstance(upgraded.get(group), dict) and field_name in upgraded[group]:
+            del upgraded[group][field_name]
+            messages.append(f"parameter {name} is deprecated and ignored ({reason}); "
+                            "remove it from the parameter file")
+    planner = upgraded.get("planner")
+    planner_name = planner.get("name") if isinstance(planner, dict) else None
+    if isinstance(planner_name, str) and planner_name in RENAMED_PLANNERS:
+        upgraded["planner"]["name"] = RENAMED_PLANNERS[planner_name]
+        messages.append(_planner_renamed(planner_name))
+    return upgraded, messages
+
+
+def _planner_renamed(old_name: str) -> str:
+    """The deprecation message of the renamed planner ``old_name``."""
+    new_name = RENAMED_PLANNERS[old_name]
+    return f"planner name {old_name!r} is deprecated; using {new_name!r} (write {new_name})"
+
+
+def current_planner_name(name: str) -> str:
+    """``name``, or the new name of a renamed planner (with a
+    ``ParameterDeprecationWarning``); for command-line options that name planners."""
+    if name in RENAMED_PLANNERS:
+        warnings.warn(_planner_renamed(name), ParameterDeprecationWarning, stacklevel=1)
+        return RENAMED_PLANNERS[name]
+    return name
+
+
+def _upgraded_with_warnings(groups: Mapping[str, Mapping[str, Any]]
+                            ) -> dict[str, dict[str, Any]]:
+    """``upgrade_deprecated`` with each message issued as a ``ParameterDeprecationWarning``."""
+    upgraded, messages = upgrade_deprecated(groups)
+    for message in messages:
+        warnings.warn(message, ParameterDeprecationWarning, stacklevel=1)
+    return upgraded
+
+
 @dataclass(frozen=True)
 class ExplorationParams:
     """All parameter groups of one exploration run."""
@@ -254,23 +314,6 @@ class ExplorationParams:
     planner: PlannerParams = field(default_factory=PlannerParams)
     run: RunParams = field(default_factory=RunParams)
 
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Mapping[str, Any]]) -> "ExplorationParams":
-        """Build parameters from nested ``{group: {field: value}}`` data (e.g. parsed YAML).
-
-        Unknown groups or fields raise ``ValueError`` naming them; values are checked
-        against each field's type and range.
-        """
-        groups = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - set(groups))
-        if unknown:
-            raise ValueError(f"unknown parameter group(s): {', '.join(unknown)}; "
-                             f"known: {', '.join(groups)}")
-        built = {}
-        for name, group_field in groups.items():
-            default_group = group_field.default_factory()  # type: ignore[misc]
-            built[name] = replace_checked(default_group, values.get(name, {}))
-        return cls(**built)
 
     def flat(self) -> dict[str, Any]:
         """All parameters as ``{'group.field': value}``, the ROS parameter names."""
@@ -282,7 +325,11 @@ class ExplorationParams:
         return out
 
     def replace(self, **group_overrides: Mapping[str, Any]) -> "ExplorationParams":
-        """A copy with some fields changed: ``params.replace(world={'num_robots': 5})``."""
+        """A copy with some fields changed: ``params.replace(world={'num_robots': 5})``.
+
+        Deprecated names and values are upgraded with a ``ParameterDeprecationWarning``
+        (``upgrade_deprecated``)."""
+        group_overrides = _upgraded_with_warnings(group_overrides)
         groups = {f.name for f in dataclasses.fields(self)}
         unknown = sorted(set(group_overrides) - groups)
         if unknown:

@@ -22,7 +22,7 @@ from em_exploration_ros.core.sim.wire_model import (NANOSECONDS_PER_SECOND,
                                                 planar_yaw, seconds_to_nanoseconds)
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
                                                RendezvousEvent, RendezvousState,
-                                               SharedKeyframe, TargetRecord, TeamUpdate)
+                                               TargetRecord, TeamUpdate)
 
 MAP_FRAME = "map"
 WORLD_FRAME = "world"
@@ -143,24 +143,20 @@ def odometry_twist_covariance(message: Odometry) -> np.ndarray:
 
 # -- team data (robot <-> robot) ----------------------------------------------------------
 
-def _keyframe_to_msg(shared: SharedKeyframe) -> em_msg.Keyframe:
-    kf = shared.measurements
+def _keyframe_to_msg(kf: KeyframeMeasurements) -> em_msg.Keyframe:
     message = em_msg.Keyframe(
         robot_id=kf.robot_id, index=kf.index, is_first=kf.is_first,
         previous_index=max(kf.previous_index, 0),
         odom_x=float(kf.odom_delta[0]), odom_y=float(kf.odom_delta[1]),
         odom_theta=float(kf.odom_delta[2]), odom_covariance=_flat(kf.odom_covariance),
         landmarks=[landmark_reading_to_msg(r) for r in kf.landmarks],
-        teammates=[teammate_reading_to_msg(r) for r in kf.teammates],
-        estimate_x=float(shared.estimate[0]), estimate_y=float(shared.estimate[1]),
-        estimate_theta=float(shared.estimate[2]),
-        estimate_covariance=_flat(shared.estimate_covariance))
+        teammates=[teammate_reading_to_msg(r) for r in kf.teammates])
     message.stamp = seconds_to_time(kf.stamp_s)
     return message
 
 
-def _keyframe_from_msg(message: em_msg.Keyframe) -> SharedKeyframe:
-    kf = KeyframeMeasurements(
+def _keyframe_from_msg(message: em_msg.Keyframe) -> KeyframeMeasurements:
+    return KeyframeMeasurements(
         robot_id=int(message.robot_id), index=int(message.index),
         stamp_s=time_to_seconds(message.stamp), is_first=bool(message.is_first),
         previous_index=-1 if message.is_first else int(message.previous_index),
@@ -168,9 +164,6 @@ def _keyframe_from_msg(message: em_msg.Keyframe) -> SharedKeyframe:
         odom_covariance=_matrix(message.odom_covariance, 3),
         landmarks=tuple(landmark_reading_from_msg(r) for r in message.landmarks),
         teammates=tuple(teammate_reading_from_msg(r) for r in message.teammates))
-    return SharedKeyframe(kf, np.array([message.estimate_x, message.estimate_y,
-                                        message.estimate_theta]),
-                          _matrix(message.estimate_covariance, 3))
 
 
 def landmark_estimate_to_msg(landmark: LandmarkEstimate) -> em_msg.LandmarkEstimate:
@@ -185,24 +178,30 @@ def landmark_estimate_from_msg(message: em_msg.LandmarkEstimate) -> LandmarkEsti
 
 
 def target_to_msg(target: TargetRecord) -> em_msg.TargetRecord:
+    partner = em_msg.TargetRecord.NO_PARTNER if target.partner_id is None else target.partner_id
     message = em_msg.TargetRecord(
         robot_id=target.robot_id, decision_index=target.decision_index,
         x=float(target.position[0]), y=float(target.position[1]),
-        frontier_type=int(target.kind), partner_id=int(target.partner_id),
+        frontier_type=int(target.kind), partner_id=int(partner),
         utility=float(target.utility), planning_time=float(target.planning_time_s))
     message.stamp = seconds_to_time(target.stamp_s)
     return message
 
 
 def target_from_msg(message: em_msg.TargetRecord) -> TargetRecord:
+    """The core record; ``partner_id`` NO_PARTNER becomes None, and so does a non-RENDEZVOUS
+    target's own robot id (how recordings made before NO_PARTNER marked "no partner")."""
     try:
         kind = FrontierType(message.frontier_type)
     except ValueError:
         raise InvalidTeamUpdate(f"unknown frontier type {message.frontier_type}") from None
+    partner: int | None = int(message.partner_id)
+    legacy_none = kind != FrontierType.RENDEZVOUS and partner == message.robot_id
+    if partner == em_msg.TargetRecord.NO_PARTNER or legacy_none:
+        partner = None
     return TargetRecord(int(message.robot_id), int(message.decision_index),
                         time_to_seconds(message.stamp), np.array([message.x, message.y]), kind,
-                        int(message.partner_id), float(message.utility),
-                        float(message.planning_time))
+                        partner, float(message.utility), float(message.planning_time))
 
 
 def _rendezvous_to_msg(event: RendezvousEvent) -> em_msg.Rendezvous:

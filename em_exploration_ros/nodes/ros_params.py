@@ -4,6 +4,9 @@
 way. Every field of ``ExplorationParams`` becomes a read-only ROS parameter ``<group>.<field>``
 (e.g. ``planner.name``, ``world.width_m``) with its description, unit and range, so
 ``ros2 param describe`` documents it and ``--params-file config/exploration.yaml`` sets it.
+Deprecated names and values (``core.params.upgrade_deprecated``) are accepted with a warning
+on the node's logger: a removed parameter is declared (so a file that sets it is no error)
+and ignored.
 """
 from __future__ import annotations
 
@@ -13,7 +16,8 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 
-from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.params import (REMOVED_PARAMETERS, ExplorationParams,
+                                            upgrade_deprecated)
 from em_exploration_ros.core.params_yaml import nest_dotted
 
 
@@ -37,7 +41,8 @@ def declare_exploration_params(node: Node) -> ExplorationParams:
     """Declare every exploration parameter on ``node`` and return their values.
 
     Raises ``ValueError`` (with the parameter's name) for a value the checks refuse; rclpy
-    raises its own exception for a value outside a declared range.
+    raises its own exception for a value outside a declared range. Deprecated parameters
+    are upgraded with a warning on the node's logger.
     """
     defaults = ExplorationParams()
     values: dict[str, Any] = {}
@@ -49,7 +54,16 @@ def declare_exploration_params(node: Node) -> ExplorationParams:
             initial = list(default) if isinstance(default, tuple) else default
             parameter = node.declare_parameter(name, initial, _descriptor(name, f, default))
             values[name] = parameter.value
-    return defaults.replace(**nest_dotted(values))
+    for name, reason in REMOVED_PARAMETERS.items():
+        descriptor = ParameterDescriptor(name=name, read_only=True, dynamic_typing=True,
+                                         description=f"Deprecated and ignored ({reason}).")
+        parameter = node.declare_parameter(name, None, descriptor)
+        if parameter.value is not None:
+            values[name] = parameter.value
+    groups, messages = upgrade_deprecated(nest_dotted(values))
+    for message in messages:
+        node.get_logger().warning(message)
+    return defaults.replace(**groups)
 
 
 def declare_setting(node: Node, name: str, default: Any, description: str,

@@ -16,7 +16,7 @@ are retried). Layout of ``--out``::
 summary.json. Examples::
 
     em-bench planners --out benchmarks/results --map-size 100 200 --trials 20 --jobs 2
-    em-bench planners --out /tmp/b --planners NF CE --map-size 40 --landmarks 4 --trials 2
+    em-bench planners --out /tmp/b --planners NEAREST CE --map-size 40 --landmarks 4 --trials 2
 """
 from __future__ import annotations
 
@@ -44,8 +44,9 @@ from em_exploration_ros.core.params_yaml import ParamsFileError
 from em_exploration_ros.core.sim.team_runner import TeamRunner
 from em_exploration_ros.core.evaluation.trial_stats import mean_ci, paired_difference
 from em_exploration_ros.tools import bench_plots
-from em_exploration_ros.tools.latency_bench import add_latency_command
-from em_exploration_ros.tools.sim_cli import PLANNER_NAMES, add_run_arguments, params_from_args
+from em_exploration_ros.tools.latency_bench import LATENCY_HELP, add_latency_arguments
+from em_exploration_ros.tools.sim_cli import (PLANNER_NAMES, PLANNER_TYPE, add_run_arguments,
+                                              params_from_args)
 
 _LOG = logging.getLogger("em-bench")
 
@@ -494,18 +495,6 @@ def command_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def _widen_to_lists(parser: argparse.ArgumentParser, dests: Sequence[str]) -> None:
-    """Let the shared single-value options ``dests`` take one or more values.
-
-    add_run_arguments (shared with em-sim) defines one value per option; the benchmark
-    sweeps several, so it changes the arity of those options here instead of redefining
-    them. ``argparse`` has no public accessor for a parser's actions.
-    """
-    for action in parser._actions:  # noqa: SLF001 - see docstring
-        if action.dest in dests:
-            action.nargs = "+"
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The em-bench argument parser, one subcommand per benchmark."""
     parser = argparse.ArgumentParser(prog="em-bench", description="Benchmarks of the "
@@ -516,9 +505,8 @@ def build_parser() -> argparse.ArgumentParser:
         "planners", help="compare planners over seeded trials (the paper's comparison)",
         description="Seeded trials of several planners on one or more map settings, in "
         "parallel worker processes, resumable; writes CSV, JSON summary, plots, results.md.")
-    add_run_arguments(planners)
-    _widen_to_lists(planners, ("map_size", "cell_size"))
-    planners.add_argument("--planners", nargs="+", choices=PLANNER_NAMES,
+    add_run_arguments(planners, sweep_map_sizes=True)
+    planners.add_argument("--planners", nargs="+", type=PLANNER_TYPE, choices=PLANNER_NAMES,
                           help=f"planners to compare (default {' '.join(PAPER_PLANNERS)})")
     planners.add_argument("--trials", type=int, help="trials (seeds) per planner (default 20)")
     planners.add_argument("--seed-start", type=int, help="first seed (default 0)")
@@ -536,7 +524,7 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--out", type=Path, required=True,
                       help="folder holding results.csv and summary.json")
     plot.set_defaults(handler=command_plot)
-    add_latency_command(commands)
+    add_latency_arguments(commands.add_parser("latency", help=LATENCY_HELP))
     return parser
 
 

@@ -32,7 +32,7 @@ PLOTS = (("loc_rmse_m", "loc_rmse", "Robot localization RMSE", "localization RMS
 GRID_POINTS = 201
 #: One colour per planner, the same in every plot.
 PLANNER_COLORS = {"EM_2": "tab:blue", "EM_3": "tab:green", "CE": "tab:orange",
-                  "BSP": "tab:red", "NF": "tab:gray"}
+                  "BSP": "tab:red", "NEAREST": "tab:gray"}
 #: Final values in the Markdown table: summary key, column title, decimals.
 TABLE_COLUMNS = (("explored_ratio", "explored ratio", 3), ("distance_m", "distance [m]", 0),
                  ("loc_rmse_m", "robot loc. RMSE [m]", 3),

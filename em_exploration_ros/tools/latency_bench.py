@@ -26,8 +26,10 @@ from em_exploration_ros.core.planning.planners import PlanningContext, make_plan
 from em_exploration_ros.core.sim.sensors import OdometryReading, odometry_covariance_per_step
 from em_exploration_ros.core.slam.team_slam import OdometryAccumulator, TeamSlam
 from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
-from em_exploration_ros.core.planning.em_step import (
-    DecisionFactorization, ScenarioBuilder, TeamSnapshot, VirtualNoise, propagate_oracle)
+from em_exploration_ros.core.planning.em_oracle import propagate_oracle
+from em_exploration_ros.core.planning.em_scenario import ScenarioBuilder, TeamSnapshot, VirtualNoise
+from em_exploration_ros.core.planning.em_step import DecisionFactorization
+from em_exploration_ros.tools.sim_cli import PLANNER_NAMES, PLANNER_TYPE
 
 PARAMS = ExplorationParams()
 SIZE_M = 100.0
@@ -140,14 +142,17 @@ def oracle_agreement(ctx: PlanningContext, count: int) -> tuple[float, float]:
     return worst, float(np.median(oracle_times))
 
 
-def add_latency_command(commands: argparse._SubParsersAction) -> None:
-    """The ``latency`` subcommand of em-bench."""
-    latency = commands.add_parser(
-        "latency", help="planner decision time against the number of poses in the graph",
-        description=__doc__.split("\n\n")[1].replace("\n", " "))
+#: One-line help of the ``latency`` subcommand of em-bench.
+LATENCY_HELP = "planner decision time against the number of poses in the graph"
+
+
+def add_latency_arguments(latency: argparse.ArgumentParser) -> None:
+    """Description, options and handler of ``latency``, the em-bench subcommand's parser."""
+    latency.description = __doc__.split("\n\n")[1].replace("\n", " ")
     latency.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000, 2000],
                          help="numbers of poses in the team graph")
-    latency.add_argument("--planners", nargs="+", default=["EM_2", "EM_3", "BSP", "CE", "NF"],
+    latency.add_argument("--planners", nargs="+", type=PLANNER_TYPE, choices=PLANNER_NAMES,
+                         default=["EM_2", "EM_3", "BSP", "CE", "NEAREST"],
                          help="planners to time")
     latency.add_argument("--repeats", type=int, default=7, help="timed decisions per size")
     latency.add_argument("--seed", type=int, default=3, help="seed of the synthetic team")

@@ -15,7 +15,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from em_exploration_ros.core.params import ExplorationParams, PlannerParams
+from em_exploration_ros.core.params import (ExplorationParams, PlannerParams,
+                                            current_planner_name)
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
 from em_exploration_ros.core.sim.team_runner import Progress, TeamRunner
 
@@ -23,16 +24,24 @@ from em_exploration_ros.core.sim.team_runner import Progress, TeamRunner
 PROGRESS_EVERY_STEPS = 250
 
 PLANNER_NAMES = PlannerParams.__dataclass_fields__["name"].metadata["choices"]
+#: argparse ``type`` of options that name planners: deprecated names map to the new ones.
+PLANNER_TYPE = current_planner_name
 
 
-def add_run_arguments(parser: argparse.ArgumentParser) -> None:
-    """The options shared by em-sim and the benchmark for one exploration setting."""
+def add_run_arguments(parser: argparse.ArgumentParser, sweep_map_sizes: bool = False) -> None:
+    """The options shared by em-sim and the benchmark for one exploration setting.
+
+    With ``sweep_map_sizes`` (the benchmark), ``--map-size`` and ``--cell-size`` take one
+    or more values (lists in the parsed arguments).
+    """
+    sizes = "+" if sweep_map_sizes else None
     parser.add_argument("--params", type=Path, help="ROS 2 parameter YAML file to start from")
     parser.add_argument("--robots", type=int, help="number of robots (default 3)")
-    parser.add_argument("--planner", choices=PLANNER_NAMES, help="planner (default EM_3)")
-    parser.add_argument("--map-size", type=float, metavar="M",
+    parser.add_argument("--planner", type=PLANNER_TYPE, choices=PLANNER_NAMES,
+                        help="planner (default EM_3)")
+    parser.add_argument("--map-size", type=float, metavar="M", nargs=sizes,
                         help="side of the square map [m] (default 100)")
-    parser.add_argument("--cell-size", type=float, metavar="M",
+    parser.add_argument("--cell-size", type=float, metavar="M", nargs=sizes,
                         help="virtual map cell size [m] (default 2)")
     parser.add_argument("--landmarks", type=int, help="number of landmarks (default 20)")
     parser.add_argument("--until-explored", type=float, metavar="RATIO",

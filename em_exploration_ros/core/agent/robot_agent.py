@@ -18,17 +18,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType, RendezvousBook,
-                                               candidate_targets, frontier_cells)
+from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType,
+                                                        candidate_targets, frontier_cells)
 from em_exploration_ros.core.geometry import compose
 from em_exploration_ros.core.planning.motion import ApfController
+from em_exploration_ros.core.planning.rendezvous import RendezvousBook
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.planners import PlanningContext, make_planner
 from em_exploration_ros.core.sim.sensors import LandmarkReading, OdometryReading, TeammateReading
 from em_exploration_ros.core.slam.team_slam import KeyframeBuilder, KeyframeMeasurements, TeamSlam
 from em_exploration_ros.core.agent.team_data import (LandmarkEstimate, RendezvousEvent,
-                                               RendezvousState, SharedKeyframe, TargetRecord,
+                                               RendezvousState, TargetRecord,
                                                TeamUpdate, TeamUpdateOutbox)
 from em_exploration_ros.core.sim.wire_model import DeadReckoningDifferencer
 
@@ -63,12 +64,17 @@ class MotionCommand:
 
 @dataclass(frozen=True)
 class DecisionRecord:
-    """One planning decision of this robot."""
+    """One planning decision of this robot at simulation time ``stamp_s`` [s].
+
+    ``planning_time_s``: wall time of the whole decision [s]: the map rebuild from the SLAM
+    estimate, the candidates and the planner (``Decision.choose_time_s`` is the planner's
+    part).
+    """
 
     decision_index: int
     stamp_s: float
     target: Frontier
-    elapsed_s: float
+    planning_time_s: float
     num_candidates: int
     explored_ratio: float
 
@@ -94,11 +100,10 @@ class RobotAgent:
         self.grid = OccupancyGrid(params.world.width_m, params.world.height_m, params.map,
                                   params.sensors.sonar_max_range_m)
         self.planner = make_planner(params)
-        self._fallback_planner = make_planner(params, "NF")
+        self._fallback_planner = make_planner(params, "NEAREST")
         self.controller = ApfController(params.motion, params.world.landmark_radius_m,
                                         params.world.robot_radius_m)
-        self.rendezvous = RendezvousBook(params.motion.goal_tolerance_m,
-                                         params.frontiers.rendezvous_timeout_s)
+        self.rendezvous = RendezvousBook(params.frontiers.rendezvous_timeout_s)
         self.outbox = TeamUpdateOutbox(robot_id)
         self.decisions: list[DecisionRecord] = []
         self.target: Frontier | None = None
@@ -119,8 +124,8 @@ class RobotAgent:
     def apply_team_updates(self, updates: list[TeamUpdate]) -> None:
         """Apply teammates' updates (already validated and in sequence order)."""
         for update in updates:
-            for shared in update.keyframes:
-                self.slam.add_keyframe(shared.measurements)
+            for keyframe in update.keyframes:
+                self.slam.add_keyframe(keyframe)
             for target in update.targets:
                 self.team_targets[target.robot_id].append(target)
             for event in update.rendezvous:
@@ -165,14 +170,13 @@ class RobotAgent:
         pending, self._pending = self._pending, _Pending()
         if not (pending.keyframes or pending.targets or pending.rendezvous):
             return None
-        shared = tuple(self._share_keyframe(kf) for kf in pending.keyframes)
         seen = sorted({reading.landmark_id for kf in pending.keyframes
                        for reading in kf.landmarks})
         known = self.slam.landmark_estimates()
         landmarks = tuple(LandmarkEstimate(lid, known[lid], self.slam.landmark_covariance(lid))
                           for lid in seen if lid in known)
-        return self.outbox.publish(self._stamp_s, shared, landmarks, tuple(pending.targets),
-                                   tuple(pending.rendezvous))
+        return self.outbox.publish(self._stamp_s, tuple(pending.keyframes), landmarks,
+                                   tuple(pending.targets), tuple(pending.rendezvous))
 
     def current_pose(self) -> np.ndarray | None:
         """Estimated current pose in the map frame, None until this robot is anchored."""
@@ -236,26 +240,26 @@ class RobotAgent:
             _LOG.error("robot %d: planner %s failed (%s); nearest frontier this time",
                        self.robot_id, self.planner.name, str(error).splitlines()[0][:120])
             decision = self._fallback_planner.choose(context)
-        elapsed = time.perf_counter() - started
+        planning_time_s = time.perf_counter() - started
         chosen = next(u.total for u in decision.utilities if u.frontier is decision.target)
-        self._set_target(decision.target, pose, elapsed, len(candidates), chosen)
+        self._set_target(decision.target, pose, planning_time_s, len(candidates), chosen)
 
-    def _set_target(self, target: Frontier, pose: np.ndarray, elapsed_s: float,
+    def _set_target(self, target: Frontier, pose: np.ndarray, planning_time_s: float,
                     num_candidates: int, utility: float) -> None:
         index = len(self.decisions)
         self.target = target
-        self.decisions.append(DecisionRecord(index, self._stamp_s, target, elapsed_s,
+        self.decisions.append(DecisionRecord(index, self._stamp_s, target, planning_time_s,
                                              num_candidates, self.explored_ratio))
         distance = float(np.linalg.norm(target.position - pose[:2]))
         motion = self.params.motion
         self._target_deadline_s = (self._stamp_s + motion.target_timeout_factor * distance
                                    / motion.speed_mps + motion.target_timeout_margin_s)
-        partner = self.robot_id if target.partner_id is None else target.partner_id
+        partner = target.partner_id if target.kind == FrontierType.RENDEZVOUS else None
         record = TargetRecord(self.robot_id, index, self._stamp_s, target.position.copy(),
-                              target.kind, partner, utility, elapsed_s)
+                              target.kind, partner, utility, planning_time_s)
         self.team_targets[self.robot_id].append(record)
         self._pending.targets.append(record)
-        if target.kind == FrontierType.RENDEZVOUS:
+        if partner is not None:
             self._send_rendezvous(RendezvousState.REQUEST, index, self.robot_id, partner,
                                   target.position)
             self.rendezvous.request(self.robot_id, partner, target.position, self._stamp_s, index)
@@ -299,11 +303,3 @@ class RobotAgent:
         self._pending.rendezvous.append(RendezvousEvent(
             rendezvous_id, requester, partner, self.robot_id, state, self._stamp_s,
             np.asarray(point, dtype=float).copy(), self.params.frontiers.rendezvous_timeout_s))
-
-    def _share_keyframe(self, keyframe: KeyframeMeasurements) -> SharedKeyframe:
-        """The keyframe with this robot's estimate of it; an all-zero estimate and
-        covariance mean "no estimate yet" (the robot is not anchored yet)."""
-        if not self.slam.has_keyframe(self.robot_id, keyframe.index):
-            return SharedKeyframe(keyframe, np.zeros(3), np.zeros((3, 3)))
-        return SharedKeyframe(keyframe, self.slam.pose(self.robot_id, keyframe.index),
-                              self.slam.pose_covariance(self.robot_id, keyframe.index))

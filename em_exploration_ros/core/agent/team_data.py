@@ -1,8 +1,8 @@
 """What teammates share, as plain data, and the bookkeeping that keeps the stream whole.
 
 Each robot publishes one ordered stream of ``TeamUpdate`` records: every record carries
-what is new since the previous one (keyframes with their measurements and the sender's
-estimates, landmark estimates, chosen targets, rendezvous events) and a sequence number
+what is new since the previous one (keyframes with their measurements, landmark
+estimates, chosen targets, rendezvous events) and a sequence number
 (1, 2, 3, ...). A receiver applies records strictly in sequence order, buffers records
 that arrive early, asks for the missing range again, and rejects malformed records
 before they touch any state. These types mirror em_exploration_msgs/TeamUpdate; the
@@ -33,15 +33,6 @@ class RendezvousState(IntEnum):
 
 
 @dataclass(frozen=True)
-class SharedKeyframe:
-    """A keyframe's measurements plus the sender's estimate of it (map frame)."""
-
-    measurements: KeyframeMeasurements
-    estimate: np.ndarray  # (3,) x [m], y [m], theta [rad] in the map frame
-    estimate_covariance: np.ndarray  # (3, 3)
-
-
-@dataclass(frozen=True)
 class LandmarkEstimate:
     """A landmark position estimate in the map frame with its 2x2 covariance [m^2]."""
 
@@ -52,14 +43,19 @@ class LandmarkEstimate:
 
 @dataclass(frozen=True)
 class TargetRecord:
-    """A target chosen by a robot's planner (map frame)."""
+    """A target chosen by a robot's planner (map frame).
+
+    ``partner_id``: the teammate to meet for a RENDEZVOUS target, None for every other
+    target. ``planning_time_s``: wall time of the whole decision [s] (map rebuild,
+    candidates and planner).
+    """
 
     robot_id: int
     decision_index: int
     stamp_s: float
     position: np.ndarray  # (2,) [m]
     kind: FrontierType
-    partner_id: int
+    partner_id: int | None
     utility: float
     planning_time_s: float
 
@@ -85,14 +81,10 @@ class TeamUpdate:
     robot_id: int
     sequence: int
     stamp_s: float
-    keyframes: tuple[SharedKeyframe, ...] = ()
+    keyframes: tuple[KeyframeMeasurements, ...] = ()
     landmarks: tuple[LandmarkEstimate, ...] = ()
     targets: tuple[TargetRecord, ...] = ()
     rendezvous: tuple[RendezvousEvent, ...] = ()
-
-    def is_empty(self) -> bool:
-        """True when the update carries nothing."""
-        return not (self.keyframes or self.landmarks or self.targets or self.rendezvous)
 
 
 class InvalidTeamUpdate(ValueError):
@@ -109,8 +101,7 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
     if update.sequence < 1:
         raise InvalidTeamUpdate(f"sequence must be >= 1, got {update.sequence}")
     _check_finite(update.stamp_s, "stamp")
-    for shared in update.keyframes:
-        kf = shared.measurements
+    for kf in update.keyframes:
         if kf.robot_id != update.robot_id:
             raise InvalidTeamUpdate(
                 f"keyframe of robot {kf.robot_id} inside an update of robot {update.robot_id}")
@@ -119,8 +110,6 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
         _check_finite(kf.stamp_s, "keyframe stamp")
         _check_vector(kf.odom_delta, 3, "odometry")
         _check_covariance(kf.odom_covariance, 3, "odometry covariance")
-        _check_vector(shared.estimate, 3, "keyframe estimate")
-        _check_covariance(shared.estimate_covariance, 3, "keyframe estimate covariance")
         for reading in kf.landmarks:
             _check_finite(reading.range_m, "landmark range")
             _check_finite(reading.bearing_rad, "landmark bearing")
@@ -139,7 +128,7 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
     for target in update.targets:
         if target.robot_id != update.robot_id:
             raise InvalidTeamUpdate("target of another robot inside an update")
-        _check_robot_id(target.partner_id, num_robots, "target partner id")
+        _check_partner(target, num_robots)
         _check_vector(target.position, 2, "target position")
         _check_finite(target.stamp_s, "target stamp")
     for event in update.rendezvous:
@@ -149,6 +138,19 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
             raise InvalidTeamUpdate("rendezvous event sent on behalf of another robot")
         _check_vector(event.meeting_point, 2, "meeting point")
         _check_finite(event.timeout_s, "rendezvous timeout")
+
+
+def _check_partner(target: TargetRecord, num_robots: int) -> None:
+    """A RENDEZVOUS target names a teammate to meet; every other target has no partner."""
+    if target.kind != FrontierType.RENDEZVOUS:
+        if target.partner_id is not None:
+            raise InvalidTeamUpdate(f"{target.kind.name} target with partner {target.partner_id}")
+        return
+    if target.partner_id is None:
+        raise InvalidTeamUpdate("rendezvous target without a partner")
+    _check_robot_id(target.partner_id, num_robots, "target partner id")
+    if target.partner_id == target.robot_id:
+        raise InvalidTeamUpdate("rendezvous target with the robot itself as partner")
 
 
 def _check_robot_id(robot_id: int, num_robots: int, what: str) -> None:
@@ -278,10 +280,6 @@ class TeamUpdateInbox:
                 gaps.append(MissingRange(robot, first, latest))
         return gaps
 
-    def next_expected(self, robot_id: int) -> int:
-        """The next sequence number expected from ``robot_id``."""
-        return self._streams[robot_id].next_sequence
-
 
 class TeamUpdateOutbox:
     """Numbers this robot's outgoing updates and keeps them for re-sending on request."""
@@ -295,7 +293,7 @@ class TeamUpdateOutbox:
         """Sequence number of the latest update (0 before the first)."""
         return len(self._sent)
 
-    def publish(self, stamp_s: float, keyframes: tuple[SharedKeyframe, ...] = (),
+    def publish(self, stamp_s: float, keyframes: tuple[KeyframeMeasurements, ...] = (),
                 landmarks: tuple[LandmarkEstimate, ...] = (),
                 targets: tuple[TargetRecord, ...] = (),
                 rendezvous: tuple[RendezvousEvent, ...] = ()) -> TeamUpdate:

@@ -4,17 +4,18 @@
 * revisiting frontiers: frontier cells near known landmarks, to close loops,
 * rendezvous frontiers: teammates' current targets, to meet them and close inter-robot loops.
 
-Also the nearest-frontier (NF) rule and ``RendezvousBook``, the bookkeeping of who waits
-for whom. Positions are in the team ``map`` frame [m]; distances are straight-line.
+Who waits for whom once a rendezvous is chosen is ``rendezvous.RendezvousBook``. Positions
+are in the team ``map`` frame [m]; distances are straight-line.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import IntEnum
-from typing import Callable, Mapping
+from typing import Mapping
 
 import numpy as np
 
+from em_exploration_ros.core.geometry import read_only_point
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import FrontierParams
 
@@ -28,13 +29,6 @@ class FrontierType(IntEnum):
     EXPLORATION = 0
     REVISITING = 1
     RENDEZVOUS = 2
-
-
-def _read_only_point(value: np.ndarray) -> np.ndarray:
-    """A read-only float copy of a 2-D point."""
-    point = np.array(value, dtype=float).reshape(2)
-    point.flags.writeable = False
-    return point
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,7 +49,7 @@ class Frontier:
     waiting_penalty_m: float = 0.0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "position", _read_only_point(self.position))
+        object.__setattr__(self, "position", read_only_point(self.position))
         object.__setattr__(self, "kind", FrontierType(self.kind))
 
 
@@ -110,15 +104,6 @@ def exploration_frontiers(cells: np.ndarray, robot_xy: np.ndarray, explored_rati
     return _frontiers_of(points[keep], FrontierType.EXPLORATION)
 
 
-def nearest_frontier(cells: np.ndarray, robot_xy: np.ndarray) -> Frontier | None:
-    """The NF rule: the frontier cell (K, 2) nearest to ``robot_xy`` [m], ties to the first
-    in row-major cell order (lowest y, then lowest x); None without frontier cells."""
-    points, _ = _by_distance(_as_points(cells), robot_xy)
-    if len(points) == 0:
-        return None
-    return Frontier(points[0], FrontierType.EXPLORATION)
-
-
 def segment_point_distances(start: np.ndarray, ends: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Distances (K, M) [m] from points (M, 2) to the segments ``start`` (2,) -> ``ends`` (K, 2)."""
     start = np.asarray(start, dtype=float)[:2]
@@ -156,8 +141,7 @@ def revisiting_frontiers(cells: np.ndarray, landmarks: np.ndarray, robot_xy: np.
 
 def rendezvous_frontiers(robot_id: int, robot_xy: np.ndarray,
                          teammates: Mapping[int, tuple[np.ndarray, np.ndarray | None]],
-                         params: FrontierParams,
-                         speeds_mps: Mapping[int, float] | None = None) -> list[Frontier]:
+                         params: FrontierParams) -> list[Frontier]:
     """Rendezvous candidates: the current targets of teammates, in ascending teammate id.
 
     Args:
@@ -166,13 +150,11 @@ def rendezvous_frontiers(robot_id: int, robot_xy: np.ndarray,
         teammates: ``{id: (current_xy (2,), current_target_xy (2,) or None)}`` [m].
         params: frontier parameters; a target counts only when the deciding robot is
             farther than ``rendezvous_min_distance_m`` from it.
-        speeds_mps: optional speed of each robot [m/s]; equal speeds are assumed where the
-            deciding robot's or the teammate's is missing. The waiting penalty is the
-            arrival-time difference expressed as distance travelled by the deciding robot:
-            ``|d_self - d_teammate * v_self / v_teammate|``.
+
+    The waiting penalty is the arrival-time difference at equal speeds, expressed as distance
+    travelled by the deciding robot: ``|d_self - d_teammate|``.
     """
     robot_xy = np.asarray(robot_xy, dtype=float)[:2]
-    speeds = speeds_mps or {}
     found = []
     for teammate_id in sorted(teammates):
         teammate_xy, target = teammates[teammate_id]
@@ -183,18 +165,15 @@ def rendezvous_frontiers(robot_id: int, robot_xy: np.ndarray,
         if d_self <= params.rendezvous_min_distance_m:
             continue
         d_teammate = float(np.linalg.norm(target - np.asarray(teammate_xy, dtype=float)[:2]))
-        both_known = robot_id in speeds and teammate_id in speeds
-        speed_ratio = speeds[robot_id] / speeds[teammate_id] if both_known else 1.0
         found.append(Frontier(target, FrontierType.RENDEZVOUS, partner_id=teammate_id,
-                              waiting_penalty_m=abs(d_self - d_teammate * speed_ratio)))
+                              waiting_penalty_m=abs(d_self - d_teammate)))
     return found
 
 
 def candidate_targets(cells: np.ndarray, robot_id: int, robot_xy: np.ndarray,
                       explored_ratio: float, landmarks: np.ndarray,
                       teammates: Mapping[int, tuple[np.ndarray, np.ndarray | None]],
-                      params: FrontierParams,
-                      speeds_mps: Mapping[int, float] | None = None) -> list[Frontier]:
+                      params: FrontierParams) -> list[Frontier]:
     """All candidate targets of one decision, nearest first, at most ``max_candidates``.
 
     Combines rendezvous, revisiting and exploration frontiers (arguments as in those
@@ -203,7 +182,7 @@ def candidate_targets(cells: np.ndarray, robot_id: int, robot_xy: np.ndarray,
     coincides with a frontier cell. Rendezvous candidates (at most one per teammate) are
     always kept; the remaining budget goes to the nearest frontier cells.
     """
-    rendezvous = rendezvous_frontiers(robot_id, robot_xy, teammates, params, speeds_mps)
+    rendezvous = rendezvous_frontiers(robot_id, robot_xy, teammates, params)
     others = (revisiting_frontiers(cells, landmarks, robot_xy, params)
               + exploration_frontiers(cells, robot_xy, explored_ratio, params))
     unique: dict[tuple[float, float, int | None], Frontier] = {}
@@ -220,110 +199,3 @@ def candidate_targets(cells: np.ndarray, robot_id: int, robot_xy: np.ndarray,
             kept.append(frontier)
             budget -= frontier.kind != FrontierType.RENDEZVOUS
     return kept[:params.max_candidates]
-
-
-@dataclass(frozen=True, eq=False)
-class Meeting:
-    """A rendezvous: ``requester_id`` drives to ``meeting_point`` (2,) [m, map frame], the
-    current target of ``partner_id``, which waits there until both arrived or
-    ``deadline_s`` (simulation time) passes."""
-
-    rendezvous_id: int
-    requester_id: int
-    partner_id: int
-    meeting_point: np.ndarray
-    requested_at_s: float
-    deadline_s: float
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "meeting_point", _read_only_point(self.meeting_point))
-
-
-@dataclass
-class _OpenMeeting:
-    """A meeting and the robots that have arrived so far."""
-
-    meeting: Meeting
-    arrived: set[int] = field(default_factory=set)
-
-    def involves(self, robot_id: int) -> bool:
-        """True when the robot is the requester or the partner."""
-        return robot_id in (self.meeting.requester_id, self.meeting.partner_id)
-
-
-class RendezvousBook:
-    """ROS-free bookkeeping of rendezvous between robots (simulation time in seconds).
-
-    Mirrors the ``Rendezvous`` message events: ``request`` (REQUEST), ``arrived``
-    (ARRIVED), ``release`` (RELEASE, also used when a robot is declared dead), plus the
-    timeout (``expire``). A requester has at most one open meeting: a new request replaces
-    the previous one. A meeting closes when both robots have arrived, at its deadline
-    (``requested_at_s + timeout_s``), or when either robot is released.
-    """
-
-    def __init__(self, goal_tolerance_m: float, timeout_s: float) -> None:
-        """Args: arrival distance to the meeting point [m], longest wait after a request [s]."""
-        self.goal_tolerance_m = float(goal_tolerance_m)
-        self.timeout_s = float(timeout_s)
-        self._open: dict[int, _OpenMeeting] = {}
-
-    def request(self, requester_id: int, partner_id: int, meeting_point: np.ndarray,
-                time_s: float, rendezvous_id: int = 0) -> Meeting:
-        """Record that ``requester_id`` wants to meet ``partner_id`` at ``meeting_point``."""
-        if requester_id == partner_id:
-            raise ValueError(f"robot {requester_id} cannot rendezvous with itself")
-        meeting = Meeting(rendezvous_id, requester_id, partner_id, meeting_point,
-                          float(time_s), float(time_s) + self.timeout_s)
-        self._open[requester_id] = _OpenMeeting(meeting)
-        return meeting
-
-    def open_meetings(self) -> list[Meeting]:
-        """Open meetings, in ascending requester id."""
-        return [self._open[key].meeting for key in sorted(self._open)]
-
-    def arrived(self, robot_id: int, time_s: float,
-                requester_id: int | None = None) -> list[Meeting]:
-        """Mark ``robot_id`` arrived at its open meetings (only the one of ``requester_id``
-        when given) at ``time_s``; returns the meetings completed by this arrival (closed)."""
-        self.expire(time_s)
-        for key, entry in self._open.items():
-            if entry.involves(robot_id) and requester_id in (None, key):
-                entry.arrived.add(robot_id)
-        return self._close(lambda entry: len(entry.arrived) == 2)
-
-    def report_position(self, robot_id: int, xy: np.ndarray, time_s: float) -> list[Meeting]:
-        """Mark ``robot_id`` arrived at those of its open meetings whose point lies within
-        the goal tolerance of ``xy`` (2,) [m]; returns the meetings completed (closed)."""
-        xy = np.asarray(xy, dtype=float)[:2]
-        completed = []
-        for key, entry in list(self._open.items()):
-            close_enough = np.linalg.norm(entry.meeting.meeting_point - xy) <= self.goal_tolerance_m
-            if entry.involves(robot_id) and close_enough:
-                completed += self.arrived(robot_id, time_s, requester_id=key)
-        return completed
-
-    def expire(self, time_s: float) -> list[Meeting]:
-        """Close and return the meetings whose deadline is at or before ``time_s``."""
-        return self._close(lambda entry: entry.meeting.deadline_s <= time_s)
-
-    def release(self, robot_id: int) -> list[Meeting]:
-        """Close and return every meeting the robot takes part in (plans changed or dead)."""
-        return self._close(lambda entry: entry.involves(robot_id))
-
-    def is_waiting(self, robot_id: int) -> np.ndarray | None:
-        """Meeting point (2,) [m] where the robot must go and wait, or None.
-
-        A partner waits from the request on; a requester waits once it has arrived. With
-        several meetings, the earliest request wins.
-        """
-        waiting = [entry.meeting for entry in self._open.values()
-                   if entry.meeting.partner_id == robot_id
-                   or (entry.meeting.requester_id == robot_id and robot_id in entry.arrived)]
-        if not waiting:
-            return None
-        return min(waiting, key=lambda m: (m.requested_at_s, m.requester_id)).meeting_point
-
-    def _close(self, should_close: Callable[[_OpenMeeting], bool]) -> list[Meeting]:
-        """Remove and return (ascending requester id) the open meetings matching the rule."""
-        closing = sorted(key for key, entry in self._open.items() if should_close(entry))
-        return [self._open.pop(key).meeting for key in closing]

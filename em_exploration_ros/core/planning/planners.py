@@ -1,4 +1,4 @@
-"""Target selection: the utilities U_M, U_T, U_D and the planners EM_2, EM_3, CE, BSP, NF.
+"""Target selection: the utilities U_M, U_T, U_D and the planners EM_2, EM_3, CE, BSP, NEAREST.
 
 All positions are in the team ``map`` frame [m]. For a candidate target ``a`` of the
 deciding robot alpha (every utility is a cost: lower is better):
@@ -20,7 +20,8 @@ deciding robot alpha (every utility is a cost: lower is better):
 
 Planners (``PlannerParams``): EM_2 ``1 U_M + 0 U_T + 10 U_D``; EM_3 ``1 U_M + 20 (1 - r)
 U_T + 10 U_D`` (``r``: explored ratio); CE ``1 U_D + 10 U_T``; BSP ``5 U_D + 1 U_M_bsp``;
-NF: the nearest exploration frontier. Reference EM weights: ``U_M + 100 max(1 - r, 0) U_T
+NEAREST: the nearest exploration frontier (the nearest frontier rule; not the "Next
+Frontier" method the paper cites). Reference EM weights: ``U_M + 100 max(1 - r, 0) U_T
 + 10 r U_D`` (``U_T`` weight kept 0 for EM_2).
 """
 from __future__ import annotations
@@ -38,9 +39,9 @@ from em_exploration_ros.core.virtual_map.cell_uncertainty import CellObservation
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams, PlannerParams
 from em_exploration_ros.core.slam.team_slam import TeamSlam
-from em_exploration_ros.core.planning.em_step import (DecisionFactorization,
-                                                             ScenarioBuilder, TeamSnapshot,
-                                                             VirtualNoise, VirtualScenario)
+from em_exploration_ros.core.planning.em_scenario import (ScenarioBuilder, TeamSnapshot,
+                                                          VirtualNoise, VirtualScenario)
+from em_exploration_ros.core.planning.em_step import DecisionFactorization
 
 FloatArray = NDArray[np.float64]
 
@@ -86,12 +87,13 @@ class CandidateUtility:
 
 @dataclass(frozen=True)
 class Decision:
-    """The chosen target, every candidate's utilities (candidate order) and the wall time
-    of the decision [s]."""
+    """The chosen target, every candidate's utilities (candidate order) and
+    ``choose_time_s``, the wall time of ``Planner.choose`` alone [s] (the robot's whole
+    decision, map rebuild included, is ``DecisionRecord.planning_time_s``)."""
 
     target: Frontier
     utilities: list[CandidateUtility]
-    elapsed_s: float
+    choose_time_s: float
 
 
 class Planner(Protocol):
@@ -158,9 +160,9 @@ def _decide(context: PlanningContext, u_m: FloatArray, u_t: FloatArray, u_d: Flo
 
 
 class NearestFrontierPlanner:
-    """NF: the nearest exploration candidate (the nearest candidate if there is none)."""
+    """NEAREST: the nearest exploration candidate (the nearest candidate if there is none)."""
 
-    name = "NF"
+    name = "NEAREST"
 
     def choose(self, context: PlanningContext) -> Decision:
         started = time.perf_counter()
@@ -307,7 +309,7 @@ class EmPlanner(_PropagationPlanner):
 
 def make_planner(params: ExplorationParams, name: str | None = None) -> Planner:
     """The planner called ``name`` (default ``params.planner.name``): EM_2, EM_3, CE, BSP
-    or NF."""
+    or NEAREST."""
     name = params.planner.name if name is None else name
     if name in ("EM_2", "EM_3"):
         return EmPlanner(params, name)
@@ -315,6 +317,6 @@ def make_planner(params: ExplorationParams, name: str | None = None) -> Planner:
         return CoordinatedPlanner(params.planner)
     if name == "BSP":
         return BspPlanner(params)
-    if name == "NF":
+    if name == "NEAREST":
         return NearestFrontierPlanner()
-    raise ValueError(f"unknown planner {name!r}; expected EM_2, EM_3, CE, BSP or NF")
+    raise ValueError(f"unknown planner {name!r}; expected EM_2, EM_3, CE, BSP or NEAREST")

@@ -121,6 +121,6 @@ class TeamRunner:
         """The run's summary in the shared JSON schema (the run monitor's)."""
         decisions = [[DecisionEntry(d.stamp_s, (float(d.target.position[0]),
                                                 float(d.target.position[1])),
-                                    d.target.kind, d.elapsed_s) for d in agent.decisions]
+                                    d.target.kind, d.planning_time_s) for d in agent.decisions]
                      for agent in self.agents]
         return self.monitor.summary(decisions, wall_s)

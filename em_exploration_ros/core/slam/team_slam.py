@@ -57,6 +57,11 @@ def landmark_key(landmark_id: int) -> int:
     return gtsam.symbol("L", landmark_id)
 
 
+def is_landmark_key(key: int) -> bool:
+    """True for the key of a landmark, False for a pose's (by the key's symbol character)."""
+    return gtsam.symbolChr(int(key)) == ord("L")
+
+
 def body_to_map_covariance(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     """Pose covariances ``(..., 3, 3)`` from the body (GTSAM tangent) frame to additive
     map-frame ``(x, y, theta)`` errors: the position block rotated by ``+theta``."""
@@ -246,10 +251,6 @@ class _TeamGraph:
     def num_pending(self) -> int:
         """Received keyframes not yet connectable to the graph."""
         return len(self._pending)
-
-    def contains(self, keyframe_id: KeyframeId) -> bool:
-        """Whether the pose is in the graph."""
-        return keyframe_id in self._in_graph
 
     def collect(self, estimate: gtsam.Values) -> tuple[gtsam.NonlinearFactorGraph,
                                                        gtsam.Values, int]:
@@ -458,25 +459,7 @@ class TeamSlam:
         """The current estimate of every variable in the graph (map frame)."""
         return gtsam.Values(self._estimate)
 
-    @staticmethod
-    def pose_key(robot_id: int, index: int) -> int:
-        """GTSAM key of a robot's keyframe pose (see :func:`pose_key`)."""
-        return pose_key(robot_id, index)
-
-    @staticmethod
-    def landmark_key(landmark_id: int) -> int:
-        """GTSAM key of a landmark (see :func:`landmark_key`)."""
-        return landmark_key(landmark_id)
-
-    def virtual_robot_observation_noise(self) -> gtsam.noiseModel.Base:
-        """Noise model of a virtual inter-robot observation in the EM step."""
-        return self.noise.virtual_robot_observation
-
     # -- estimates ---------------------------------------------------------------------
-
-    def known_keyframes(self, robot_id: int) -> list[int]:
-        """Sorted keyframe indices of ``robot_id`` that are in the graph."""
-        return list(self._graph.indices[robot_id])
 
     def latest_index(self, robot_id: int) -> int | None:
         """Latest keyframe index of ``robot_id`` in the graph, None if it has none."""
@@ -490,10 +473,6 @@ class TeamSlam:
     def num_pending(self) -> int:
         """Number of received keyframes still waiting to be connectable."""
         return self._graph.num_pending
-
-    def has_keyframe(self, robot_id: int, index: int) -> bool:
-        """Whether the pose of ``robot_id`` at keyframe ``index`` is in the graph."""
-        return self._graph.contains((robot_id, index))
 
     def pose(self, robot_id: int, index: int) -> np.ndarray:
         """Estimated map-frame pose ``(3,)`` of a keyframe in the graph."""
@@ -513,15 +492,6 @@ class TeamSlam:
         return {landmark_id: points[row] for row, landmark_id in
                 enumerate(self._graph.landmark_ids)}
 
-    def pose_covariance(self, robot_id: int, index: int,
-                        frame: CovarianceFrame = "map") -> np.ndarray:
-        """Marginal covariance ``(3, 3)`` of a keyframe pose, in ``frame``."""
-        key = pose_key(robot_id, index)
-        covariance = self._isam.marginalCovariance(key)
-        if frame == "body":
-            return covariance
-        return body_to_map_covariance(self.pose(robot_id, index), covariance)
-
     def trajectory_covariances(self, robot_id: int,
                                frame: CovarianceFrame = "map") -> np.ndarray:
         """Marginal covariances ``(K, 3, 3)`` of ``robot_id``'s keyframes (trajectory order)."""
@@ -535,27 +505,3 @@ class TeamSlam:
     def landmark_covariance(self, landmark_id: int) -> np.ndarray:
         """Marginal covariance ``(2, 2)`` [m^2] of a landmark, map frame."""
         return self._isam.marginalCovariance(landmark_key(landmark_id))
-
-
-def batch_solve(keyframes: Iterable[KeyframeMeasurements], num_robots: int,
-                slam_params: SlamParams, anchor_pose: np.ndarray
-                ) -> tuple[dict[KeyframeId, np.ndarray], dict[int, np.ndarray]]:
-    """Levenberg-Marquardt solution of the team graph built from ``keyframes``.
-
-    The same graph as :class:`TeamSlam` builds (the test oracle). Returns map-frame
-    ``poses[(robot_id, index)] -> (3,)`` and ``landmarks[landmark_id] -> (2,)``.
-    """
-    team_graph = _TeamGraph(num_robots, SlamNoise(slam_params), anchor_pose)
-    for keyframe in keyframes:
-        team_graph.receive(keyframe)
-    factors, initial, _ = team_graph.collect(gtsam.Values())
-    lm_params = gtsam.LevenbergMarquardtParams()
-    lm_params.setRelativeErrorTol(1e-14)
-    lm_params.setAbsoluteErrorTol(1e-14)
-    lm_params.setMaxIterations(200)
-    result = gtsam.LevenbergMarquardtOptimizer(factors, initial, lm_params).optimize()
-    poses = {(robot_id, index): _pose_array(result.atPose2(pose_key(robot_id, index)))
-             for robot_id in range(num_robots) for index in team_graph.indices[robot_id]}
-    landmarks = {landmark_id: np.asarray(result.atPoint2(landmark_key(landmark_id)), dtype=float)
-                 for landmark_id in team_graph.landmark_ids}
-    return poses, landmarks

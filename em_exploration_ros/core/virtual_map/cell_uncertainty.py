@@ -224,16 +224,6 @@ class CellObservations:
         return cls(pose_index, flat_cell, _quadratic_form_coefficients(gain),
                    noise[:, [0, 0, 1], [0, 1, 1]], len(poses))
 
-    def concatenate(self, other: "CellObservations") -> "CellObservations":
-        """Observations of this pose set followed by ``other``'s (its poses renumbered after
-        this set's ``num_poses``)."""
-        return CellObservations(
-            np.concatenate([self.pose_index, other.pose_index + self.num_poses]),
-            np.concatenate([self.flat_cell, other.flat_cell]),
-            np.concatenate([self.coefficients, other.coefficients]),
-            np.concatenate([self.noise, other.noise]),
-            self.num_poses + other.num_poses)
-
     def pose_range(self, start: int, stop: int) -> "CellObservations":
         """The observations of poses ``start <= index < stop``, renumbered from 0."""
         first, last = np.searchsorted(self.pose_index, [start, stop])
@@ -245,11 +235,6 @@ class CellObservations:
         """Cell covariance entries ``(P, 3)`` (xx, xy, yy) [m^2] of every pair."""
         entries = _pose_entries(np.asarray(pose_covariances, dtype=float).reshape(-1, 3, 3))
         return np.einsum("pqu,pu->pq", self.coefficients, entries[self.pose_index]) + self.noise
-
-    def pair_covariances(self, pose_covariances: ArrayLike) -> FloatArray:
-        """Virtual landmark covariance ``(P, 2, 2)`` [m^2] of every pair, given the pose
-        covariances ``(num_poses, 3, 3)`` in the frame chosen at construction."""
-        return _cell_matrices(self._pair_entries(pose_covariances))
 
     def intersection_sums(self, pose_covariances: ArrayLike,
                           num_cells: int) -> CovarianceIntersectionSums:
@@ -263,20 +248,6 @@ class CellObservations:
         and the mask ``(num_cells,)`` of observed cells (unobserved rows are zero)."""
         sums = self.intersection_sums(pose_covariances, num_cells)
         return sums.information(), sums.observed
-
-
-def covariance_intersection(cell_index: ArrayLike, covariances: ArrayLike,
-                            num_cells: int) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Fuse 2x2 covariances ``(P, 2, 2)`` that share a cell index ``(P,)`` by covariance
-    intersection with information-proportional weights ``w_k ∝ det(Sigma_k^-1)``.
-
-    Returns ``(information (num_cells, 2, 2), observed (num_cells,))``; the information of
-    a cell without input is zero and its ``observed`` flag False.
-    """
-    covariances = np.asarray(covariances, dtype=float)
-    entries = covariances[:, [0, 0, 1], [0, 1, 1]]
-    sums = _intersection_sums(np.asarray(cell_index, dtype=np.int64), entries, num_cells)
-    return sums.information(), sums.observed
 
 
 def information_to_covariance(information: ArrayLike, observed: ArrayLike,
@@ -326,41 +297,3 @@ def observation_confidence(counts: ArrayLike, map_params: MapParams) -> FloatArr
     high = np.log(map_params.prob_max / (1.0 - map_params.prob_max))
     probability = 1.0 / (1.0 + np.exp(-np.clip(counts * logit, low, high)))
     return np.maximum(probability, 1.0 - probability)
-
-
-class VirtualMap:
-    """Per-cell covariances of a virtual map, rebuilt from poses and their covariances."""
-
-    def __init__(self, geometry: GridGeometry, map_params: MapParams,
-                 sensor_params: SensorParams) -> None:
-        self.geometry = geometry
-        self.map_params = map_params
-        self.sensor_params = sensor_params
-        prior = map_params.virtual_landmark_prior_sigma_m ** 2 * np.eye(2)
-        self._covariances = np.broadcast_to(prior, geometry.shape + (2, 2)).copy()
-        self._observed = np.zeros(geometry.shape, dtype=bool)
-
-    def update(self, poses: ArrayLike, pose_covariances: ArrayLike,
-               covariance_frame: CovarianceFrame = "map"
-               ) -> tuple[FloatArray, NDArray[np.bool_]]:
-        """Rebuild from map-frame poses ``(K, 3)`` and covariances ``(K, 3, 3)`` (in
-        ``covariance_frame``); returns ``(covariances (rows, cols, 2, 2), observed (rows,
-        cols))`` (copies)."""
-        self._covariances, self._observed = cell_covariances_from_poses(
-            self.geometry, poses, pose_covariances, self.sensor_params, self.map_params,
-            covariance_frame)
-        return self.covariances, self.observed
-
-    @property
-    def covariances(self) -> FloatArray:
-        """Cell covariances ``(rows, cols, 2, 2)`` [m^2] (a copy)."""
-        return self._covariances.copy()
-
-    @property
-    def observed(self) -> NDArray[np.bool_]:
-        """Cells ``(rows, cols)`` observed by at least one pose (a copy)."""
-        return self._observed.copy()
-
-    def traces(self) -> FloatArray:
-        """A-optimality ``trace(Sigma_v)`` [m^2] of every cell, ``(rows, cols)``."""
-        return np.trace(self._covariances, axis1=-2, axis2=-1)

@@ -147,15 +147,6 @@ def observation_counts(geometry: GridGeometry, poses: np.ndarray, max_range_m: f
     return counts.reshape(geometry.shape)
 
 
-def predicted_observed_mask(geometry: GridGeometry, poses: np.ndarray,
-                            max_range_m: float) -> np.ndarray:
-    """Cells (rows, cols) that the map-frame poses (K, 3) would observe within ``max_range_m``.
-
-    Used to build the predicted local map of a candidate path (virtual waypoints).
-    """
-    return observation_counts(geometry, poses, max_range_m) > 0
-
-
 def _logit(probability: float) -> float:
     """Log-odds of a probability in (0, 1)."""
     return math.log(probability / (1.0 - probability))

@@ -10,10 +10,10 @@ from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.sensors import OdometryReading, odometry_covariance_per_step
 from em_exploration_ros.core.slam.team_slam import OdometryAccumulator, TeamSlam, pose_key
 from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
-from em_exploration_ros.core.planning.em_step import (DecisionFactorization,
-                                                             ScenarioBuilder, TeamSnapshot,
-                                                             VirtualNoise, propagate_oracle,
-                                                             virtual_waypoints)
+from em_exploration_ros.core.planning.em_oracle import propagate_oracle
+from em_exploration_ros.core.planning.em_scenario import (ScenarioBuilder, TeamSnapshot,
+                                                          VirtualNoise, virtual_waypoints)
+from em_exploration_ros.core.planning.em_step import DecisionFactorization
 
 PARAMS = ExplorationParams()
 #: Block-relative agreement required between the fast path and the oracle. Both solve
