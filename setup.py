@@ -16,6 +16,7 @@ CONSOLE_SCRIPTS = {
     "em-replay": "em_exploration_ros.tools.replay:main",
     "em-bag": "em_exploration_ros.tools.bag:main",
     "em-foxglove": "em_exploration_ros.tools.foxglove_bridge:main",
+    "em-fuzz": "em_exploration_ros.tools.fuzz:main",
 }
 
 setup(
