@@ -138,6 +138,12 @@ class KeyframeBuilder:
         self._accumulator = OdometryAccumulator()
         self._last_index: int | None = None
 
+    def resume(self, last_index: int) -> None:
+        """Continue a stream whose latest keyframe is ``last_index`` (after a restart): the
+        next keyframe links to it, with the odometry fed since."""
+        self._accumulator = OdometryAccumulator()
+        self._last_index = last_index
+
     def add_step(self, step: int, stamp_s: float, odometry: OdometryReading | None,
                  sonar: Iterable[LandmarkReading],
                  teammates: Iterable[TeammateReading]) -> KeyframeMeasurements | None:
