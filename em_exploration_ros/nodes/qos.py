@@ -7,6 +7,7 @@
 | ``LATCHED_QOS`` (reliable, keep last 1, transient local) | /world/landmarks, /robot_<i>/virtual_map, /robot_<i>/markers, /robot_<i>/target | state whose last value a late subscriber (RViz, Foxglove) needs at once |
 | ``ESTIMATE_QOS`` (reliable, keep last ``ESTIMATE_DEPTH`` = 20, transient local) | /robot_<i>/estimated_path, /robot_<i>/landmarks | as latched, and a reader that matched late (the evaluator, when discovery packets were lost) still gets the estimates of the last 20 keyframes, so its evaluations as of each keyframe are the same whatever the network did |
 | ``CLOCK_QOS`` (best effort, keep last 1) | /clock | the ROS 2 convention for /clock; only the newest time matters |
+| ``TF_QOS``, ``TF_STATIC_QOS`` | /tf, /tf_static | tf2's own profiles (below), which every tf2 listener, RViz and Foxglove expect |
 | ``LIVELINESS_QOS`` (reliable, keep last 1, volatile, automatic liveliness with a ``LIVELINESS_LEASE_S`` lease) | /robot_<i>/alive (no data) | the middleware asserts each robot process's liveliness; a process that dies, is stopped or wedges (its participant no longer asserts) is reported lost to the world, the teammates and the evaluator within the lease |
 | ``STREAM_QOS`` (reliable, keep all, volatile) | /world/ground_truth/robot_<i>, /evaluation/metrics | evaluation streams: the evaluator needs every true pose even when it lags behind a fast lockstep world (a keep-last-100 queue lost 100 steps at a real-time factor of 7) |
 """
@@ -36,6 +37,14 @@ CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                        durability=DurabilityPolicy.VOLATILE)
 STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
+#: /tf as tf2's TransformBroadcaster offers it (reliable, keep last 100, volatile): transforms
+#: that change are re-sent all the time, so a late subscriber only waits for the next ones.
+TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                    reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.VOLATILE)
+#: /tf_static as tf2's StaticTransformBroadcaster offers it (reliable, transient local, keep
+#: last 1): published once, kept for every late subscriber. The same profile as LATCHED_QOS.
+TF_STATIC_QOS = LATCHED_QOS
 LIVELINESS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                             reliability=ReliabilityPolicy.RELIABLE,
                             durability=DurabilityPolicy.VOLATILE,
