@@ -9,7 +9,8 @@
 | ``CLOCK_QOS`` (best effort, keep last 1) | /clock | the ROS 2 convention for /clock; only the newest time matters |
 | ``TF_QOS``, ``TF_STATIC_QOS`` | /tf, /tf_static | tf2's own profiles (below), which every tf2 listener, RViz and Foxglove expect |
 | ``LIVELINESS_QOS`` (reliable, keep last 1, volatile, automatic liveliness with a ``LIVELINESS_LEASE_S`` lease) | /robot_<i>/alive (no data) | the middleware asserts each robot process's liveliness; a process that dies, is stopped or wedges (its participant no longer asserts) is reported lost to the world, the teammates and the evaluator within the lease |
-| ``STREAM_QOS`` (reliable, keep all, volatile) | /world/ground_truth/robot_<i>, /evaluation/metrics | evaluation streams: the evaluator needs every true pose even when it lags behind a fast lockstep world (a keep-last-100 queue lost 100 steps at a real-time factor of 7) |
+| ``GROUND_TRUTH_QOS`` (reliable, keep last ``GROUND_TRUTH_DEPTH`` = 3000, transient local) | /world/ground_truth/robot_<i> | the evaluator needs every true pose: from the first step even when its reader matched late (the world waits until the evaluator's subscriptions show in the graph, but under load the middleware matched them seconds later and the first steps were lost), and while it lags behind a fast lockstep world (a keep-last-100 queue lost 100 steps at a real-time factor of 7); 3000 steps are 600 s of simulation, about 2 MB per robot in the world |
+| ``STREAM_QOS`` (reliable, keep all, volatile) | /evaluation/metrics | the evaluator's output stream: every sample for a live subscriber |
 """
 from rclpy.duration import Duration
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
@@ -37,6 +38,11 @@ CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                        durability=DurabilityPolicy.VOLATILE)
 STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
+#: Steps of ground truth the world keeps for a late or lagging reader.
+GROUND_TRUTH_DEPTH = 3000
+GROUND_TRUTH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=GROUND_TRUTH_DEPTH,
+                              reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: /tf as tf2's TransformBroadcaster offers it (reliable, keep last 100, volatile): transforms
 #: that change are re-sent all the time, so a late subscriber only waits for the next ones.
 TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,

@@ -65,7 +65,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
 from em_exploration_ros.nodes import tf_publishing
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
-from em_exploration_ros.nodes.qos import CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS
+from em_exploration_ros.nodes.qos import CLOCK_QOS, GROUND_TRUTH_QOS, LATCHED_QOS, SENSOR_QOS
 from em_exploration_ros.nodes.input_guard import InputGuard, content_problem, header_problem
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
@@ -161,7 +161,7 @@ class WorldNode(Node):
             self.sonar_pubs.append(self.create_publisher(SonarScan, f"/{ns}/sonar", SENSOR_QOS))
             self.odom_pubs.append(self.create_publisher(Odometry, f"/{ns}/odom", SENSOR_QOS))
             self.truth_pubs.append(self.create_publisher(
-                Odometry, f"/world/ground_truth/{ns}", STREAM_QOS))
+                Odometry, f"/world/ground_truth/{ns}", GROUND_TRUTH_QOS))
             self.command_subs.append(self.create_subscription(
                 MotionCommand, f"/{ns}/motion_command",
                 lambda message, robot=robot: self._on_command(robot, message), SENSOR_QOS))
