@@ -7,7 +7,8 @@
 #   launch_scripts/run_team.sh --robots 2 --planner NEAREST --map-size 40 --landmarks 4 --seed 3
 #
 # Run with --help for the options. Exit code: the evaluator's (0 done, 3 the robots or the world
-# stopped publishing), 1 if a process failed, 2 for bad arguments, 130 on Ctrl-C, 143 on SIGTERM.
+# stopped publishing, 4 stalled: the team neither travelled nor explored new area for
+# run.stall_timeout_s), 1 if a process failed, 2 for bad arguments, 130 on Ctrl-C, 143 on SIGTERM.
 set -uo pipefail
 
 # shellcheck source=launch_scripts/_common.sh
@@ -36,6 +37,8 @@ usage: $PROG [options]
 Runs em-world, N em-robot and em-evaluator as separate processes in one ROS 2 domain and
 waits for the evaluator to end the run. Progress lines come from the evaluator; each process
 logs to <run dir>/logs/<name>.log. Flags override the parameter file for every node.
+Exit code: 0 done, 3 the world or the robots stopped publishing, 4 stalled (no team
+progress for run.stall_timeout_s), 1 a process failed, 2 bad arguments, 130 Ctrl-C.
 
 options:
   --robots N              number of robots, 1..26 (file default: 3)

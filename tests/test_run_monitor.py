@@ -2,7 +2,8 @@
 import math
 
 from em_exploration_ros.core.evaluation.evaluator import TeamMetrics
-from em_exploration_ros.core.evaluation.run_monitor import DecisionEntry, RunMonitor, final_step
+from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RunMonitor, StallWatch,
+                                                            final_step)
 from em_exploration_ros.core.evaluation.summary import check_summary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.frontiers import FrontierType
@@ -69,3 +70,26 @@ def test_a_run_ended_from_outside_is_summarized_at_its_last_evaluation():
     summary = monitor.summary([[decision(3, 1.0)], []], wall_s=2.0)
     assert summary.stop_reason == "interrupted" and summary.explored_ratio == 0.4
     assert not monitor.stopped and summary.decisions == 1
+
+
+def test_a_team_without_travel_or_new_area_for_the_timeout_stalls():
+    monitor = RunMonitor(ExplorationParams().replace(run={"stall_timeout_s": 30.0}))
+    assert monitor.observe(10, metrics(10, 0.5)) == ""
+    assert monitor.observe(100, metrics(100, 0.5, (1.0, 2.005))) == ""  # < 1 cm: no travel
+    assert monitor.observe(159, metrics(159, 0.5)) == ""  # 29.8 s without progress
+    reason = monitor.observe(160, metrics(160, 0.5))
+    assert reason == ("stalled: no distance and no newly explored area for 30 s "
+                      "(distance 3.0 m, explored 0.500)")
+    assert monitor.stopped and monitor.stalled
+    assert monitor.summary([[], []], wall_s=1.0).stop_reason == reason
+
+
+def test_travel_or_new_area_restarts_the_stall_clock_and_zero_disables_it():
+    watch = StallWatch(10.0)
+    assert watch.update(metrics(0, 0.5)) == ""
+    assert watch.update(metrics(45, 0.5, (1.0, 2.5))) == ""  # travelled
+    assert watch.update(metrics(90, 0.51, (1.0, 2.5))) == ""  # explored new area
+    assert watch.update(metrics(139, 0.51, (1.0, 2.5))) == ""
+    assert watch.update(metrics(140, 0.51, (1.0, 2.5))).startswith("stalled: ")
+    disabled = StallWatch(0.0)
+    assert all(disabled.update(metrics(k * 1000, 0.5)) == "" for k in range(5))

@@ -71,3 +71,34 @@ def test_em_sim_refuses_bad_arguments(args, message):
     result = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.sim_cli", *args],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and message in result.stderr
+
+
+def _motors_dead(robot_id: int, linear_x: float, angular_z: float) -> None:
+    """A world in which no robot moves or turns, whatever it commands."""
+
+
+def test_stall_rule_ends_a_run_whose_robots_cannot_move(monkeypatch):
+    params = small_params().replace(run={"seed": 3, "max_steps": 1500, "stall_timeout_s": 20.0})
+    runner = TeamRunner(params)
+    monkeypatch.setattr(runner.simulation, "apply_command", _motors_dead)
+    summary = runner.run()
+    assert summary.stop_reason.startswith("stalled: no distance and no newly explored area")
+    assert summary.distance_m == 0.0
+    # Metrics are evaluated every 2 s: the first at 2 s, the stall 20 s later.
+    assert summary.sim_time_s == pytest.approx(22.0)
+    assert all(r.blocked_s > 15.0 for r in summary.robots)  # each robot's odometry knew it
+
+
+def test_em_sim_exits_with_status_4_when_the_run_stalls(monkeypatch, tmp_path):
+    from em_exploration_ros.core.sim.simulation import WorldSimulation
+    from em_exploration_ros.tools import sim_cli
+    monkeypatch.setattr(WorldSimulation, "apply_command",
+                        lambda self, robot_id, linear_x, angular_z: None)
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    run:\n      stall_timeout_s: 10.0\n")
+    out = tmp_path / "run.json"
+    code = sim_cli.main(["--planner", "NEAREST", "--map-size", "50", "--landmarks", "5", "--seed",
+                         "2", "--params", str(params), "--summary", str(out), "--quiet"])
+    assert code == 4
+    data = json.loads(out.read_text())
+    assert data["stop_reason"].startswith("stalled: ") and data["sim_time_s"] == 12.0

@@ -207,6 +207,32 @@ class FrontierParams:
 
 
 @dataclass(frozen=True)
+class ProgressParams:
+    """Judging progress toward a target from the robot's own data, and giving targets up.
+
+    Defaults chosen from measured runs (README, "No livelock"): in runs that finish, no
+    robot driving to a target went ``window_s`` without its odometry moving or its
+    estimated target distance shrinking by ``min_progress_m``.
+    """
+
+    window_s: float = _param(
+        20.0, "Progress window [s sim time]: a target is given up when, for this long, the "
+        "odometry showed less than min_progress_m of translation although forward motion "
+        "was commanded at every step (blocked), or the estimated distance to the target "
+        "did not shrink by min_progress_m (no progress).", 0.1, 1e5)
+    min_progress_m: float = _param(
+        1.0, "Minimum progress within the progress window [m]: odometry translation while "
+        "driving, and shrinking of the estimated distance to the target.", 0.0, 1000.0)
+    blacklist_radius_m: float = _param(
+        8.0, "After a target is given up (blocked, no progress or deadline), no candidate "
+        "within this distance of it is chosen again by that robot [m]; 0 excludes only the "
+        "target itself.", 0.0, 1000.0)
+    blacklist_duration_s: float = _param(
+        600.0, "How long a given-up target excludes candidates [s sim time]; 1e9: the rest "
+        "of the run.", 0.0, 1e9)
+
+
+@dataclass(frozen=True)
 class PlannerParams:
     """Utility-based target selection: EM_2, EM_3, CE, BSP and the nearest frontier rule
     (NEAREST)."""
@@ -252,6 +278,9 @@ class RunParams:
     max_distance_m: float = _param(
         1e9, "Stop when the team has travelled this far in total [m] (reference: 1400 m).",
         0.0, 1e9)
+    stall_timeout_s: float = _param(
+        300.0, "End the run as stalled when, for this long [s sim time], the team neither "
+        "travelled nor explored new area (exit code 4); 0 disables the rule.", 0.0, 1e9)
 
 
 #: Planner names that were renamed, old -> new. The old name still selects its planner,
@@ -323,6 +352,7 @@ class ExplorationParams:
     slam: SlamParams = field(default_factory=SlamParams)
     map: MapParams = field(default_factory=MapParams)
     frontiers: FrontierParams = field(default_factory=FrontierParams)
+    progress: ProgressParams = field(default_factory=ProgressParams)
     planner: PlannerParams = field(default_factory=PlannerParams)
     run: RunParams = field(default_factory=RunParams)
 

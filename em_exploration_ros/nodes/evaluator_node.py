@@ -24,7 +24,12 @@ with the summary JSON (em-sim's schema) and the final map PNG written, when:
 - the run's final step (``run.max_steps`` or ``max_sim_time_s``, as the world) completed:
   exit code 0, the stop reason says so;
 - no ground truth arrived for ``silence_timeout_s`` wall seconds (world or robots
-  stopped): exit code 3; Ctrl-C: the summary so far, exit code 130.
+  stopped): exit code 3; Ctrl-C: the summary so far, exit code 130;
+- the team neither travelled nor explored new area for ``run.stall_timeout_s`` of
+  simulation time: stop reason "stalled: ...", exit code 4 (``EXIT_STALLED``).
+
+The robots' own progress bookkeeping (targets given up, time blocked) reaches no topic,
+so the summary's ``given_up`` and ``blocked_s`` are null here.
 
 Run (with the simulation clock): ``python -m em_exploration_ros.nodes.evaluator_node
 --ros-args -p use_sim_time:=true -p summary_path:=runs/x/summary.json``
@@ -59,8 +64,8 @@ from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, fir
                                                         stamp_step_problem, step_problem)
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness
-from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RunMonitor,
-                                                            frontier_type_name)
+from em_exploration_ros.core.evaluation.run_monitor import (EXIT_STALLED, DecisionEntry,
+                                                            RunMonitor, frontier_type_name)
 from em_exploration_ros.core.evaluation.summary import RunSummary, TargetEntry
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.output_paths import output_path_problem
@@ -465,7 +470,8 @@ class EvaluatorNode(Node):
                 "summary written without team updates that never arrived: " + ", ".join(
                     f"robot {g.robot_id} #{g.first_sequence}-{g.last_sequence}"
                     for g in missing))
-        self.finish(self.monitor.stop_reason, EXIT_OK)
+        self.finish(self.monitor.stop_reason,
+                    EXIT_STALLED if self.monitor.stalled else EXIT_OK)
 
     def _finished_by(self, step: int) -> bool:
         return self._all_finished_step is not None and step >= self._all_finished_step

@@ -5,6 +5,10 @@ send it (see core/sim/team_runner.py). Examples::
 
     em-sim --robots 3 --planner EM_3 --seed 7 --summary out/run.json
     em-sim --params config/exploration.yaml --map-size 200 --cell-size 4
+
+Exit status: 0 when the run ended by its stop rule (explored ratio, distance, every
+robot finished, max_steps), 4 when it stalled (``run.stall_timeout_s`` without team
+progress), 2 for bad arguments or an impossible world, 130 when interrupted.
 """
 from __future__ import annotations
 
@@ -15,6 +19,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from em_exploration_ros.core.evaluation.run_monitor import EXIT_STALLED, STALLED_PREFIX
 from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.params import (ExplorationParams, PlannerParams,
                                             current_planner_name)
@@ -125,7 +130,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.summary:
         summary.write(args.summary)
         print(f"summary: {args.summary}")
-    return 0
+    return EXIT_STALLED if summary.stop_reason.startswith(STALLED_PREFIX) else 0
 
 
 if __name__ == "__main__":

@@ -9,6 +9,12 @@ first (``apply_team_updates``), then ``step`` integrates odometry, cuts a keyfra
 ``keyframe_interval_steps`` (and updates SLAM), keeps rendezvous bookkeeping, decides a
 new target when the current one is reached, and returns the motion for the next step.
 What is new for the teammates is collected with ``take_outgoing``.
+
+A target the robot cannot reach is given up (``core.planning.progress``): when its own
+odometry shows it blocked, when its estimated distance to the target stops shrinking, or
+at the target's deadline. The robot then excludes candidates near that target for a
+while (its own blacklist; teammates are not told, see ``_give_up``) and, if blocked,
+first turns on the spot away from the blocked direction.
 """
 from __future__ import annotations
 
@@ -19,15 +25,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType,
-                                                        candidate_targets, frontier_cells)
+                                                        candidate_targets,
+                                                        exploration_frontiers, frontier_cells)
 from em_exploration_ros.core.geometry import compose
 from em_exploration_ros.core.planning.motion import ApfController
 from em_exploration_ros.core.planning.rendezvous import RendezvousBook
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.planners import PlanningContext, make_planner
+from em_exploration_ros.core.planning.progress import (GivenUpTarget, GiveUpReason,
+                                                       ProgressMonitor, RecoveryTurn,
+                                                       TargetBlacklist, blocked_step)
 from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReading, TeammateReading,
-                                                odometry_covariance_per_step)
+                                                 odometry_covariance_per_step)
 from em_exploration_ros.core.slam.team_slam import KeyframeBuilder, KeyframeMeasurements, TeamSlam
 from em_exploration_ros.core.agent.team_data import (LandmarkEstimate, RendezvousEvent,
                                                RendezvousState, TargetRecord,
@@ -120,6 +130,12 @@ class RobotAgent:
         self._stamp_s = 0.0
         self._arrivals_sent: set[tuple[int, int]] = set()
         self._gap_covariance: np.ndarray | None = None
+        self.given_up: list[GivenUpTarget] = []
+        self.blocked_s = 0.0
+        self.blacklist = TargetBlacklist(params.progress)
+        self._progress = ProgressMonitor(params.progress)
+        self._recovery: RecoveryTurn | None = None
+        self._commanded_forward_m = 0.0
 
     # -- inputs --------------------------------------------------------------------------
 
@@ -178,6 +194,9 @@ class RobotAgent:
         """Process one step of own sensor data; returns the motion for the next step."""
         self._stamp_s = sensed.stamp_s
         increment = self._dead_reckoning.increment(sensed.odom_pose)
+        odometry_forward_m = 0.0 if increment is None else float(np.hypot(*increment[:2]))
+        if increment is not None and blocked_step(self._commanded_forward_m, odometry_forward_m):
+            self.blocked_s += self.params.motion.time_step_s
         covariance = np.asarray(sensed.odom_increment_covariance, dtype=float)
         if increment is not None and self._gap_covariance is not None:
             covariance, self._gap_covariance = covariance + self._gap_covariance, None
@@ -193,18 +212,29 @@ class RobotAgent:
             self._pending.keyframes.append(keyframe)
         pose = self.current_pose()
         if pose is None or self.finished:
-            return MotionCommand(0.0, 0.0, self.finished)
+            return self._command(0.0, 0.0)
         self._handle_rendezvous(pose)
         meeting_point = self.rendezvous.is_waiting(self.robot_id)
-        if meeting_point is not None and self.controller.reached(pose, meeting_point):
-            return MotionCommand(0.0, 0.0, False)
-        goal = meeting_point if meeting_point is not None else self._goal(pose)
+        if meeting_point is not None:
+            self._progress.restart()  # the approach to the target starts anew afterwards
+            if self.controller.reached(pose, meeting_point):
+                return self._command(0.0, 0.0)
+            goal = meeting_point
+        else:
+            goal = self._goal(pose, odometry_forward_m)
+        motion = self.params.motion
+        if self._recovery is not None:
+            return self._command(motion.max_turn_per_step_rad, 0.0)
         if goal is None:
-            return MotionCommand(0.0, 0.0, self.finished)
+            return self._command(0.0, 0.0)
         landmarks = np.array(list(self.slam.landmark_estimates().values())).reshape(-1, 2)
         turn = self.controller.command(pose, goal, landmarks)
-        motion = self.params.motion
-        return MotionCommand(float(turn), motion.speed_mps * motion.time_step_s, False)
+        return self._command(float(turn), motion.speed_mps * motion.time_step_s)
+
+    def _command(self, turn_rad: float, forward_m: float) -> MotionCommand:
+        """The motion for the next step, remembered to judge the next odometry reading."""
+        self._commanded_forward_m = forward_m
+        return MotionCommand(turn_rad, forward_m, self.finished)
 
     # -- outputs -------------------------------------------------------------------------
 
@@ -242,16 +272,49 @@ class RobotAgent:
 
     # -- decisions -----------------------------------------------------------------------
 
-    def _goal(self, pose: np.ndarray) -> np.ndarray | None:
-        """The position to drive to; decides a new target when needed."""
+    def _goal(self, pose: np.ndarray, odometry_forward_m: float) -> np.ndarray | None:
+        """The position to drive to; judges progress and decides a new target when needed.
+
+        None while a recovery turn is under way or when there is nothing left to do.
+        ``odometry_forward_m``: translation [m] the odometry measured over the last step.
+        """
+        if self._recovery is not None:
+            if not self._recovery.done(pose[2]):
+                return None
+            self._recovery = None
         reached = self.target is not None and self.controller.reached(pose, self.target.position)
-        timed_out = self._stamp_s > self._target_deadline_s
-        if self.target is None or reached or timed_out:
-            if timed_out and not reached:
-                _LOG.info("robot %d: target %s not reached in time, choosing another",
-                          self.robot_id, self.target.position.tolist())
+        if self.target is not None and not reached:
+            distance = float(np.linalg.norm(self.target.position - pose[:2]))
+            verdict = self._progress.update(self._stamp_s, distance, self._commanded_forward_m,
+                                            odometry_forward_m)
+            if self._stamp_s > self._target_deadline_s:
+                verdict = GiveUpReason.DEADLINE
+            if verdict is not None:
+                self._give_up(verdict)
+                if self._progress.blocked_now:
+                    self._recovery = RecoveryTurn(pose[2])
+                    return None
+        if self.target is None or reached:
             self._decide(pose)
         return None if self.target is None else self.target.position
+
+    def _give_up(self, reason: GiveUpReason) -> None:
+        """Drop the current target and exclude candidates near it for a while.
+
+        The blacklist stays with this robot: whether a target can be reached depends on
+        this robot's own localization error and where it drives from, so a teammate may
+        well reach it. Teammates still see the target in this robot's target history
+        (task allocation keeps them away from it as from any other target of this robot).
+        """
+        given_up = GivenUpTarget(self.target.position.copy(), self._stamp_s, reason)
+        progress = self.params.progress
+        _LOG.info("robot %d: gave up target %s (%s); no target within %.1f m of it for %.0f s",
+                  self.robot_id, given_up.position.tolist(), reason.value,
+                  progress.blacklist_radius_m, progress.blacklist_duration_s)
+        self.given_up.append(given_up)
+        self.blacklist.add(given_up)
+        self.target = None
+        self._target_deadline_s = np.inf
 
     def _decide(self, pose: np.ndarray) -> None:
         """Rebuild the map from the SLAM estimate and choose the next target."""
@@ -267,9 +330,14 @@ class RobotAgent:
         cells = frontier_cells(self.grid, self.params.frontiers)
         candidates = candidate_targets(cells, self.robot_id, pose[:2], self.explored_ratio,
                                        landmarks, self.teammate_states(), self.params.frontiers)
+        if not candidates:
+            self.last_candidates = []
+            self._finish("no frontier left")
+            return
+        candidates = self.blacklist.allowed(candidates, self._stamp_s)
         self.last_candidates = candidates
         if not candidates:
-            self._finish("no frontier left")
+            self._fall_back(cells, pose, started)
             return
         context = PlanningContext(
             robot_id=self.robot_id, slam=self.slam, grid=self.grid, candidates=candidates,
@@ -287,10 +355,25 @@ class RobotAgent:
         chosen = next(u.total for u in decision.utilities if u.frontier is decision.target)
         self._set_target(decision.target, pose, planning_time_s, len(candidates), chosen)
 
+    def _fall_back(self, cells: np.ndarray, pose: np.ndarray, started: float) -> None:
+        """Every candidate lies near a given-up target: the nearest frontier cell that does
+        not, or finish when there is none."""
+        open_cells = cells[~self.blacklist.excludes(cells, self._stamp_s)]
+        if len(open_cells) == 0:
+            self._finish("no reachable frontier")
+            return
+        target = exploration_frontiers(open_cells, pose[:2], self.explored_ratio,
+                                       self.params.frontiers)[0]  # the nearest comes first
+        _LOG.info("robot %d: every candidate is near a given-up target; nearest other "
+                  "frontier %s", self.robot_id, target.position.tolist())
+        distance = float(np.linalg.norm(target.position - pose[:2]))
+        self._set_target(target, pose, time.perf_counter() - started, 1, distance)
+
     def _set_target(self, target: Frontier, pose: np.ndarray, planning_time_s: float,
                     num_candidates: int, utility: float) -> None:
         index = len(self.decisions)
         self.target = target
+        self._progress.restart()
         self.decisions.append(DecisionRecord(index, self._stamp_s, target, planning_time_s,
                                              num_candidates, self.explored_ratio))
         distance = float(np.linalg.norm(target.position - pose[:2]))

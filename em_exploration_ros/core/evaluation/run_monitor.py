@@ -8,7 +8,11 @@ evaluation to ``RunMonitor.observe``, which keeps the history and applies the st
 - the team's true distance reached ``run.max_distance_m``;
 - every robot reported that it finished;
 - the run's final step (``final_step``: ``run.max_steps`` or an earlier simulation-time
-  limit) was evaluated.
+  limit) was evaluated;
+- the run stalled: for ``run.stall_timeout_s`` of simulation time the team neither
+  travelled (true team distance) nor explored new area (team explored ratio)
+  (``StallWatch``); the stop reason starts with ``STALLED_PREFIX`` and the programs exit
+  with ``EXIT_STALLED`` instead of idling to the step limit.
 
 Once a rule fired the monitor is closed: later evaluations are ignored, and the summary
 (``RunMonitor.summary``) reports the values of the step at which the rule fired (metrics,
@@ -25,10 +29,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from em_exploration_ros.core.evaluation.evaluator import TeamMetrics, stamp_key
-from em_exploration_ros.core.evaluation.summary import (HistorySample, RobotSummary, RunSummary,
-                                                        TargetEntry)
+from em_exploration_ros.core.evaluation.summary import (GivenUpEntry, HistorySample,
+                                                        RobotSummary, RunSummary, TargetEntry)
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.frontiers import FrontierType
+
+#: Exit status of em-sim, em-evaluator and run_team.sh for a stalled run.
+EXIT_STALLED = 4
+#: Stop reasons of stalled runs start with this.
+STALLED_PREFIX = "stalled: "
+#: The team distance must grow by more than this to count as travel [m] (far below the
+#: 0.2 m of one step, far above round-off).
+_MIN_TRAVEL_M = 0.01
 
 
 def final_step(params: ExplorationParams, max_sim_time_s: float = 0.0) -> int:
@@ -60,6 +72,40 @@ class DecisionEntry:
     planning_time_s: float
 
 
+@dataclass(frozen=True)
+class RobotProgressRecord:
+    """What a robot knows of its own progress (em-sim reads it from the agents): the
+    targets it gave up and the time [s] its odometry showed it blocked."""
+
+    given_up: tuple[GivenUpEntry, ...]
+    blocked_s: float
+
+
+class StallWatch:
+    """The stall rule: no team travel and no newly explored area for ``timeout_s``."""
+
+    def __init__(self, timeout_s: float) -> None:
+        """Args: time without progress that ends a run [s sim time]; 0 disables the rule."""
+        self.timeout_s = float(timeout_s)
+        self._since_s: float | None = None
+        self._distance_m = 0.0
+        self._explored_ratio = 0.0
+
+    def update(self, metrics: TeamMetrics) -> str:
+        """The stop reason ("stalled: ...") when the team made no progress for the timeout
+        up to these metrics, else ""."""
+        if (self._since_s is None or metrics.distance_m > self._distance_m + _MIN_TRAVEL_M
+                or metrics.explored_ratio > self._explored_ratio):
+            self._since_s = metrics.stamp_s
+            self._distance_m, self._explored_ratio = metrics.distance_m, metrics.explored_ratio
+            return ""
+        idle_s = metrics.stamp_s - self._since_s
+        if self.timeout_s <= 0.0 or idle_s < self.timeout_s:
+            return ""
+        return (f"{STALLED_PREFIX}no distance and no newly explored area for {idle_s:.0f} s "
+                f"(distance {self._distance_m:.1f} m, explored {self._explored_ratio:.3f})")
+
+
 class RunMonitor:
     """Stop rule, history and summary of one run (see module docstring)."""
 
@@ -70,11 +116,17 @@ class RunMonitor:
         self.history: list[TeamMetrics] = []
         self.stop_reason = ""
         self._stop_metrics: TeamMetrics | None = None
+        self._stall = StallWatch(params.run.stall_timeout_s)
 
     @property
     def stopped(self) -> bool:
         """Whether a stop rule fired."""
         return self._stop_metrics is not None
+
+    @property
+    def stalled(self) -> bool:
+        """Whether the run ended by the stall rule."""
+        return self.stop_reason.startswith(STALLED_PREFIX)
 
     @property
     def final_metrics(self) -> TeamMetrics | None:
@@ -113,7 +165,7 @@ class RunMonitor:
             return "every robot finished"
         if step >= self.final_step:
             return f"final step {self.final_step} (t = {metrics.stamp_s:g} s) reached"
-        return ""
+        return self._stall.update(metrics)
 
     def decisions_counted(self, decisions: Sequence[DecisionEntry],
                           until: TeamMetrics | None = None) -> list[DecisionEntry]:
@@ -126,9 +178,12 @@ class RunMonitor:
         limit = stamp_key(until.stamp_s)
         return [d for d in decisions if stamp_key(d.stamp_s) < limit]
 
-    def summary(self, decisions: Sequence[Sequence[DecisionEntry]], wall_s: float) -> RunSummary:
+    def summary(self, decisions: Sequence[Sequence[DecisionEntry]], wall_s: float,
+                progress: Sequence[RobotProgressRecord] | None = None) -> RunSummary:
         """The run's summary from each robot's decisions (in order, indexed by robot id)
-        and the wall time [s]; values at the final metrics (NaN where nothing was measured)."""
+        and the wall time [s]; values at the final metrics (NaN where nothing was measured).
+        ``progress`` (indexed by robot id), when the watcher knows it, fills each robot's
+        ``given_up`` and ``blocked_s`` (else they stay null)."""
         world = self.params.world
         summary = RunSummary(seed=self.params.run.seed, planner=self.params.planner.name,
                              num_robots=world.num_robots,
@@ -145,6 +200,8 @@ class RunMonitor:
                                  frontier_type_name(d.kind)) for d in chosen],
             decision_times_s=[d.planning_time_s for d in chosen])
             for robot, chosen in enumerate(counted)]
+        for robot, record in zip(summary.robots, progress or ()):
+            robot.given_up, robot.blocked_s = list(record.given_up), record.blocked_s
         times = [d.planning_time_s for chosen in counted for d in chosen]
         summary.decisions = len(times)
         if times:

@@ -7,7 +7,11 @@ Top-level keys (units in the names): ``explored_ratio``, ``distance_m`` (all rob
 ``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``, ``status``
 (active / finished / lost / rejoined at the end), ``status_changes`` (``status``,
 ``sim_time_s``, ``wall_s``, ``reason``), ``downtime_s`` and ``downtime_wall_s`` (simulated and
-wall seconds lost)), plus ``seed``,
+wall seconds lost), ``given_up`` (targets the robot gave up, in order: ``x``, ``y`` [m, map
+frame], ``stamp_s``, ``reason``: blocked / no progress / deadline) and ``blocked_s``
+(simulation time during which the robot's odometry showed it blocked while it commanded
+forward motion; ``given_up`` and ``blocked_s`` are null where the writer cannot know them)),
+plus ``seed``,
 ``planner``, ``num_robots``, ``map_size_m``, ``num_landmarks``, ``stop_reason`` and
 ``history``: samples of the metrics against distance travelled.
 """
@@ -38,6 +42,16 @@ class TargetEntry:
 
 
 @dataclass
+class GivenUpEntry:
+    """A target a robot gave up: position in the map frame [m], when [s sim time], why."""
+
+    x: float
+    y: float
+    stamp_s: float
+    reason: str
+
+
+@dataclass
 class RobotSummary:
     """Per-robot part of the summary."""
 
@@ -50,6 +64,8 @@ class RobotSummary:
     status_changes: list[StatusChange] = field(default_factory=list)
     downtime_s: float = 0.0
     downtime_wall_s: float = 0.0
+    given_up: list[GivenUpEntry] | None = None
+    blocked_s: float = math.nan
 
 
 @dataclass

@@ -17,8 +17,9 @@ from typing import Callable
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.agent.team_data import TeamUpdateInbox
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
-from em_exploration_ros.core.evaluation.run_monitor import DecisionEntry, RunMonitor
-from em_exploration_ros.core.evaluation.summary import RunSummary
+from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RobotProgressRecord,
+                                                            RunMonitor)
+from em_exploration_ros.core.evaluation.summary import GivenUpEntry, RunSummary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
@@ -123,4 +124,8 @@ class TeamRunner:
                                                 float(d.target.position[1])),
                                     d.target.kind, d.planning_time_s) for d in agent.decisions]
                      for agent in self.agents]
-        return self.monitor.summary(decisions, wall_s)
+        progress = [RobotProgressRecord(
+            tuple(GivenUpEntry(float(g.position[0]), float(g.position[1]), g.stamp_s,
+                               g.reason.value) for g in agent.given_up), agent.blocked_s)
+            for agent in self.agents]
+        return self.monitor.summary(decisions, wall_s, progress)
