@@ -48,7 +48,8 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
-from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, MissingRange, TargetRecord,
+from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, MissingRange,
+                                                     RendezvousEvent, TargetRecord,
                                                      TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
                                                           stamp_key)
@@ -142,6 +143,7 @@ class EvaluatorNode(Node):
         self.paths = StampedEstimates()
         self.landmark_estimates = StampedEstimates()
         self.targets: list[dict[int, TargetRecord]] = [{} for _ in range(self.num_robots)]
+        self.rendezvous_events: list[RendezvousEvent] = []
         self.team_updates = TeamUpdateInbox(None, self.num_robots)
         self.exit_code: int | None = None
         self.done = Future()
@@ -227,6 +229,7 @@ class EvaluatorNode(Node):
         for update in self.team_updates.pop_ready():
             for record in update.targets:
                 self.targets[update.robot_id][record.decision_index] = record
+            self.rendezvous_events.extend(update.rendezvous)
         if self.monitor.stopped:
             self._process()
 
@@ -403,14 +406,15 @@ class EvaluatorNode(Node):
     def _decisions(self) -> list[list[DecisionEntry]]:
         """Each robot's decisions received so far, in order."""
         return [[DecisionEntry(t.stamp_s, (float(t.position[0]), float(t.position[1])), t.kind,
-                               t.planning_time_s) for _, t in sorted(records.items())]
+                               t.planning_time_s, t.planner_failed)
+                 for _, t in sorted(records.items())]
                 for records in self.targets]
 
     def summary(self) -> RunSummary:
         """The run's summary (the run monitor's, em-sim's schema)."""
         wall_s = (0.0 if self._first_step_wall_s is None
                   else time.monotonic() - self._first_step_wall_s)
-        return self.monitor.summary(self._decisions(), wall_s)
+        return self.monitor.summary(self._decisions(), wall_s, self.rendezvous_events)
 
     def map_layers(self, title: str) -> TeamMapLayers:
         """The final map's layers: the truth and the estimates of the last evaluation."""

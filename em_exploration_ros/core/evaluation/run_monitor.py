@@ -24,9 +24,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from em_exploration_ros.core.agent.team_data import RendezvousEvent
 from em_exploration_ros.core.evaluation.evaluator import TeamMetrics, stamp_key
-from em_exploration_ros.core.evaluation.summary import (HistorySample, RobotSummary, RunSummary,
-                                                        TargetEntry)
+from em_exploration_ros.core.evaluation.rendezvous_stats import count_rendezvous
+from em_exploration_ros.core.evaluation.summary import (HistorySample, MeetingEntry,
+                                                        RobotSummary, RunSummary, TargetEntry)
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.frontiers import FrontierType
 
@@ -50,14 +52,16 @@ class DecisionEntry:
     """One decision of a robot as the monitor sees it.
 
     ``stamp_s`` [s] is the simulation time at which it was made, ``position`` the target
-    (x, y) [m] in the map frame, ``kind`` its frontier type and ``planning_time_s`` the
-    wall time [s] the robot spent deciding.
+    (x, y) [m] in the map frame, ``kind`` its frontier type, ``planning_time_s`` the
+    wall time [s] the robot spent deciding and ``planner_failed`` whether the planner
+    failed and the nearest frontier rule chose.
     """
 
     stamp_s: float
     position: tuple[float, float]
     kind: FrontierType
     planning_time_s: float
+    planner_failed: bool = False
 
 
 class RunMonitor:
@@ -126,9 +130,14 @@ class RunMonitor:
         limit = stamp_key(until.stamp_s)
         return [d for d in decisions if stamp_key(d.stamp_s) < limit]
 
-    def summary(self, decisions: Sequence[Sequence[DecisionEntry]], wall_s: float) -> RunSummary:
-        """The run's summary from each robot's decisions (in order, indexed by robot id)
-        and the wall time [s]; values at the final metrics (NaN where nothing was measured)."""
+    def summary(self, decisions: Sequence[Sequence[DecisionEntry]], wall_s: float,
+                rendezvous_events: Sequence[RendezvousEvent] = (),
+                meetings: Sequence[MeetingEntry] = ()) -> RunSummary:
+        """The run's summary from each robot's decisions (in order, indexed by robot id),
+        the wall time [s], the rendezvous events the robots sent and the meetings' effects
+        on the requesters' uncertainty (when known); values at the final metrics (NaN where
+        nothing was measured). Events and meetings count when stamped before the final
+        evaluation, as decisions do."""
         world = self.params.world
         summary = RunSummary(seed=self.params.run.seed, planner=self.params.planner.name,
                              num_robots=world.num_robots,
@@ -147,6 +156,13 @@ class RunMonitor:
             for robot, chosen in enumerate(counted)]
         times = [d.planning_time_s for chosen in counted for d in chosen]
         summary.decisions = len(times)
+        for chosen in counted:
+            for decision in chosen:
+                summary.decisions_by_type[frontier_type_name(decision.kind)] += 1
+                summary.planner_failures += decision.planner_failed
+        end_s = math.inf if final is None else final.stamp_s
+        summary.rendezvous = count_rendezvous(rendezvous_events, end_s)
+        summary.meetings = [m for m in meetings if m.stamp_s < end_s]
         if times:
             summary.decision_time_median_s = float(np.median(times))
             summary.decision_time_max_s = float(np.max(times))

@@ -6,7 +6,11 @@ Top-level keys (units in the names): ``explored_ratio``, ``distance_m`` (all rob
 ``distance_m``, ``decisions``, ``targets`` (in order: ``x``, ``y`` [m, map frame],
 ``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``), plus ``seed``,
 ``planner``, ``num_robots``, ``map_size_m``, ``num_landmarks``, ``stop_reason`` and
-``history``: samples of the metrics against distance travelled.
+``history``: samples of the metrics against distance travelled; ``decisions_by_type``
+(decisions per frontier type), ``planner_failures`` (decisions where the planner failed and
+the nearest frontier rule chose), ``rendezvous`` (requested / met / timed_out / open, see
+``rendezvous_stats``) and ``meetings`` (em-sim only: per rendezvous with an inter-robot
+factor, the requester's pose-covariance trace just before and after it).
 """
 from __future__ import annotations
 
@@ -15,6 +19,8 @@ import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+from em_exploration_ros.core.evaluation.rendezvous_stats import RendezvousCounts
 
 REQUIRED_KEYS = ("explored_ratio", "distance_m", "loc_rmse_m", "landmark_rmse_m", "decisions",
                  "wall_s", "sim_time_s", "decision_time_median_s", "decision_time_max_s",
@@ -41,6 +47,21 @@ class RobotSummary:
     decisions: int = 0
     targets: list[TargetEntry] = field(default_factory=list)
     decision_times_s: list[float] = field(default_factory=list)
+
+
+@dataclass
+class MeetingEntry:
+    """A rendezvous that produced an inter-robot factor between requester and partner:
+    the requester's latest pose-covariance trace [m^2 + rad^2] just before and after the
+    SLAM update that added it at ``stamp_s`` [s]; requested at ``requested_at_s`` [s]."""
+
+    requester_id: int
+    partner_id: int
+    rendezvous_id: int
+    requested_at_s: float
+    stamp_s: float
+    trace_before_m2: float
+    trace_after_m2: float
 
 
 @dataclass
@@ -73,6 +94,11 @@ class RunSummary:
     decision_time_median_s: float = math.nan
     decision_time_max_s: float = math.nan
     stop_reason: str = ""
+    decisions_by_type: dict[str, int] = field(
+        default_factory=lambda: {kind: 0 for kind in TARGET_TYPES})
+    planner_failures: int = 0
+    rendezvous: RendezvousCounts = field(default_factory=RendezvousCounts)
+    meetings: list[MeetingEntry] = field(default_factory=list)
     robots: list[RobotSummary] = field(default_factory=list)
     history: list[HistorySample] = field(default_factory=list)
 

@@ -15,10 +15,10 @@ from dataclasses import dataclass
 from typing import Callable
 
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.agent.team_data import TeamUpdateInbox
+from em_exploration_ros.core.agent.team_data import RendezvousEvent, TeamUpdateInbox
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
 from em_exploration_ros.core.evaluation.run_monitor import DecisionEntry, RunMonitor
-from em_exploration_ros.core.evaluation.summary import RunSummary
+from em_exploration_ros.core.evaluation.summary import MeetingEntry, RunSummary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
@@ -57,6 +57,7 @@ class TeamRunner:
         self._inboxes = [TeamUpdateInbox(i, n) for i in range(n)]
         self._barrier = {i: 0 for i in range(n)}
         self.monitor = RunMonitor(params)
+        self.rendezvous_events: list[RendezvousEvent] = []
 
     def run(self, progress: Callable[[Progress], None] | None = None) -> RunSummary:
         """Explore until the stop rule; report progress every metrics evaluation."""
@@ -90,6 +91,7 @@ class TeamRunner:
                 published.append(update)
             commands.append(command_to_twist(command.turn_rad, command.forward_m, time_step))
         for update in published:
+            self.rendezvous_events.extend(update.rendezvous)
             for inbox in self._inboxes:
                 if inbox is not self._inboxes[update.robot_id]:
                     inbox.receive(update)
@@ -121,6 +123,12 @@ class TeamRunner:
         """The run's summary in the shared JSON schema (the run monitor's)."""
         decisions = [[DecisionEntry(d.stamp_s, (float(d.target.position[0]),
                                                 float(d.target.position[1])),
-                                    d.target.kind, d.planning_time_s) for d in agent.decisions]
+                                    d.target.kind, d.planning_time_s, d.planner_failed)
+                      for d in agent.decisions]
                      for agent in self.agents]
-        return self.monitor.summary(decisions, wall_s)
+        meetings = sorted((MeetingEntry(agent.robot_id, e.partner_id, e.rendezvous_id,
+                                        e.requested_at_s, e.stamp_s, e.trace_before_m2,
+                                        e.trace_after_m2)
+                           for agent in self.agents for e in agent.meeting_effects),
+                          key=lambda m: (m.stamp_s, m.requester_id))
+        return self.monitor.summary(decisions, wall_s, self.rendezvous_events, meetings)
