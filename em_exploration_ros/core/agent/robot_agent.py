@@ -347,6 +347,7 @@ class RobotAgent:
                 _LOG.info("robot %d: rendezvous %d with robot %d timed out", self.robot_id,
                           meeting.rendezvous_id, meeting.partner_id)
                 self._send_rendezvous(RendezvousState.RELEASE, meeting)
+                self._drop_meeting_target(meeting)
         for teammate in range(self.num_robots):
             if teammate != self.robot_id and self.is_lost(teammate):
                 self._end_meetings_with(teammate, "lost (silent)")
