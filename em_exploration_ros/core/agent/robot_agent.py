@@ -35,7 +35,7 @@ from em_exploration_ros.core.planning.motion import ApfController
 from em_exploration_ros.core.planning.rendezvous import Meeting, RendezvousBook, meeting_timeout_s
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.planners import PlanningContext, make_planner
+from em_exploration_ros.core.planning.planners import Decision, PlanningContext, make_planner
 from em_exploration_ros.core.sim.sensors import LandmarkReading, OdometryReading, TeammateReading
 from em_exploration_ros.core.slam.team_slam import KeyframeBuilder, KeyframeMeasurements, TeamSlam
 from em_exploration_ros.core.agent.team_data import (LandmarkEstimate, RendezvousEvent,
@@ -140,6 +140,8 @@ class RobotAgent:
         self.finished = False
         self.explored_ratio = 0.0
         self.last_candidates: list[Frontier] = []
+        #: The planner's latest decision with every candidate's utility terms (diagnostics).
+        self.last_decision: Decision | None = None
         self.team_targets: dict[int, list[TargetRecord]] = {r: [] for r in range(self.num_robots)}
         self._keyframes = KeyframeBuilder(robot_id, params.slam)
         self._dead_reckoning = DeadReckoningDifferencer()
@@ -296,6 +298,7 @@ class RobotAgent:
                        self.robot_id, self.planner.name, str(error).splitlines()[0][:120])
             decision = self._fallback_planner.choose(context)
             planner_failed = True
+        self.last_decision = decision
         planning_time_s = time.perf_counter() - started
         chosen = next(u.total for u in decision.utilities if u.frontier is decision.target)
         self._set_target(decision.target, pose, planning_time_s, len(candidates), chosen,

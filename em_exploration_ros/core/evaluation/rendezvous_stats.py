@@ -9,11 +9,15 @@ identified by its requester and ``rendezvous_id``; it was
 - *timed out* when it ended without meeting: a RELEASE from either robot, or its wait
   limit (REQUEST stamp + timeout) passed by the end of the run,
 - *open* otherwise (the run ended while it was under way).
+
+``activity_totals`` adds up, over several run summaries (JSON data), the decisions per
+frontier type, the planner failures and the rendezvous counts.
 """
 from __future__ import annotations
 
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Iterable, Mapping
+from dataclasses import asdict, dataclass
+from typing import Any
 
 from em_exploration_ros.core.agent.team_data import RendezvousEvent, RendezvousState
 
@@ -54,3 +58,23 @@ def count_rendezvous(events: Iterable[RendezvousEvent], end_s: float) -> Rendezv
         else:
             counts.open += 1
     return counts
+
+
+def activity_totals(summaries: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
+    """Sums over run summaries (``RunSummary.to_dict`` data): ``decisions_by_type``,
+    ``planner_failures`` and ``rendezvous`` (same keys as in one summary), and ``meetings``
+    (how many meetings recorded an inter-robot factor). Summaries written before these
+    fields existed count as zero."""
+    by_type: dict[str, int] = {}
+    rendezvous = asdict(RendezvousCounts())
+    failures = meetings = 0
+    for summary in summaries:
+        for kind, count in (summary.get("decisions_by_type") or {}).items():
+            by_type[kind] = by_type.get(kind, 0) + int(count)
+        for key, count in (summary.get("rendezvous") or {}).items():
+            if key in rendezvous:
+                rendezvous[key] += int(count)
+        failures += int(summary.get("planner_failures") or 0)
+        meetings += len(summary.get("meetings") or ())
+    return {"decisions_by_type": by_type, "planner_failures": failures,
+            "rendezvous": rendezvous, "meetings": meetings}
