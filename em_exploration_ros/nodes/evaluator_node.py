@@ -53,10 +53,11 @@ from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, MissingR
                                                      TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
                                                           stamp_key)
-from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, render_team_map
-from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RunMonitor,
-                                                            frontier_type_name)
-from em_exploration_ros.core.evaluation.summary import RunSummary, TargetEntry
+from em_exploration_ros.core.evaluation.map_render import (TeamMapLayers, evaluation_layers,
+                                                            render_team_map)
+from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
+from em_exploration_ros.core.evaluation.run_monitor import DecisionEntry, RunMonitor
+from em_exploration_ros.core.evaluation.summary import RunSummary
 from em_exploration_ros.core.sim.wire_model import sim_time_s
 from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_positions_from_msg,
                                                   odometry_pose, path_from_msg, robot_namespace,
@@ -418,27 +419,17 @@ class EvaluatorNode(Node):
 
     def map_layers(self, title: str) -> TeamMapLayers:
         """The final map's layers: the truth and the estimates of the last evaluation."""
-        evaluator = self.evaluator
-        world = evaluator.world
         paths, landmarks = self._evaluated
-        return TeamMapLayers(
-            width_m=world.width_m, height_m=world.height_m,
-            cell_size_m=evaluator.grid.geometry.cell_size_m,
-            explored=evaluator.grid.explored_mask(), true_landmarks=world.landmarks,
-            landmark_radius_m=world.landmark_radius_m,
-            true_paths={r: evaluator.true_trajectory(r) for r in range(self.num_robots)},
-            estimated_paths={r: poses for r, (_, poses) in paths.items()},
-            estimated_landmarks={r: np.array(list(e.values())).reshape(-1, 2)
-                                 for r, e in landmarks.items()},
-            targets={r: [_target_entry(d) for d in self.monitor.decisions_counted(chosen)]
-                     for r, chosen in enumerate(self._decisions())},
-            title=f"{self.params.planner.name}, {self.num_robots} robots, seed "
-                  f"{self.params.run.seed}: {title}")
-
-
-def _target_entry(decision: DecisionEntry) -> TargetEntry:
-    return TargetEntry(decision.position[0], decision.position[1],
-                       frontier_type_name(decision.kind))
+        final = self.monitor.final_metrics
+        end_s = math.inf if final is None else final.stamp_s
+        return evaluation_layers(
+            self.evaluator, {r: poses for r, (_, poses) in paths.items()},
+            {r: np.array(list(e.values())).reshape(-1, 2) for r, e in landmarks.items()},
+            {r: [d.target_entry() for d in self.monitor.decisions_counted(chosen)]
+             for r, chosen in enumerate(self._decisions())},
+            rendezvous_outcomes(self.rendezvous_events, end_s),
+            f"{self.params.planner.name}, {self.num_robots} robots, seed "
+            f"{self.params.run.seed}: {title}")
 
 
 def _progress_line(metrics: TeamMetrics, decisions: int) -> str:

@@ -33,9 +33,24 @@ class RendezvousCounts:
     open: int = 0
 
 
-def count_rendezvous(events: Iterable[RendezvousEvent], end_s: float) -> RendezvousCounts:
-    """Counts of the rendezvous requested before ``end_s`` [s, simulation time], judged
-    with the events stamped before ``end_s`` (any order, duplicates allowed)."""
+@dataclass(frozen=True)
+class RendezvousOutcome:
+    """One requested rendezvous: who asked whom, where (map frame [m]), when [s], and its
+    outcome: ``met``, ``timed_out`` or ``open``."""
+
+    requester_id: int
+    partner_id: int
+    rendezvous_id: int
+    requested_at_s: float
+    x: float
+    y: float
+    outcome: str
+
+
+def rendezvous_outcomes(events: Iterable[RendezvousEvent], end_s: float
+                        ) -> list[RendezvousOutcome]:
+    """The rendezvous requested before ``end_s`` [s, simulation time] in request order,
+    judged with the events stamped before ``end_s`` (any order, duplicates allowed)."""
     requests: dict[tuple[int, int], RendezvousEvent] = {}
     arrived: dict[tuple[int, int], set[int]] = {}
     released: set[tuple[int, int]] = set()
@@ -49,14 +64,27 @@ def count_rendezvous(events: Iterable[RendezvousEvent], end_s: float) -> Rendezv
             arrived.setdefault(key, set()).add(event.sender_id)
         else:
             released.add(key)
-    counts = RendezvousCounts(requested=len(requests))
-    for key, request in requests.items():
+    outcomes = []
+    for key, request in sorted(requests.items(), key=lambda item: (item[1].stamp_s, item[0])):
         if {request.requester_id, request.partner_id} <= arrived.get(key, set()):
-            counts.met += 1
+            outcome = "met"
         elif key in released or request.stamp_s + request.timeout_s <= end_s:
-            counts.timed_out += 1
+            outcome = "timed_out"
         else:
-            counts.open += 1
+            outcome = "open"
+        outcomes.append(RendezvousOutcome(request.requester_id, request.partner_id,
+                                          request.rendezvous_id, request.stamp_s,
+                                          float(request.meeting_point[0]),
+                                          float(request.meeting_point[1]), outcome))
+    return outcomes
+
+
+def count_rendezvous(events: Iterable[RendezvousEvent], end_s: float) -> RendezvousCounts:
+    """Counts of ``rendezvous_outcomes(events, end_s)``."""
+    counts = RendezvousCounts()
+    for outcome in rendezvous_outcomes(events, end_s):
+        counts.requested += 1
+        setattr(counts, outcome.outcome, getattr(counts, outcome.outcome) + 1)
     return counts
 
 

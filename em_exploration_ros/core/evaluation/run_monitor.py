@@ -63,6 +63,11 @@ class DecisionEntry:
     planning_time_s: float
     planner_failed: bool = False
 
+    def target_entry(self) -> TargetEntry:
+        """The summary's entry of this decision's target."""
+        return TargetEntry(float(self.position[0]), float(self.position[1]),
+                           frontier_type_name(self.kind))
+
 
 class RunMonitor:
     """Stop rule, history and summary of one run (see module docstring)."""
@@ -150,8 +155,7 @@ class RunMonitor:
                      else (0.0,) * len(counted))
         summary.robots = [RobotSummary(
             id=robot, distance_m=float(distances[robot]), decisions=len(chosen),
-            targets=[TargetEntry(float(d.position[0]), float(d.position[1]),
-                                 frontier_type_name(d.kind)) for d in chosen],
+            targets=[d.target_entry() for d in chosen],
             decision_times_s=[d.planning_time_s for d in chosen])
             for robot, chosen in enumerate(counted)]
         times = [d.planning_time_s for chosen in counted for d in chosen]

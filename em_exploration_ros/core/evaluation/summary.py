@@ -113,6 +113,18 @@ class RunSummary:
         target.write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
 
 
+def activity_line(data: dict[str, Any]) -> str:
+    """One line on a summary's decisions and rendezvous (``RunSummary.to_dict`` data), e.g.
+    ``decisions: 120 exploration, 7 revisiting, 1 rendezvous; planner failed 0;
+    rendezvous: 1 requested, 0 met, 1 timed out, 0 open``."""
+    kinds = data.get("decisions_by_type") or {}
+    meetings = data.get("rendezvous") or {}
+    return ("decisions: " + ", ".join(f"{kinds.get(k, 0)} {k}" for k in TARGET_TYPES)
+            + f"; planner failed {data.get('planner_failures', 0)}; rendezvous: "
+            + ", ".join(f"{meetings.get(k, 0)} {k.replace('_', ' ')}"
+                        for k in ("requested", "met", "timed_out", "open")))
+
+
 def check_summary(data: dict[str, Any]) -> list[str]:
     """Problems with a parsed summary (empty when it follows the schema)."""
     problems = [f"missing key '{key}'" for key in REQUIRED_KEYS if key not in data]
