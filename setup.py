@@ -13,6 +13,7 @@ CONSOLE_SCRIPTS = {
     "em-record": "em_exploration_ros.tools.record:main",
     "em-replay": "em_exploration_ros.tools.replay:main",
     "em-bag": "em_exploration_ros.tools.bag:main",
+    "em-fuzz": "em_exploration_ros.tools.fuzz:main",
 }
 
 setup(

@@ -184,14 +184,36 @@ read -r NUM_ROBOTS RUN_SEED RUN_PLANNER <<<"$RESOLVED"
 STAMP=$(date +%Y%m%d-%H%M%S)
 RUN_NAME="${STAMP}_seed${RUN_SEED}_${RUN_PLANNER}"
 SUMMARY=${SUMMARY:-"$EM_REPO_ROOT/runs/$RUN_NAME/summary.json"}
-mkdir -p "$(dirname "$SUMMARY")" || usage_error "--summary: cannot create the folder of '$SUMMARY'"
+mkdir -p "$(dirname "$SUMMARY")" 2>/dev/null || usage_error "--summary: cannot create the folder of '$SUMMARY'"
 SUMMARY="$(cd "$(dirname "$SUMMARY")" && pwd)/$(basename "$SUMMARY")"
 SUMMARY_STEM=$(basename "$SUMMARY")
 MAP_PNG="$(dirname "$SUMMARY")/${SUMMARY_STEM%.*}_map.png"
 LOG_DIR="$(dirname "$SUMMARY")/logs"
-mkdir -p "$LOG_DIR"
+if [[ -n $RECORD ]]; then
+    RECORD_PATH=${RECORD_PATH:-"$EM_REPO_ROOT/bags/$RUN_NAME.mcap"}
+    mkdir -p "$(dirname "$RECORD_PATH")" 2>/dev/null \
+        || usage_error "--record: cannot create the folder of '$RECORD_PATH'"
+fi
+# Every output file must be writable before anything runs (a read-only folder would
+# otherwise lose the run at its end).
+OUTPUTS=(--summary "$SUMMARY" --summary "$MAP_PNG")
+[[ -n $RECORD ]] && OUTPUTS+=(--record "$RECORD_PATH")
+if ! PROBLEM=$("$PYTHON" - "${OUTPUTS[@]}" 2>&1 <<'PY'
+import sys
+
+from em_exploration_ros.core.output_paths import output_path_problem
+
+for flag, path in zip(sys.argv[1::2], sys.argv[2::2]):
+    problem = output_path_problem(path, flag)
+    if problem:
+        print(problem)
+        sys.exit(1)
+PY
+); then
+    usage_error "$PROBLEM"
+fi
+mkdir -p "$LOG_DIR" 2>/dev/null || usage_error "--summary: cannot create the log folder '$LOG_DIR'"
 rm -f "$SUMMARY" "$MAP_PNG"
-[[ -n $RECORD ]] && RECORD_PATH=${RECORD_PATH:-"$EM_REPO_ROOT/bags/$RUN_NAME.mcap"}
 
 if [[ -n $DOMAIN_ID ]]; then
     export ROS_DOMAIN_ID=$DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -282,7 +304,6 @@ fi
 echo "$PROG: $NUM_ROBOTS robots, planner $RUN_PLANNER, seed $RUN_SEED, $MODE," \
      "ROS_DOMAIN_ID=$ROS_DOMAIN_ID; logs in $LOG_DIR"
 if [[ -n $RECORD ]]; then
-    mkdir -p "$(dirname "$RECORD_PATH")"
     start record -m "$RECORD_MODULE" -o "$RECORD_PATH" --ros-args -p use_sim_time:=true
 fi
 start evaluator -m "$NODES.evaluator_node" "${COMMON[@]}" -p use_sim_time:=true \

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import pytest
 
+from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.params import (ExplorationParams, ParameterDeprecationWarning,
                                             upgrade_deprecated)
 from em_exploration_ros.core.params_yaml import ParamsFileError, dump_params, load_params
@@ -56,6 +57,15 @@ def test_node_settings_are_not_exploration_parameters(tmp_path):
     ("/**:\n  ros__parameters:\n    planner.name: XY\n", "must be one of"),
     ("/**:\n  ros__parameters:\n    slam.prior_sigmas: [1, 2]\n", "list of 3"),
     ("/**:\n  ros__parameters:\n    sensors.noise_enabled: 1\n", "true or false"),
+    ("/**:\n  ros__parameters:\n    world.widht_m: 60\n", "did you mean 'width_m'"),
+    ("/**:\n  ros__parameters:\n    wrold.width_m: 60\n", "did you mean 'world'"),
+    ("/em_world:\n  ros__parameters:\n    robot_timout_s: 3.0\n",
+     "did you mean 'robot_timeout_s'"),
+    ("/em_world:\n  ros__parameters:\n    robot_timeout_s: abc\n", "must be a number"),
+    ("/em_world:\n  ros__parameters:\n    clock_mode: fast\n", "must be one of"),
+    ("/robot_0/em_robt:\n  ros__parameters:\n    barrier_timeout_s: 3.0\n",
+     "did you mean 'em_robot'"),
+    ("/robot_0/em_robot:\n  ros__parameters:\n    request_period_s: -1.0\n", "outside"),
     ("world: [unclosed\n", "not valid YAML"),
     ("- a\n- b\n", "mapping"),
 ])
@@ -69,6 +79,23 @@ def test_bad_files_give_clear_errors(tmp_path, text, message):
 def test_missing_file_is_a_clear_error(tmp_path):
     with pytest.raises(ParamsFileError, match="cannot read"):
         load_params(tmp_path / "absent.yaml")
+
+
+def test_integers_are_accepted_where_numbers_are_expected(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    world: {width_m: 60, height_m: 60}\n"
+                    "/em_world:\n  ros__parameters:\n    robot_timeout_s: 3\n"
+                    "/**/em_evaluator:\n  ros__parameters:\n    silence_timeout_s: 30\n")
+    params = load_params(path)
+    assert params.world.width_m == 60.0 and isinstance(params.world.width_m, float)
+
+
+def test_output_paths_are_checked_before_a_run(tmp_path):
+    assert output_path_problem(tmp_path / "s.json") is None
+    assert "does not exist" in output_path_problem(tmp_path / "absent" / "s.json")
+    assert "is a directory" in output_path_problem(tmp_path)
+    problem = output_path_problem("/proc/s.json", "--summary")  # not writable, even for root
+    assert problem.startswith("--summary") and "cannot write in /proc" in problem
 
 
 def test_deprecated_planner_name_still_selects_its_planner(tmp_path):

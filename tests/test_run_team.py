@@ -51,6 +51,24 @@ def test_refuses_bad_arguments(args, message):
     assert "--help" in result.stderr
 
 
+@pytest.mark.parametrize("text, extra, message", [
+    ("/em_world:\n  ros__parameters:\n    robot_timout_s: 3.0\n", [],
+     "did you mean 'robot_timeout_s'"),
+    ("/**:\n  ros__parameters:\n    world.width_m: abc\n", [], "must be a number"),
+    ("", ["--summary", "/proc/em_run/summary.json"], "--summary: cannot create the folder"),
+    ("", ["--summary", "/proc/summary.json"], "--summary /proc/summary.json: cannot write"),
+    ("", ["--record", "/proc/run.mcap"], "--record /proc/run.mcap: cannot write"),
+])
+def test_refuses_bad_parameters_and_outputs_before_starting(tmp_path, text, extra, message):
+    params = tmp_path / "params.yaml"
+    params.write_text((REPO_ROOT / "config" / "exploration.yaml").read_text() + text)
+    result = run_team("--params", str(params), *extra, timeout_s=60.0)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+    assert "logs in" not in result.stdout  # no process was started
+
+
 def test_help_lists_the_options():
     result = run_team("--help")
     assert result.returncode == 0

@@ -7,10 +7,11 @@ import pytest
 from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.sim.sensors import LandmarkReading, TeammateReading
 from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
-from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
-                                               MissingRange, TargetRecord,
-                                               TeamUpdateInbox, TeamUpdateOutbox,
-                                               validate_team_update)
+from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
+                                                     MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
+                                                     LandmarkEstimate, MissingRange,
+                                                     TargetRecord, TeamUpdateInbox,
+                                                     TeamUpdateOutbox, validate_team_update)
 
 NUM_ROBOTS = 3
 
@@ -94,6 +95,15 @@ def test_inbox_rejects_own_id_and_implausible_sequence():
                                           1, 0.0, 0.0),)), "robot itself as partner"),
     (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.RENDEZVOUS,
                                           9, 0.0, 0.0),)), "partner id 9 is not a robot"),
+    (lambda u: dict(targets=(TargetRecord(1, 2**32 - 1, 0.0, np.zeros(2),
+                                          FrontierType.EXPLORATION, None, 0.0, 0.0),)),
+     "decision index"),
+    (lambda u: dict(keyframes=(keyframe(odom=(1e300, 0.0, 0.0)),)), "implausibly large"),
+    (lambda u: dict(landmarks=(LandmarkEstimate(2**32 - 1, np.zeros(2), np.eye(2)),)),
+     "landmark id"),
+    (lambda u: dict(landmarks=tuple(LandmarkEstimate(i, np.zeros(2), np.eye(2))
+                                    for i in range(MAX_LANDMARKS_PER_UPDATE + 1))),
+     "at most"),
 ])
 def test_validation_rejects_malformed_updates(corrupt, message):
     good = updates_from(1, 1)[0]
@@ -114,3 +124,17 @@ def test_sender_must_match_and_observers_read_every_stream():
     assert observer.receive(update, sender=2)
     assert observer.receive(updates_from(0, 1)[0], sender=0)
     assert [u.robot_id for u in observer.pop_ready()] == [0, 2]
+
+
+def test_huge_claimed_sequence_numbers_cost_nothing_and_open_bounded_gaps():
+    """A barrier or command naming sequence 2**63 (hostile or corrupt) neither loops over
+    the range (issue 11: 100 % CPU forever) nor asks for more than MAX_SEQUENCE_LEAD."""
+    inbox = TeamUpdateInbox(own_robot_id=0, num_robots=NUM_ROBOTS)
+    first, _, third = updates_from(1, 3)
+    inbox.receive(first)
+    inbox.receive(third)
+    assert not inbox.holds_up_to({1: 2**63, 2: 2**63})
+    gaps = inbox.missing(known_latest={1: 2**63, 2: 2**64 - 1})
+    assert gaps == [MissingRange(1, 2, 2), MissingRange(1, 4, 1 + MAX_SEQUENCE_LEAD),
+                    MissingRange(2, 1, 1 + MAX_SEQUENCE_LEAD)]
+    assert inbox.holds_up_to({1: 1, 2: 0})

@@ -118,6 +118,7 @@ pubs = {r: node.create_publisher(TeamUpdate, f"/robot_{r}/team/updates", TEAM_QO
 
 def update(robot, sequence, **fields):
     message = TeamUpdate(robot_id=robot, sequence=sequence)
+    message.header.frame_id = "map"  # as a robot's, so that the content is what is wrong
     for key, value in fields.items():
         setattr(message, key, value)
     return message

@@ -27,7 +27,8 @@ from em_exploration_ros.core.sim.wire_model import pose_through_wire, sim_time_s
 from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg,
                                                   landmark_reading_from_msg, odometry_pose,
                                                   odometry_twist_covariance, quaternion_to_yaw,
-                                                  teammate_reading_from_msg, time_to_seconds)
+                                                  seconds_to_time, teammate_reading_from_msg,
+                                                  time_to_seconds)
 from em_exploration_ros.nodes.qos import (CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
 from em_exploration_ros.nodes.world_node import STAND_STILL, LockstepBarrier, StepAnswer
@@ -121,6 +122,8 @@ class FakeTeam:
                team_sequence: int = 0, finished: bool = False) -> None:
         message = MotionCommand(robot_id=robot, step=step, team_sequence=team_sequence,
                                 finished=finished)
+        message.header.stamp = seconds_to_time(sim_time_s(step, 0.2))  # as a robot answers
+        message.header.frame_id = f"robot_{robot}/base_link"
         message.twist.linear.x, message.twist.angular.z = linear_x, angular_z
         self.command_pubs[robot].publish(message)
 

@@ -12,11 +12,12 @@ and the reference behaviour is an option; the field's description says which is 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import warnings
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 #: Ratio between a 95% error bound and the standard deviation of a Gaussian.
 BOUND_95_TO_SIGMA = 1.96
@@ -347,10 +348,7 @@ class ExplorationParams:
         (``upgrade_deprecated``)."""
         group_overrides = _upgraded_with_warnings(group_overrides)
         groups = {f.name for f in dataclasses.fields(self)}
-        unknown = sorted(set(group_overrides) - groups)
-        if unknown:
-            raise ValueError(f"unknown parameter group(s): {', '.join(unknown)}; "
-                             f"known: {', '.join(sorted(groups))}")
+        _refuse_unknown(group_overrides, groups, "parameter group")
         changed = {name: replace_checked(getattr(self, name), overrides)
                    for name, overrides in group_overrides.items()}
         return dataclasses.replace(self, **changed)
@@ -359,12 +357,24 @@ class ExplorationParams:
 def replace_checked(group: Any, overrides: Mapping[str, Any]) -> Any:
     """Copy of a parameter group with ``overrides`` applied after type and range checks."""
     fields = {f.name: f for f in dataclasses.fields(group)}
-    unknown = sorted(set(overrides) - set(fields))
-    if unknown:
-        raise ValueError(f"unknown parameter(s) in {type(group).__name__}: {', '.join(unknown)}")
+    _refuse_unknown(overrides, fields, f"parameter in {type(group).__name__}")
     checked = {name: _checked_value(type(group).__name__, fields[name], getattr(group, name), value)
                for name, value in overrides.items()}
     return dataclasses.replace(group, **checked)
+
+
+def closest_name_hint(name: str, known: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` for the known name closest to a misspelt ``name``, or ''."""
+    matches = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return f" (did you mean '{matches[0]}'?)" if matches else ""
+
+
+def _refuse_unknown(names: Iterable[str], known: Iterable[str], what: str) -> None:
+    """``ValueError`` for the first of ``names`` not in ``known``, with the closest name."""
+    known = sorted(known)
+    for name in sorted(set(names) - set(known)):
+        raise ValueError(f"unknown {what}: '{name}'{closest_name_hint(name, known)}; "
+                         f"known: {', '.join(known)}")
 
 
 def _checked_value(group_name: str, f: dataclasses.Field, default: Any, value: Any) -> Any:

@@ -11,6 +11,12 @@ the ROS nodes and the ROS-free tools (em-sim, em-bench)::
 
 Node-specific sections (``/robot_0/em_robot:``) are merged after ``/**``. Plain nested
 YAML without the ``ros__parameters`` wrapper (``{world: {width_m: 100.0}}``) is accepted too.
+
+Everything in a file is checked before it is used: exploration parameters against
+``core.params``, a node section's own settings (names without a group, e.g.
+``robot_timeout_s`` under ``/em_world:``) against that node's table in
+``core.node_settings``; integers are accepted where numbers are expected, and an unknown
+name is refused with the closest valid one.
 """
 from __future__ import annotations
 
@@ -20,7 +26,8 @@ from typing import Any, Mapping
 
 import yaml
 
-from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.node_settings import NODE_SETTINGS, checked_settings
+from em_exploration_ros.core.params import ExplorationParams, closest_name_hint
 
 ROS_PARAMETERS_KEY = "ros__parameters"
 #: ROS parameters every node has; allowed in any section of a parameter file.
@@ -54,9 +61,10 @@ def parameter_section(document: Any) -> dict[str, Any]:
     """The exploration parameters of a parsed YAML document (``{'group.field': value}``).
 
     ``ros__parameters`` sections are merged, the ``/**`` wildcard first. Node settings
-    that are not exploration parameters are skipped: ``use_sim_time`` anywhere, and names
-    without a group (e.g. ``robot_timeout_s``) in node-specific sections such as
-    ``/em_world:``. Everything else must name an exploration parameter.
+    that are not exploration parameters are checked (``check_node_settings``) and skipped:
+    ``use_sim_time`` anywhere, and names without a group (e.g. ``robot_timeout_s``) in
+    node-specific sections such as ``/em_world:``. Everything else must name an
+    exploration parameter.
     """
     if document is None:
         return {}
@@ -71,8 +79,39 @@ def parameter_section(document: Any) -> dict[str, Any]:
         section = document[key][ROS_PARAMETERS_KEY] or {}
         if not isinstance(section, Mapping):
             raise ValueError(f"{key}.{ROS_PARAMETERS_KEY} must be a mapping")
-        merged.update(_exploration_only(flatten(section), node_specific=key != "/**"))
+        flat = flatten(section)
+        node_specific = not _is_wildcard(key)
+        if node_specific:
+            check_node_settings(key, flat)
+        merged.update(_exploration_only(flat, node_specific))
     return merged
+
+
+def section_node_name(key: str) -> str:
+    """The node name a section key applies to: its last path component
+    (``/robot_0/em_robot`` -> ``em_robot``)."""
+    return str(key).rstrip("/").rsplit("/", 1)[-1]
+
+
+def _is_wildcard(key: str) -> bool:
+    return "*" in section_node_name(key)
+
+
+def check_node_settings(key: str, values: Mapping[str, Any]) -> None:
+    """``ValueError`` if a node section ``key`` names no node of this system, or its own
+    settings (names without a group) are unknown to that node or have a wrong type or
+    value (the closest valid name is suggested)."""
+    node = section_node_name(key)
+    if node not in NODE_SETTINGS:
+        raise ValueError(f"section '{key}' names no node of this system "
+                         f"('{node}'{closest_name_hint(node, NODE_SETTINGS)}; nodes: "
+                         f"{', '.join(NODE_SETTINGS)})")
+    own = {name: value for name, value in values.items()
+           if "." not in name and name not in NODE_SETTINGS_ANYWHERE}
+    try:
+        checked_settings(NODE_SETTINGS[node], own)
+    except ValueError as error:
+        raise ValueError(f"section '{key}': {error}") from None
 
 
 def _exploration_only(values: dict[str, Any], node_specific: bool) -> dict[str, Any]:
@@ -99,7 +138,8 @@ def nest_dotted(values: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     for name, value in flatten(values).items():
         group, _, field_name = name.partition(".")
         if not field_name:
-            raise ValueError(f"parameter '{name}' has no group (expected e.g. 'world.width_m')")
+            raise ValueError(f"parameter '{name}' has no group (expected e.g. 'world.width_m'; "
+                             f"a node's own settings go in its section, e.g. /em_world)")
         groups.setdefault(group, {})[field_name] = value
     return groups
 

@@ -20,8 +20,8 @@ from em_exploration_ros.core.sim.wire_model import (NANOSECONDS_PER_SECOND,
                                                 nanoseconds_to_seconds, planar_quaternion,
                                                 planar_yaw, seconds_to_nanoseconds)
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
-                                               RendezvousEvent, RendezvousState,
-                                               TargetRecord, TeamUpdate)
+                                                     RendezvousEvent, RendezvousState,
+                                                     TargetRecord, TeamUpdate, check_record_sizes)
 
 MAP_FRAME = "map"
 WORLD_FRAME = "world"
@@ -237,7 +237,10 @@ def team_update_to_msg(update: TeamUpdate) -> em_msg.TeamUpdate:
 
 def team_update_from_msg(message: em_msg.TeamUpdate) -> TeamUpdate:
     """A received TeamUpdate as core data; raises InvalidTeamUpdate on malformed content
-    (the caller validates the values with ``validate_team_update``)."""
+    (the caller validates the values with ``validate_team_update``; arrays longer than
+    it allows are refused here, before they are converted)."""
+    check_record_sizes(len(message.keyframes), len(message.landmarks), len(message.targets),
+                       len(message.rendezvous))
     try:
         return TeamUpdate(
             robot_id=int(message.robot_id), sequence=int(message.sequence),

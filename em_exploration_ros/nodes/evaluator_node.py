@@ -48,24 +48,37 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
-from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, MissingRange,
-                                                     RendezvousEvent, TargetRecord,
+from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
+                                                     MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
+                                                     MissingRange, RendezvousEvent, TargetRecord,
                                                      TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
                                                           stamp_key)
 from em_exploration_ros.core.evaluation.map_render import (TeamMapLayers, evaluation_layers,
                                                             render_team_map)
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
+from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, first_problem,
+                                                        frame_problem, id_problem,
+                                                        sequence_entry_problem, size_problem,
+                                                        stamp_step_problem, step_problem)
+from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.evaluation.run_monitor import DecisionEntry, RunMonitor
 from em_exploration_ros.core.evaluation.summary import RunSummary
+from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
+from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.sim.wire_model import sim_time_s
-from em_exploration_ros.nodes.conversions import (WORLD_FRAME, landmark_positions_from_msg,
+from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, landmark_positions_from_msg,
                                                   odometry_pose, path_from_msg, robot_namespace,
-                                                  seconds_to_time, team_update_from_msg,
+                                                  seconds_to_time,
                                                   time_to_seconds)
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
-from em_exploration_ros.nodes.ros_params import declare_exploration_params, declare_setting
+from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
+                                                  content_problem, header_problem,
+                                                  publish_or_log)
+from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
+                                                 declare_node_settings, refuse_unknown_overrides)
+from em_exploration_ros.nodes.sim_clock import install_validated_clock
 
 EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
 #: Reader side of the robots' latched estimates (LATCHED_QOS writers): the same durability and
@@ -114,28 +127,24 @@ class EvaluatorNode(Node):
 
     def __init__(self) -> None:
         super().__init__("em_evaluator")
-        self.summary_path = Path(declare_setting(
-            self, "summary_path", "summary.json", "Where the run summary JSON is written."))
-        png = declare_setting(self, "map_png_path", "", "Where the final map PNG is written "
-                              "(empty: next to the summary, <stem>_map.png).")
-        self.map_png_path = Path(png) if png else self.summary_path.with_name(
-            f"{self.summary_path.stem}_map.png")
-        metrics_interval_s = declare_setting(
-            self, "metrics_interval_s", 2.0, "Simulation seconds between two evaluations of "
-            "the team metrics.", 0.001, 1e6)
-        self.progress_interval_s = declare_setting(
-            self, "progress_interval_s", 20.0, "Simulation seconds between two progress lines "
-            "in the log.", 0.001, 1e9)
-        max_sim_time_s = declare_setting(
-            self, "max_sim_time_s", 0.0, "End the run at this simulation time [s] (0: no limit "
-            "besides run.max_steps); give the world the same value.", 0.0, 1e9)
-        self.estimate_wait_s = declare_setting(
-            self, "estimate_wait_s", 5.0, "Wall seconds an evaluation waits for every robot's "
-            "estimates of the latest keyframe before it goes on with older ones.", 0.0, 1e6)
-        self.silence_timeout_s = declare_setting(
-            self, "silence_timeout_s", 120.0, "End the run (exit code 3) when no ground truth "
-            "arrived for this many wall seconds.", 0.1, 1e6)
+        self.inputs = InputGuard(self)
+        install_validated_clock(self, self.inputs)
+        settings = declare_node_settings(self, EvaluatorNodeSettings)
+        self.summary_path = Path(settings.summary_path)
+        self.map_png_path = Path(settings.map_png_path) if settings.map_png_path else (
+            self.summary_path.with_name(f"{self.summary_path.stem}_map.png"))
+        for path, what in ((self.summary_path, "summary_path"), (self.map_png_path,
+                                                                 "map_png_path")):
+            problem = output_path_problem(path, what)
+            if problem:
+                raise ValueError(problem)
+        metrics_interval_s = settings.metrics_interval_s
+        self.progress_interval_s = settings.progress_interval_s
+        max_sim_time_s = settings.max_sim_time_s
+        self.estimate_wait_s = settings.estimate_wait_s
+        self.silence_timeout_s = settings.silence_timeout_s
         self.params = declare_exploration_params(self)
+        refuse_unknown_overrides(self)
         self.num_robots = self.params.world.num_robots
         self.time_step_s = self.params.motion.time_step_s
         self.interval_steps = max(1, round(metrics_interval_s / self.time_step_s))
@@ -159,6 +168,7 @@ class EvaluatorNode(Node):
         self._next_progress_s = self.progress_interval_s
         self._first_step_wall_s: float | None = None
         self._last_data_wall_s = time.monotonic()
+        self._world_watch = WorldWatch(self.silence_timeout_s)
         self._create_interfaces()
         self.get_logger().info(
             f"evaluating {self.num_robots} robots every {self.interval_steps} steps; stop at "
@@ -177,13 +187,12 @@ class EvaluatorNode(Node):
             ns = robot_namespace(robot)
             self.create_subscription(Odometry, f"/world/ground_truth/{ns}",
                                      lambda m, r=robot: self._on_truth(r, m), STREAM_QOS)
-            self.create_subscription(
-                PathMsg, f"/{ns}/estimated_path", lambda m, r=robot: self._on_estimate(
-                    self.paths, r, m.header.stamp, path_from_msg(m)), ESTIMATE_HISTORY_QOS)
-            self.create_subscription(
-                LandmarkArray, f"/{ns}/landmarks", lambda m, r=robot: self._on_estimate(
-                    self.landmark_estimates, r, m.header.stamp, landmark_positions_from_msg(m)),
-                ESTIMATE_HISTORY_QOS)
+            self.create_subscription(PathMsg, f"/{ns}/estimated_path",
+                                     lambda m, r=robot: self._on_path(r, m),
+                                     ESTIMATE_HISTORY_QOS)
+            self.create_subscription(LandmarkArray, f"/{ns}/landmarks",
+                                     lambda m, r=robot: self._on_landmark_estimates(r, m),
+                                     ESTIMATE_HISTORY_QOS)
             self.create_subscription(TeamUpdate, f"/{ns}/team/updates",
                                      lambda m, r=robot: self._on_team_update(r, m), TEAM_QOS)
             self.create_subscription(MotionCommand, f"/{ns}/motion_command",
@@ -193,8 +202,39 @@ class EvaluatorNode(Node):
 
     # -- inputs ----------------------------------------------------------------------------
 
+    def _latest_step(self) -> int:
+        """The newest step this evaluator has ground truth of (-1 before the first)."""
+        return max([self.recorded_step, *self._truth, *self._complete_steps])
+
+    def _stamp_problem(self, stamp: Time, keyframes_only: bool = False) -> tuple[int, str | None]:
+        """(step, reason to drop) of a message stamp: not the time of a step, (keyframe
+        steps only: not a keyframe's step), or a step outside the run or implausibly far
+        ahead of the newest ground truth."""
+        stamp_s = time_to_seconds(stamp)
+        step = round(stamp_s / self.time_step_s) if math.isfinite(stamp_s) else -1
+        interval = self.params.slam.keyframe_interval_steps
+        problem = (step_problem(step, None, self.monitor.final_step)
+                   or stamp_step_problem(stamp.sec * 1_000_000_000 + stamp.nanosec, step,
+                                         self.time_step_s)
+                   or (f"step {step} is not a keyframe step"
+                       if keyframes_only and step % interval else None)
+                   or (f"step {step} is more than {EVALUATOR_STEP_LEAD} steps ahead of the "
+                       f"ground truth" if step > self._latest_step() + EVALUATOR_STEP_LEAD
+                       else None))
+        return step, problem
+
     def _on_true_landmarks(self, message: LandmarkArray) -> None:
         if self.evaluator is not None:
+            return
+        expected = self.params.world.num_landmarks
+        ids = [lm.landmark_id for lm in message.landmarks]
+        if not self.inputs.check(
+                "/world/landmarks", header_problem(message.header, WORLD_FRAME),
+                content_problem(message),
+                (f"{len(ids)} landmarks, the world has {expected}"
+                 if len(ids) != expected else None),
+                (f"landmark ids {sorted(set(ids))[:5]}... are not distinct"
+                 if len(set(ids)) != len(ids) else None)):
             return
         truth = landmark_positions_from_msg(message)
         ids = np.array(sorted(truth), dtype=np.int64)
@@ -204,8 +244,19 @@ class EvaluatorNode(Node):
         self._process()
 
     def _on_truth(self, robot: int, message: Odometry) -> None:
+        step, problem = self._stamp_problem(message.header.stamp)
+        if not self.inputs.check(
+                f"/world/ground_truth/{robot_namespace(robot)}",
+                header_problem(message.header, WORLD_FRAME),
+                frame_problem(message.child_frame_id, f"{robot_namespace(robot)}/base_link",
+                              "child_frame_id"),
+                problem, step_problem(step, self.recorded_step + 1, self.monitor.final_step,
+                                      EVALUATOR_STEP_LEAD),
+                "duplicate" if step in self._complete_steps or robot in self._truth.get(
+                    step, {}) else None,
+                content_problem(message)):
+            return
         self._last_data_wall_s = time.monotonic()
-        step = round(time_to_seconds(message.header.stamp) / self.time_step_s)
         poses = self._truth.setdefault(step, {})
         poses[robot] = odometry_pose(message)
         if len(poses) == self.num_robots:
@@ -213,6 +264,43 @@ class EvaluatorNode(Node):
             if self._first_step_wall_s is None:
                 self._first_step_wall_s = time.monotonic()
             self._process()
+
+    def _on_path(self, robot: int, message: PathMsg) -> None:
+        step, problem = self._stamp_problem(message.header.stamp, keyframes_only=True)
+        keyframes = self.monitor.final_step // self.params.slam.keyframe_interval_steps + 1
+        if not self.inputs.check(
+                f"/{robot_namespace(robot)}/estimated_path", problem,
+                header_problem(message.header, MAP_FRAME),
+                self._stale_problem(self.paths, robot, message.header.stamp),
+                size_problem(len(message.poses), keyframes, "poses"),
+                first_problem(frame_problem(pose.header.frame_id, MAP_FRAME, "pose frame_id")
+                              for pose in message.poses),
+                content_problem(message)):
+            return
+        self._on_estimate(self.paths, robot, message.header.stamp, path_from_msg(message))
+
+    def _on_landmark_estimates(self, robot: int, message: LandmarkArray) -> None:
+        _, problem = self._stamp_problem(message.header.stamp, keyframes_only=True)
+        if not self.inputs.check(
+                f"/{robot_namespace(robot)}/landmarks", problem,
+                header_problem(message.header, MAP_FRAME),
+                self._stale_problem(self.landmark_estimates, robot, message.header.stamp),
+                size_problem(len(message.landmarks), MAX_LANDMARKS_PER_UPDATE, "landmarks"),
+                first_problem(id_problem(lm.landmark_id, None, "landmark id")
+                              for lm in message.landmarks),
+                content_problem(message)):
+            return
+        self._on_estimate(self.landmark_estimates, robot, message.header.stamp,
+                          landmark_positions_from_msg(message))
+
+    @staticmethod
+    def _stale_problem(history: StampedEstimates, robot: int, stamp: Time) -> str | None:
+        """Reason if an estimate is older than the newest one of the robot (robots publish
+        their estimates in time order)."""
+        newest = history.newest_key(robot)
+        if newest is not None and stamp_key(time_to_seconds(stamp)) < newest:
+            return "older than the robot's last estimate"
+        return None
 
     def _on_estimate(self, history: StampedEstimates, robot: int, stamp: Time,
                      value: Any) -> None:
@@ -223,9 +311,10 @@ class EvaluatorNode(Node):
         """Targets from the robots' update streams, validated and in sequence order exactly
         as a robot reads them (malformed or impostor records are rejected)."""
         try:
-            self.team_updates.receive(team_update_from_msg(message), robot)
+            self.team_updates.receive(checked_team_update(message), robot)
         except InvalidTeamUpdate as error:
-            self.get_logger().warn(f"rejected a team update from /robot_{robot}: {error}")
+            self.inputs.drop(f"/{robot_namespace(robot)}/team/updates",
+                             f"rejected a team update: {error}")
             return
         for update in self.team_updates.pop_ready():
             for record in update.targets:
@@ -235,6 +324,21 @@ class EvaluatorNode(Node):
             self._process()
 
     def _on_command(self, robot: int, message: MotionCommand) -> None:
+        last = self._last_command[robot]
+        step, problem = self._stamp_problem(message.header.stamp)
+        if not self.inputs.check(
+                f"/{robot_namespace(robot)}/motion_command",
+                (f"robot_id {message.robot_id} on robot {robot}'s topic"
+                 if message.robot_id != robot else None),
+                header_problem(message.header, f"{robot_namespace(robot)}/base_link"), problem,
+                f"stamp of step {step} in a command for step {message.step}"
+                if step != message.step else None,
+                content_problem(message),
+                sequence_entry_problem(message.team_sequence, 0 if last is None else int(
+                    last.team_sequence), MAX_SEQUENCE_LEAD, "team_sequence")):
+            return
+        if last is not None and message.step <= last.step:
+            return  # an older answer arriving late
         self._last_command[robot] = message
         if self._all_finished_step is None and all(
                 c is not None and c.finished for c in self._last_command):
@@ -244,12 +348,25 @@ class EvaluatorNode(Node):
     def _watch(self) -> None:
         if self.exit_code is not None:
             return
+        self._watch_world()
         self._request_missing_updates()
         self._process()
         silent_s = time.monotonic() - self._last_data_wall_s
         if self.exit_code is None and silent_s > self.silence_timeout_s:
             self.finish(f"no ground truth for {silent_s:.0f} s (world or robots stopped)",
                         EXIT_SILENCE)
+
+    def _watch_world(self) -> None:
+        """Log at once when the world (the ground-truth publisher) leaves the ROS graph or
+        comes back; the run then ends by the silence rule (exit code 3)."""
+        topic = f"/world/ground_truth/{robot_namespace(0)}"
+        event = self._world_watch.update(self.count_publishers(topic) > 0, time.monotonic())
+        if event == WorldEvent.LOST:
+            self.get_logger().warn(
+                f"the world left the ROS graph (no publisher of {topic}); the run ends with "
+                f"the summary so far if it is not back within {self.silence_timeout_s:g} s")
+        elif event == WorldEvent.BACK:
+            self.get_logger().info("the world is back on the ROS graph")
 
     def _missing_updates(self) -> list[MissingRange]:
         """Gaps in the robots' update streams up to the latest sequence each robot reported
@@ -266,7 +383,7 @@ class EvaluatorNode(Node):
                                         first_sequence=gap.first_sequence,
                                         last_sequence=gap.last_sequence)
             request.header.stamp = self.get_clock().now().to_msg()
-            self.request_pub.publish(request)
+            publish_or_log(self.request_pub, request, self, "a request for updates")
 
     # -- evaluation ------------------------------------------------------------------------
 

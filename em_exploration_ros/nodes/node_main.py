@@ -2,14 +2,17 @@
 
 Start rclpy, build the node, spin until Ctrl-C / SIGTERM / shutdown (or until the node's
 own ``done`` future completes), then let the node wrap up, destroy it and shut down. A
-node that refuses its parameters (``ValueError`` from its constructor) ends the process
-with exit code 2 and one fatal log line, no traceback.
+node that refuses its parameters (``ValueError`` or one of rclpy's ``ParameterException``s
+from its constructor: wrong type, outside the declared range) ends the process with exit
+code 2 and one fatal log line, no traceback. Only the constructor's errors mean bad
+parameters: an exception while spinning is not turned into exit code 2.
 """
 from __future__ import annotations
 
 from typing import Callable, TypeVar
 
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
@@ -29,7 +32,11 @@ def run_node(make_node: Callable[[], NodeType], logger_name: str,
     rclpy.init(args=args)
     node = None
     try:
-        node = make_node()
+        try:
+            node = make_node()
+        except (ValueError, ParameterException) as error:
+            rclpy.logging.get_logger(logger_name).fatal(f"cannot start: {error}")
+            return EXIT_BAD_PARAMETERS
         done = getattr(node, "done", None)
         if done is None:
             rclpy.spin(node)
@@ -37,9 +44,6 @@ def run_node(make_node: Callable[[], NodeType], logger_name: str,
             rclpy.spin_until_future_complete(node, done)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as error:
-        rclpy.logging.get_logger(logger_name).fatal(f"cannot start: {error}")
-        return EXIT_BAD_PARAMETERS
     finally:
         code = 0
         if node is not None:

@@ -10,11 +10,19 @@ for missing ones again (TeamUpdateRequest) while it waits; a teammate silent pas
 ``barrier_timeout_s`` is skipped with a warning. In real-time mode the barrier is empty
 and steps are processed as they come.
 
+Every message is checked before it touches any state (``scan_problem``,
+``odometry_problem``, ``core.agent.input_checks``); unusable ones are dropped with a
+throttled WARN, so the sensor data kept for coming steps stays bounded. Requests for
+re-sends are rate-limited per requester and merged (``core.agent.resend``). A world that
+leaves the ROS graph is logged at once; after ``world_lost_timeout_s`` the robot exits
+with code 4.
+
 Run: ``python -m em_exploration_ros.nodes.robot_node --ros-args -r __ns:=/robot_0
 -p robot_id:=0 -p use_sim_time:=true --params-file config/exploration.yaml``
 """
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -23,15 +31,24 @@ from em_exploration_msgs.msg import (LandmarkArray, MotionCommand, SonarScan, Te
                                      TeamUpdateRequest)
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import OccupancyGrid, Odometry, Path
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.task import Future
 from visualization_msgs.msg import MarkerArray
 
 from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariances_from_poses
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
-                                               TeamUpdateInbox)
+from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, barrier_problem,
+                                                        first_problem, frame_problem,
+                                                        landmark_reading_problem, request_problem,
+                                                        size_problem, stamp_step_problem,
+                                                        step_problem)
+from em_exploration_ros.core.agent.resend import ResendScheduler
+from em_exploration_ros.core.agent.team_data import (MAX_READINGS_PER_KEYFRAME,
+                                                     MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
+                                                     LandmarkEstimate, TeamUpdateInbox)
+from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
+from em_exploration_ros.core.node_settings import RobotNodeSettings
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, sim_time_s,
                                                 twist_to_increment_covariance)
 from em_exploration_ros.nodes import visualization
@@ -40,11 +57,25 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_m
                                                   odometry_pose, odometry_twist_covariance,
                                                   path_to_msg, quaternion_to_yaw,
                                                   robot_namespace, seconds_to_time,
-                                                  team_update_from_msg, team_update_to_msg,
+                                                  team_update_to_msg,
                                                   teammate_reading_from_msg, time_to_seconds)
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, TEAM_QOS
-from em_exploration_ros.nodes.ros_params import declare_exploration_params
+from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
+                                                  checked_team_update, content_problem,
+                                                  header_problem, publish_or_log)
+from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
+                                                 declare_node_settings, refuse_unknown_overrides)
+from em_exploration_ros.nodes.sim_clock import install_validated_clock
+
+EXIT_OK, EXIT_WORLD_GONE = 0, 4
+
+
+def requester_name(requester_id: int) -> str:
+    """How a log line names the sender of a TeamUpdateRequest."""
+    if requester_id == TeamUpdateRequest.OBSERVER:
+        return "the evaluator (observer)"
+    return f"robot {requester_id}"
 
 
 class RobotNode(Node):
@@ -52,30 +83,30 @@ class RobotNode(Node):
 
     def __init__(self) -> None:
         super().__init__("em_robot")
-        self.robot_id = self.declare_parameter(
-            "robot_id", 0, ParameterDescriptor(description="Id of this robot (0-based).",
-                                               read_only=True)).value
-        self.barrier_timeout_s = self.declare_parameter(
-            "barrier_timeout_s", 10.0, ParameterDescriptor(
-                description="Lockstep: wall seconds to wait for teammates' updates named by "
-                "the world's barrier before going on without them.")).value
-        self.request_period_s = self.declare_parameter(
-            "request_period_s", 0.5, ParameterDescriptor(
-                description="Wall seconds between two requests for missing team updates.")).value
+        self.inputs = InputGuard(self)
+        install_validated_clock(self, self.inputs)
+        self.settings = declare_node_settings(self, RobotNodeSettings)
+        self.robot_id = self.settings.robot_id
         self.params = declare_exploration_params(self)
+        refuse_unknown_overrides(self)
         self.num_robots = self.params.world.num_robots
         if not 0 <= self.robot_id < self.num_robots:
             raise ValueError(f"robot_id {self.robot_id} is not in 0..{self.num_robots - 1}")
         self.time_step_s = self.params.motion.time_step_s
         self.agent: RobotAgent | None = None
         self.inbox = TeamUpdateInbox(self.robot_id, self.num_robots)
+        self.resends = ResendScheduler(self.settings.resend_interval_s)
         self.rejected_updates = 0
+        self.exit_code = EXIT_OK
+        self.done = Future()
         self._scans: dict[int, SonarScan] = {}
         self._odometry: dict[int, Odometry] = {}
         self._next_step: int | None = None
         self._waiting_since: float | None = None
         self._last_request = 0.0
         self._barrier: dict[int, int] = {}
+        self._world_watch = WorldWatch(self.settings.world_lost_timeout_s)
+        self._next_world_check_s = 0.0
         self._create_interfaces()
         self.get_logger().info(
             f"robot {self.robot_id} of {self.num_robots} ready (planner "
@@ -116,69 +147,154 @@ class RobotNode(Node):
             return
         p = message.pose
         anchor = np.array([p.position.x, p.position.y, quaternion_to_yaw(p.orientation)])
-        if not np.all(np.isfinite(anchor)):
-            self.get_logger().error(f"rejected a non-finite mission anchor {anchor.tolist()}")
+        if not self.inputs.check("/mission/anchor_pose", header_problem(message.header, MAP_FRAME),
+                                 content_problem(message)):
             return
         self.agent = RobotAgent(self.robot_id, self.params, anchor)
         self.get_logger().info(f"map anchored at robot 0's launch pose {anchor.round(3).tolist()}")
         self._process_ready_steps()
 
+    def _sensor_step_problem(self, step: int, pending: dict) -> str | None:
+        """Reason to drop sensor data of ``step``: outside the run, stale, too far ahead
+        (``core.agent.input_checks.step_problem``) or no room left in ``pending``."""
+        return (step_problem(step, self._next_step, self.params.run.max_steps)
+                or (size_problem(len(pending) + 1, MAX_STEP_LEAD, "pending steps")
+                    if step not in pending else None))
+
+    def scan_problem(self, message: SonarScan) -> str | None:
+        """Reason to drop a sonar scan: addressed to another robot, wrong frame or stamp,
+        implausible step, barrier, array sizes, ids or numbers."""
+        robot = self.robot_id
+        expected_next = {r: self.inbox.next_expected(r) for r in range(self.num_robots)
+                         if r != robot}
+        stamp_ns = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+        return ((f"scan addressed to robot {message.robot_id}"
+                 if message.robot_id != robot else None)
+                or header_problem(message.header, f"{robot_namespace(robot)}/base_link")
+                or self._sensor_step_problem(message.step, self._scans)
+                or stamp_step_problem(stamp_ns, message.step, self.time_step_s)
+                or barrier_problem(message.team_sequences, self.num_robots, expected_next,
+                                   MAX_SEQUENCE_LEAD)
+                or size_problem(len(message.landmarks), MAX_READINGS_PER_KEYFRAME,
+                                "landmark readings")
+                or size_problem(len(message.teammates), self.num_robots - 1,
+                                "teammate readings")
+                or content_problem(message)
+                or first_problem(landmark_reading_problem(r.range, r.range_variance,
+                                                          r.bearing_variance, r.landmark_id)
+                                 for r in message.landmarks)
+                or first_problem(f"teammate id {r.robot_id} is not a teammate"
+                                 for r in message.teammates
+                                 if not 0 <= r.robot_id < self.num_robots
+                                 or r.robot_id == robot))
+
+    def odometry_problem(self, message: Odometry, step: int) -> str | None:
+        """Reason to drop dead reckoning: wrong frames, stamp off the step grid,
+        implausible step or numbers."""
+        ns = robot_namespace(self.robot_id)
+        stamp_ns = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+        return (header_problem(message.header, f"{ns}/odom")
+                or frame_problem(message.child_frame_id, f"{ns}/base_link", "child_frame_id")
+                or self._sensor_step_problem(step, self._odometry)
+                or stamp_step_problem(stamp_ns, step, self.time_step_s)
+                or content_problem(message))
+
     def _on_scan(self, message: SonarScan) -> None:
-        if message.robot_id != self.robot_id:
-            self.get_logger().warn(f"ignored a sonar scan addressed to robot {message.robot_id}")
-            return
-        if len(message.team_sequences) not in (0, self.num_robots):
-            self.get_logger().warn(
-                f"ignored scan {message.step}: {len(message.team_sequences)} barrier entries "
-                f"for {self.num_robots} robots")
+        if not self.inputs.check(f"/{robot_namespace(self.robot_id)}/sonar",
+                                 self.scan_problem(message)):
             return
         self._scans[int(message.step)] = message
         self._process_ready_steps()
 
     def _on_odometry(self, message: Odometry) -> None:
-        step = int(round(time_to_seconds(message.header.stamp) / self.time_step_s))
+        stamp_s = time_to_seconds(message.header.stamp)
+        step = int(round(stamp_s / self.time_step_s)) if math.isfinite(stamp_s) else -1
+        if not self.inputs.check(f"/{robot_namespace(self.robot_id)}/odom",
+                                 self.odometry_problem(message, step)):
+            return
         self._odometry[step] = message
         self._process_ready_steps()
 
     def _on_team_update(self, sender: int, message: TeamUpdate) -> None:
+        topic = f"/{robot_namespace(sender)}/team/updates"
         try:
-            self.inbox.receive(team_update_from_msg(message), sender)
+            self.inbox.receive(checked_team_update(message), sender)
         except InvalidTeamUpdate as error:
             self.rejected_updates += 1
-            self.get_logger().warn(f"rejected a team update from /robot_{sender}: {error}")
+            self.inputs.drop(topic, f"rejected a team update: {error}")
             return
         self._process_ready_steps()
 
     def _on_update_request(self, message: TeamUpdateRequest) -> None:
-        if message.robot_id != self.robot_id or self.agent is None:
+        """File a teammate's (or the evaluator's) request for some of this robot's updates;
+        they are re-sent by ``_send_due_resends``, rate-limited per requester."""
+        if message.robot_id != self.robot_id:
+            return  # addressed to a teammate
+        problem = request_problem(message.requester_id, message.first_sequence,
+                                  message.last_sequence, self.robot_id, self.num_robots,
+                                  TeamUpdateRequest.OBSERVER)
+        if not self.inputs.check("/team/update_requests", problem) or self.agent is None:
             return
-        resent = self.agent.outbox.resend(int(message.first_sequence), int(message.last_sequence))
-        for update in resent:
-            self.update_pub.publish(team_update_to_msg(update))
-        if resent:
-            self.get_logger().info(
-                f"re-sent updates {resent[0].sequence}..{resent[-1].sequence} for robot "
-                f"{message.requester_id}")
+        self.resends.request(message.requester_id, int(message.first_sequence),
+                             int(message.last_sequence), self.agent.outbox.last_sequence)
+        self._send_due_resends()
+
+    def _send_due_resends(self) -> None:
+        if self.agent is None:
+            return
+        for due in self.resends.due(time.monotonic()):
+            resent = self.agent.outbox.resend(due.first_sequence, due.last_sequence)
+            sent = sum(publish_or_log(self.update_pub, team_update_to_msg(update), self,
+                                      f"re-sent update {update.sequence}") for update in resent)
+            if resent:
+                self.get_logger().info(
+                    f"re-sent {sent} of updates {resent[0].sequence}..{resent[-1].sequence} "
+                    f"for {requester_name(due.requester_id)}",
+                    throttle_duration_sec=LOG_PERIOD_S)
 
     def _maintain(self) -> None:
-        """Ask again for missing team updates; give up waiting on silent teammates."""
+        """Re-send what was asked for; ask again for missing team updates; give up waiting
+        on silent teammates; notice a world that left the graph."""
+        self._send_due_resends()
+        self._watch_world()
         if self._waiting_since is None:
             return
         now = time.monotonic()
-        if now - self._last_request >= self.request_period_s:
+        if now - self._last_request >= self.settings.request_period_s:
             self._last_request = now
             for gap in self.inbox.missing(self._barrier):
                 request = TeamUpdateRequest(requester_id=self.robot_id, robot_id=gap.robot_id,
                                             first_sequence=gap.first_sequence,
                                             last_sequence=gap.last_sequence)
                 request.header.stamp = self.get_clock().now().to_msg()
-                self.request_pub.publish(request)
-        if now - self._waiting_since > self.barrier_timeout_s:
+                publish_or_log(self.request_pub, request, self, "a request for updates")
+        if now - self._waiting_since > self.settings.barrier_timeout_s:
             self.get_logger().warn(
                 f"step {self._next_step}: teammates' updates {self._barrier} still missing "
-                f"after {self.barrier_timeout_s} s; going on without them")
+                f"after {self.settings.barrier_timeout_s} s; going on without them")
             self._barrier = {}
             self._process_ready_steps(ignore_barrier=True)
+
+    def _watch_world(self) -> None:
+        """Once a second: is the world (the publisher of this robot's sonar) on the graph?
+        Log when it leaves or comes back; exit (code 4) when it stayed away too long."""
+        now = time.monotonic()
+        if now < self._next_world_check_s:
+            return
+        self._next_world_check_s = now + 1.0
+        topic = f"/{robot_namespace(self.robot_id)}/sonar"
+        event = self._world_watch.update(self.count_publishers(topic) > 0, now)
+        log = self.get_logger()
+        if event == WorldEvent.LOST:
+            log.warn(f"the world left the ROS graph (no publisher of {topic}); waiting up to "
+                     f"{self.settings.world_lost_timeout_s:g} s for it to come back")
+        elif event == WorldEvent.BACK:
+            log.info("the world is back on the ROS graph")
+        elif event == WorldEvent.GONE:
+            log.error(f"the world has been gone for {self.settings.world_lost_timeout_s:g} s; "
+                      f"exiting (code {EXIT_WORLD_GONE})")
+            self.exit_code = EXIT_WORLD_GONE
+            self.done.set_result(EXIT_WORLD_GONE)
 
     # -- stepping ------------------------------------------------------------------------
 
@@ -216,14 +332,15 @@ class RobotNode(Node):
             tuple(teammate_reading_from_msg(r) for r in scan.teammates)))
         update = agent.take_outgoing()
         if update is not None:
-            self.update_pub.publish(team_update_to_msg(update))
+            publish_or_log(self.update_pub, team_update_to_msg(update), self,
+                           f"team update {update.sequence} (teammates will ask for it again)")
         linear_x, angular_z = command_to_twist(command.turn_rad, command.forward_m,
                                                self.time_step_s)
         reply = MotionCommand(robot_id=self.robot_id, step=step,
                               team_sequence=agent.outbox.last_sequence, finished=command.finished)
         reply.header = scan.header
         reply.twist.linear.x, reply.twist.angular.z = linear_x, angular_z
-        self.command_pub.publish(reply)
+        publish_or_log(self.command_pub, reply, self, f"the command of step {step}")
         if step % self.params.slam.keyframe_interval_steps == 0:
             self._publish_estimates(stamp_s)
         if len(agent.decisions) != decisions_before:
@@ -270,8 +387,9 @@ class RobotNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Entry point of em-robot; returns the exit code (2 for invalid parameters)."""
-    return run_node(RobotNode, "em_robot", args)
+    """Entry point of em-robot; returns the exit code (2 for invalid parameters, 4 when
+    its world left the graph for good)."""
+    return run_node(RobotNode, "em_robot", args, wrap_up=lambda node: node.exit_code)
 
 
 if __name__ == "__main__":

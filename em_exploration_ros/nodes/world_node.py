@@ -44,8 +44,10 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
+from em_exploration_ros.core.agent.input_checks import command_problem, sequence_entry_problem
+from em_exploration_ros.core.agent.team_data import MAX_SEQUENCE_LEAD
+from em_exploration_ros.core.node_settings import LOCKSTEP, REALTIME, WorldNodeSettings
 from em_exploration_ros.core.evaluation.run_monitor import final_step
-from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.simulation import WorldSimulation
 from em_exploration_ros.core.agent.team_data import LandmarkEstimate
 from em_exploration_ros.core.sim.world import World
@@ -56,9 +58,11 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
                                                   yaw_to_quaternion)
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS
-from em_exploration_ros.nodes.ros_params import declare_exploration_params, declare_setting
+from em_exploration_ros.nodes.input_guard import InputGuard, content_problem, header_problem
+from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
+                                                 declare_node_settings, refuse_unknown_overrides)
+from em_exploration_ros.nodes.sim_clock import install_validated_clock
 
-LOCKSTEP, REALTIME = "lockstep", "realtime"
 #: Wall period of the timer that checks start-up connections and robot timeouts [s].
 _POLL_PERIOD_S = 0.05
 #: A progress line every this many steps.
@@ -194,34 +198,18 @@ class WorldNode(Node):
 
     def __init__(self) -> None:
         super().__init__("em_world")
-        self.clock_mode = declare_setting(
-            self, "clock_mode", LOCKSTEP,
-            "lockstep: a step waits for every robot's command (deterministic); realtime: "
-            "steps at a fixed wall rate with the latest commands.")
-        if self.clock_mode not in (LOCKSTEP, REALTIME):
-            raise ValueError(f"clock_mode must be {LOCKSTEP} or {REALTIME}, "
-                             f"got {self.clock_mode!r}")
-        self.realtime_factor = declare_setting(
-            self, "realtime_factor", 1.0,
-            "Realtime mode: simulation seconds per wall second.", 0.01, 1000.0)
-        robot_timeout_s = declare_setting(
-            self, "robot_timeout_s", 30.0, "Lockstep: wall seconds a robot may stay silent on "
-            "a step before it is treated as stopped (zero motion from then on).", 0.01, 1e6)
-        self.startup_timeout_s = declare_setting(
-            self, "startup_timeout_s", 60.0, "Wall seconds to wait for every robot to connect "
-            "before the first step; robots not connected by then are treated as stopped.",
-            0.0, 1e6)
-        self.startup_settle_s = declare_setting(
-            self, "startup_settle_s", 1.0, "Wall seconds every connection must hold before the "
-            "first step, so the middleware has matched the robots' team-update streams too "
-            "(the graph shows a reader slightly before every writer delivers to it).", 0.0, 60.0)
-        max_sim_time_s = declare_setting(
-            self, "max_sim_time_s", 0.0, "Stop stepping after this simulation time [s] "
-            "(0: no limit besides run.max_steps).", 0.0, 1e9)
-        self.wait_for_evaluator = declare_setting(
-            self, "wait_for_evaluator", False, "Before the first step, also wait until an "
-            "evaluator listens to the ground truth and to every robot's team updates.")
+        self.inputs = InputGuard(self)
+        install_validated_clock(self, self.inputs)
+        self.settings = declare_node_settings(self, WorldNodeSettings)
+        self.clock_mode = self.settings.clock_mode
+        self.realtime_factor = self.settings.realtime_factor
+        self.startup_timeout_s = self.settings.startup_timeout_s
+        self.startup_settle_s = self.settings.startup_settle_s
+        self.wait_for_evaluator = self.settings.wait_for_evaluator
+        robot_timeout_s, max_sim_time_s = (self.settings.robot_timeout_s,
+                                           self.settings.max_sim_time_s)
         self.params = declare_exploration_params(self)
+        refuse_unknown_overrides(self)
         self.num_robots = self.params.world.num_robots
         self.final_step = final_step(self.params, max_sim_time_s)
         self.sim = WorldSimulation(self.params)
@@ -332,10 +320,28 @@ class WorldNode(Node):
                 f"{self.barrier.step}: treated as stopped (zero motion from now on)")
         self._check_step_complete()
 
+    def command_problem(self, robot: int, message: MotionCommand) -> str | None:
+        """Reason to drop a motion command received on robot ``robot``'s topic: another
+        robot's id or frame, a bad stamp, a twist beyond the robot's kinematics, or a
+        barrier entry (team_sequence) behind the robot's last one or implausibly ahead."""
+        motion = self.params.motion
+        twist = message.twist
+        last_sequence = (self._latest[robot].team_sequence if self.clock_mode == REALTIME
+                         else self.barrier.team_sequences[robot])
+        return ((f"robot_id {message.robot_id} on robot {robot}'s topic"
+                 if message.robot_id != robot else None)
+                or header_problem(message.header, f"{robot_namespace(robot)}/base_link")
+                or command_problem(twist.linear.x, twist.angular.z, motion.speed_mps,
+                                   motion.max_turn_per_step_rad, motion.time_step_s)
+                or content_problem(message)
+                or (f"team_sequence {message.team_sequence} is behind {last_sequence}"
+                    if message.team_sequence < last_sequence else None)
+                or sequence_entry_problem(message.team_sequence, last_sequence,
+                                          MAX_SEQUENCE_LEAD, "team_sequence"))
+
     def _on_command(self, robot: int, message: MotionCommand) -> None:
-        if message.robot_id != robot:
-            self.get_logger().warn(f"ignored a command of robot {message.robot_id} on "
-                                   f"/{robot_namespace(robot)}/motion_command")
+        topic = f"/{robot_namespace(robot)}/motion_command"
+        if not self.inputs.check(topic, self.command_problem(robot, message)):
             return
         answer = StepAnswer(float(message.twist.linear.x), float(message.twist.angular.z),
                             int(message.team_sequence), bool(message.finished))

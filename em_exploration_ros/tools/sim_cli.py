@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.params import (ExplorationParams, PlannerParams,
                                             current_planner_name)
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
@@ -102,6 +103,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         params = params_from_args(args, args.seed)
     except (ParamsFileError, ValueError) as error:
         parser.error(str(error))
+    if args.summary is not None:
+        problem = output_path_problem(args.summary, "--summary")
+        if problem:
+            parser.error(problem)
     log = logging.getLogger("em-sim")
     try:
         runner = TeamRunner(params)

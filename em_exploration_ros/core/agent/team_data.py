@@ -16,12 +16,21 @@ from enum import IntEnum
 
 import numpy as np
 
+from em_exploration_ros.core.agent.input_checks import MAX_ABS_VALUE, MAX_ID
 from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
 
 #: Records further ahead of the expected sequence number than this are rejected as
-#: implausible (a hostile or corrupted sender), instead of opening a huge gap.
+#: implausible (a hostile or corrupted sender), instead of opening a huge gap. It also
+#: bounds the records buffered per teammate and every range of sequence numbers looked at.
 MAX_SEQUENCE_LEAD = 10_000
+#: Most entries of each array in one record (a robot sends about one keyframe per update;
+#: these bounds leave room for bulk re-sends and large teams and maps).
+MAX_KEYFRAMES_PER_UPDATE = 1000
+MAX_LANDMARKS_PER_UPDATE = 1000
+MAX_TARGETS_PER_UPDATE = 1000
+MAX_RENDEZVOUS_PER_UPDATE = 1000
+MAX_READINGS_PER_KEYFRAME = 1000
 
 
 class RendezvousState(IntEnum):
@@ -96,23 +105,30 @@ class InvalidTeamUpdate(ValueError):
 def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
     """Raise ``InvalidTeamUpdate`` if ``update`` is malformed for a team of ``num_robots``.
 
-    Checks robot ids, sequence numbers, finiteness of every number, shapes, and that
-    covariances are symmetric with a non-negative diagonal.
+    Checks robot ids and other ids, sequence numbers, array sizes, that every number is
+    finite and of plausible magnitude, shapes, and that covariances are symmetric with a
+    non-negative diagonal.
     """
     _check_robot_id(update.robot_id, num_robots, "robot_id")
     if update.sequence < 1:
         raise InvalidTeamUpdate(f"sequence must be >= 1, got {update.sequence}")
     _check_finite(update.stamp_s, "stamp")
+    check_record_sizes(len(update.keyframes), len(update.landmarks), len(update.targets),
+                       len(update.rendezvous))
     for kf in update.keyframes:
         if kf.robot_id != update.robot_id:
             raise InvalidTeamUpdate(
                 f"keyframe of robot {kf.robot_id} inside an update of robot {update.robot_id}")
-        if kf.index < 0 or (not kf.is_first and not 0 <= kf.previous_index < kf.index):
+        if not 0 <= kf.index <= MAX_ID or (
+                not kf.is_first and not 0 <= kf.previous_index < kf.index):
             raise InvalidTeamUpdate(f"keyframe {kf.index}: bad previous index {kf.previous_index}")
+        _check_size(len(kf.landmarks) + len(kf.teammates), MAX_READINGS_PER_KEYFRAME,
+                    "readings in a keyframe")
         _check_finite(kf.stamp_s, "keyframe stamp")
         _check_vector(kf.odom_delta, 3, "odometry")
         _check_covariance(kf.odom_covariance, 3, "odometry covariance")
         for reading in kf.landmarks:
+            _check_id(reading.landmark_id, "landmark id")
             _check_finite(reading.range_m, "landmark range")
             _check_finite(reading.bearing_rad, "landmark bearing")
             if reading.range_m < 0 or reading.range_variance <= 0 or reading.bearing_variance <= 0:
@@ -125,23 +141,36 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
             _check_vector(reading.relative_pose, 3, "teammate relative pose")
             _check_covariance(reading.covariance, 3, "teammate covariance")
     for landmark in update.landmarks:
+        _check_id(landmark.landmark_id, "landmark id")
         _check_vector(landmark.position, 2, "landmark estimate")
         _check_covariance(landmark.covariance, 2, "landmark covariance")
     for target in update.targets:
         if target.robot_id != update.robot_id:
             raise InvalidTeamUpdate("target of another robot inside an update")
         _check_partner(target, num_robots)
+        _check_id(target.decision_index, "decision index")
         _check_vector(target.position, 2, "target position")
         _check_finite(target.stamp_s, "target stamp")
     for event in update.rendezvous:
         for name in ("requester_id", "partner_id", "sender_id"):
             _check_robot_id(getattr(event, name), num_robots, f"rendezvous {name}")
+        _check_id(event.rendezvous_id, "rendezvous id")
         if event.sender_id != update.robot_id:
             raise InvalidTeamUpdate("rendezvous event sent on behalf of another robot")
         _check_vector(event.meeting_point, 2, "meeting point")
         _check_finite(event.timeout_s, "rendezvous timeout")
         if event.timeout_s < 0.0:
             raise InvalidTeamUpdate(f"negative rendezvous timeout {event.timeout_s}")
+
+
+def check_record_sizes(keyframes: int, landmarks: int, targets: int, rendezvous: int) -> None:
+    """Raise ``InvalidTeamUpdate`` if a record's arrays are longer than plausible (the
+    ``MAX_*_PER_UPDATE`` bounds); cheap, so receivers call it before converting a message."""
+    for size, limit, what in ((keyframes, MAX_KEYFRAMES_PER_UPDATE, "keyframes"),
+                              (landmarks, MAX_LANDMARKS_PER_UPDATE, "landmarks"),
+                              (targets, MAX_TARGETS_PER_UPDATE, "targets"),
+                              (rendezvous, MAX_RENDEZVOUS_PER_UPDATE, "rendezvous")):
+        _check_size(size, limit, what)
 
 
 def _check_partner(target: TargetRecord, num_robots: int) -> None:
@@ -162,9 +191,21 @@ def _check_robot_id(robot_id: int, num_robots: int, what: str) -> None:
         raise InvalidTeamUpdate(f"{what} {robot_id} is not a robot of this team (0..{num_robots - 1})")
 
 
+def _check_id(value: int, what: str) -> None:
+    if not 0 <= value <= MAX_ID:
+        raise InvalidTeamUpdate(f"{what} {value} is not in 0..{MAX_ID}")
+
+
+def _check_size(size: int, limit: int, what: str) -> None:
+    if size > limit:
+        raise InvalidTeamUpdate(f"{size} {what} in one record (at most {limit})")
+
+
 def _check_finite(value: float, what: str) -> None:
     if not math.isfinite(value):
         raise InvalidTeamUpdate(f"{what} is not finite ({value})")
+    if abs(value) > MAX_ABS_VALUE:
+        raise InvalidTeamUpdate(f"{what} is implausibly large ({value:g})")
 
 
 def _check_vector(value: np.ndarray, size: int, what: str) -> None:
@@ -173,14 +214,16 @@ def _check_vector(value: np.ndarray, size: int, what: str) -> None:
         raise InvalidTeamUpdate(f"{what} must have {size} elements, got shape {array.shape}")
     if not np.all(np.isfinite(array)):
         raise InvalidTeamUpdate(f"{what} is not finite: {array.tolist()}")
+    if np.any(np.abs(array) > MAX_ABS_VALUE):
+        raise InvalidTeamUpdate(f"{what} is implausibly large: {array.tolist()}")
 
 
 def _check_covariance(value: np.ndarray, size: int, what: str) -> None:
     array = np.asarray(value, dtype=float)
     if array.shape != (size, size):
         raise InvalidTeamUpdate(f"{what} must be {size}x{size}, got shape {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise InvalidTeamUpdate(f"{what} is not finite")
+    if not np.all(np.isfinite(array)) or np.any(np.abs(array) > MAX_ABS_VALUE):
+        raise InvalidTeamUpdate(f"{what} is not finite or implausibly large")
     if np.any(np.diag(array) < 0) or not np.allclose(array, array.T, rtol=1e-6, atol=1e-12):
         raise InvalidTeamUpdate(f"{what} is not a covariance (asymmetric or negative variance)")
 
@@ -257,30 +300,39 @@ class TeamUpdateInbox:
         return ready
 
     def holds_up_to(self, limits: dict[int, int]) -> bool:
-        """True when every robot's records up to ``limits[robot]`` are received."""
+        """True when every robot's records up to ``limits[robot]`` are received (a limit
+        more than ``MAX_SEQUENCE_LEAD`` ahead can never be met)."""
         for robot, limit in limits.items():
             stream = self._streams.get(robot)
-            if stream is None:
+            if stream is None or limit < stream.next_sequence:
                 continue
-            if any(seq not in stream.early for seq in range(stream.next_sequence, limit + 1)):
+            needed = limit - stream.next_sequence + 1
+            if needed > len(stream.early) or any(
+                    seq not in stream.early for seq in range(stream.next_sequence, limit + 1)):
                 return False
         return True
 
+    def next_expected(self, robot_id: int) -> int:
+        """The next sequence number expected from ``robot_id``."""
+        return self._streams[robot_id].next_sequence
+
     def missing(self, known_latest: dict[int, int] | None = None) -> list[MissingRange]:
-        """Gaps to request again: before buffered early records, and up to ``known_latest``."""
+        """Gaps to request again: before buffered early records, and up to ``known_latest``
+        (capped at ``MAX_SEQUENCE_LEAD`` past the expected number, so that an implausible
+        claim never makes a huge range). Costs O(buffered records), whatever the numbers."""
         gaps: list[MissingRange] = []
         for robot, stream in sorted(self._streams.items()):
-            latest = max(stream.early, default=stream.next_sequence - 1)
+            expected = stream.next_sequence
+            latest = max(stream.early, default=expected - 1)
             if known_latest is not None:
-                latest = max(latest, known_latest.get(robot, 0))
-            first = None
-            for seq in range(stream.next_sequence, latest + 1):
-                if seq not in stream.early and first is None:
-                    first = seq
-                if seq in stream.early and first is not None:
+                claimed = min(known_latest.get(robot, 0), expected + MAX_SEQUENCE_LEAD)
+                latest = max(latest, claimed)
+            first = expected
+            for seq in sorted(stream.early):
+                if seq > first:
                     gaps.append(MissingRange(robot, first, seq - 1))
-                    first = None
-            if first is not None:
+                first = seq + 1
+            if first <= latest:
                 gaps.append(MissingRange(robot, first, latest))
         return gaps
 

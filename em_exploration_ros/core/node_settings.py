@@ -1,0 +1,98 @@
+"""The node processes' own settings (not exploration parameters), one table per node.
+
+Each class lists one node's settings with default, description and range, like the
+exploration parameters of ``core.params`` (same field metadata, same checks): the nodes
+declare them from here as read-only ROS parameters (``nodes.ros_params``), and a
+parameter file's node sections (``/em_world:``, ``/robot_0/em_robot:``) are checked
+against them before any process starts (``core.params_yaml.check_parameter_document``).
+A new setting of a node belongs in its table.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from em_exploration_ros.core.params import _param, replace_checked
+
+LOCKSTEP, REALTIME = "lockstep", "realtime"
+
+
+@dataclass(frozen=True)
+class WorldNodeSettings:
+    """em-world (node name ``em_world``)."""
+
+    clock_mode: str = _param(
+        LOCKSTEP, "lockstep: a step waits for every robot's command (deterministic); "
+        "realtime: steps at a fixed wall rate with the latest commands.",
+        choices=(LOCKSTEP, REALTIME))
+    realtime_factor: float = _param(1.0, "Realtime mode: simulation seconds per wall second.",
+                                    0.01, 1000.0)
+    robot_timeout_s: float = _param(
+        30.0, "Lockstep: wall seconds a robot may stay silent on a step before it is treated "
+        "as stopped (zero motion from then on).", 0.01, 1e6)
+    startup_timeout_s: float = _param(
+        60.0, "Wall seconds to wait for every robot to connect before the first step; robots "
+        "not connected by then are treated as stopped.", 0.0, 1e6)
+    startup_settle_s: float = _param(
+        1.0, "Wall seconds every connection must hold before the first step, so the "
+        "middleware has matched the robots' team-update streams too (the graph shows a "
+        "reader slightly before every writer delivers to it).", 0.0, 60.0)
+    max_sim_time_s: float = _param(
+        0.0, "Stop stepping after this simulation time [s] (0: no limit besides "
+        "run.max_steps).", 0.0, 1e9)
+    wait_for_evaluator: bool = _param(
+        False, "Before the first step, also wait until an evaluator listens to the ground "
+        "truth and to every robot's team updates.")
+
+
+@dataclass(frozen=True)
+class RobotNodeSettings:
+    """em-robot (node name ``em_robot``)."""
+
+    robot_id: int = _param(0, "Id of this robot (0-based).", 0, 25)
+    barrier_timeout_s: float = _param(
+        10.0, "Lockstep: wall seconds to wait for teammates' updates named by the world's "
+        "barrier before going on without them.", 0.01, 1e6)
+    request_period_s: float = _param(
+        0.5, "Wall seconds between two requests for missing team updates.", 0.01, 1e3)
+    resend_interval_s: float = _param(
+        0.5, "Wall seconds between two re-sends of team updates to the same requester "
+        "(requests in between are merged into one pending range).", 0.0, 1e3)
+    world_lost_timeout_s: float = _param(
+        120.0, "Wall seconds to wait, logging, for a world that left the ROS graph after "
+        "the run started before the robot exits (exit code 4).", 1.0, 1e6)
+
+
+@dataclass(frozen=True)
+class EvaluatorNodeSettings:
+    """em-evaluator (node name ``em_evaluator``)."""
+
+    summary_path: str = _param("summary.json", "Where the run summary JSON is written.")
+    map_png_path: str = _param(
+        "", "Where the final map PNG is written (empty: next to the summary, <stem>_map.png).")
+    metrics_interval_s: float = _param(
+        2.0, "Simulation seconds between two evaluations of the team metrics.", 0.001, 1e6)
+    progress_interval_s: float = _param(
+        20.0, "Simulation seconds between two progress lines in the log.", 0.001, 1e9)
+    max_sim_time_s: float = _param(
+        0.0, "End the run at this simulation time [s] (0: no limit besides run.max_steps); "
+        "give the world the same value.", 0.0, 1e9)
+    estimate_wait_s: float = _param(
+        5.0, "Wall seconds an evaluation waits for every robot's estimates of the latest "
+        "keyframe before it goes on with older ones.", 0.0, 1e6)
+    silence_timeout_s: float = _param(
+        120.0, "End the run (exit code 3) when no ground truth arrived for this many wall "
+        "seconds; a world that leaves the ROS graph is logged at once.", 0.1, 1e6)
+
+
+#: Node name -> its settings table.
+NODE_SETTINGS: dict[str, type] = {"em_world": WorldNodeSettings, "em_robot": RobotNodeSettings,
+                                  "em_evaluator": EvaluatorNodeSettings}
+
+
+def checked_settings(settings_type: type, values: dict[str, Any]) -> Any:
+    """The settings of ``settings_type`` with ``values`` applied after the type and range
+    checks of ``core.params`` (integers accepted for floats); ``ValueError`` names the
+    setting, and for an unknown name the closest valid one."""
+    return replace_checked(settings_type(), values)
+

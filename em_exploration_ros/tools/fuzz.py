@@ -1,0 +1,264 @@
+"""em-fuzz: attack a running team with well-formed messages full of extreme values.
+
+The fuzzer reads the ROS graph (``get_topic_names_and_types``,
+``get_subscriptions_info_by_topic``) for every topic that one of the system's nodes
+(em_world, em_robot, em_evaluator by default) subscribes to, including /clock of nodes
+that use the simulation time, and for ``--duration`` seconds publishes on all of them,
+round robin, at ``--rate`` messages per second. Topics that appear later are picked up
+(the graph is read again every ``REDISCOVER_S``).
+
+Every message is well formed (it deserializes) but carries at least one extreme value:
+NaN, +-inf or +-1e308 in a float, the largest (or a negative) value of an integer field
+(ids, steps, sequence numbers, stamps: sec < 0, nanosec >= 1e9), a huge array (10^5
+numbers or ``HUGE_MESSAGE_ARRAY`` nested messages), or a wrong frame_id; the other fields
+hold small plausible values (numbers 0..3, a frame name of the system), so a /clock
+message is negative or goes backwards. Nodes must drop all of it and keep their result.
+
+    em-fuzz --duration 20 --rate 500 --seed 1        # then: messages sent per topic
+
+Exit code 0; the last stdout line is a JSON report (``--report FILE`` writes it too).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from em_exploration_ros.tools.bag_ros import import_message_class
+
+#: Node names whose subscriptions are attacked by default.
+SYSTEM_NODES = ("em_world", "em_robot", "em_evaluator")
+#: Wall seconds between two readings of the ROS graph, and before the first one.
+REDISCOVER_S = 2.0
+GRAPH_SETTLE_S = 2.0
+#: Length of a huge array of numbers and of a huge array of nested messages.
+HUGE_NUMBER_ARRAY = 100_000
+HUGE_MESSAGE_ARRAY = 3_000
+#: Probability that a field other than the forced one is extreme too.
+EXTRA_EXTREME_PROBABILITY = 0.1
+#: Frame names of the system (plausible values) and wrong ones (extreme values).
+PLAUSIBLE_FRAMES = ("map", "world", "robot_0/base_link", "robot_1/odom")
+WRONG_FRAMES = ("", "no_such_frame", "robot_99/base_link", "x" * 10_000)
+_INT_BITS = {"char": (8, False), "int8": (8, True), "uint8": (8, False), "int16": (16, True), "uint16": (16, False),
+             "int32": (32, True), "uint32": (32, False), "int64": (64, True),
+             "uint64": (64, False)}
+_FLOAT_EXTREMES = {"double": (float("nan"), float("inf"), float("-inf"), 1e308, -1e308),
+                   "float": (float("nan"), float("inf"), float("-inf"), 3.4e38, -3.4e38)}
+
+
+def _int_extremes(kind: str) -> tuple[int, ...]:
+    bits, signed = _INT_BITS[kind]
+    if signed:
+        return -(2 ** (bits - 1)), 2 ** (bits - 1) - 1, -1
+    return 2 ** bits - 1, 2 ** (bits - 1)
+
+
+@dataclass(frozen=True)
+class FieldType:
+    """A message field's type as rosidl spells it: base type, and array shape."""
+
+    base: str
+    sequence: bool = False
+    length: int | None = None  # fixed array length
+
+    @classmethod
+    def parse(cls, spelling: str) -> "FieldType":
+        """``double``, ``sequence<uint64>``, ``sequence<pkg/Msg, 5>``, ``double[36]``,
+        ``string<=10`` as a FieldType."""
+        if spelling.startswith("sequence<"):
+            return cls(spelling[len("sequence<"):-1].split(",")[0].strip(), sequence=True)
+        if spelling.endswith("]"):
+            base, _, length = spelling[:-1].partition("[")
+            return cls(base, length=int(length))
+        return cls(spelling.split("<=")[0])
+
+    @property
+    def is_message(self) -> bool:
+        return "/" in self.base
+
+
+class ExtremeMessages:
+    """Builds messages of one class with at least one extreme value (module docstring)."""
+
+    def __init__(self, rng: random.Random) -> None:
+        self._rng = rng
+
+    def make(self, message_class: type, allow_huge: bool = True) -> Any:
+        """A message of ``message_class``: plausible values, one forced extreme field (at
+        most one huge array per message: ``allow_huge`` is False inside array elements)."""
+        message = message_class()
+        fields = list(message.get_fields_and_field_types().items())
+        forced = self._rng.randrange(len(fields)) if fields else -1
+        for index, (name, spelling) in enumerate(fields):
+            kind = FieldType.parse(spelling)
+            extreme = index == forced or self._rng.random() < EXTRA_EXTREME_PROBABILITY
+            value = self._value(kind, extreme, name, allow_huge)
+            setattr(message, name, value)
+            if isinstance(value, list) and len(value) > 4:
+                allow_huge = False
+        return message
+
+    def _value(self, kind: FieldType, extreme: bool, name: str, allow_huge: bool) -> Any:
+        rng = self._rng
+        if kind.sequence or kind.length is not None:
+            huge = kind.sequence and extreme and allow_huge and rng.random() < 0.5
+            if huge:
+                count = HUGE_MESSAGE_ARRAY if kind.is_message else HUGE_NUMBER_ARRAY
+            else:
+                count = kind.length if kind.length is not None else rng.randrange(4)
+            if count == 0:
+                return []
+            element = FieldType(kind.base)
+            first = self._value(element, extreme and not huge, name, False)
+            if huge:  # one plausible element repeated: cheap to build, as big on the wire
+                return [first] * count
+            return [first] + [self._value(element, False, name, False) for _ in range(count - 1)]
+        if kind.is_message:
+            nested = import_message_class(kind.base.replace("/", "/msg/", 1))
+            return self.make(nested, allow_huge) if extreme else self._plausible(nested)
+        return self._scalar(kind.base, extreme, name)
+
+    def _plausible(self, message_class: type) -> Any:
+        message = message_class()
+        for name, spelling in message.get_fields_and_field_types().items():
+            setattr(message, name, self._value(FieldType.parse(spelling), False, name, False))
+        return message
+
+    def _scalar(self, base: str, extreme: bool, name: str) -> Any:
+        rng = self._rng
+        if base in _FLOAT_EXTREMES:
+            return rng.choice(_FLOAT_EXTREMES[base]) if extreme else float(rng.randrange(4))
+        if base in _INT_BITS:
+            if extreme:
+                return rng.choice(_int_extremes(base))
+            return rng.randrange(4)
+        if base == "boolean":
+            return rng.random() < 0.5
+        if base in ("string", "wstring"):
+            if name.endswith("frame_id"):
+                return rng.choice(WRONG_FRAMES if extreme else PLAUSIBLE_FRAMES)
+            return "x" * 10_000 if extreme else ""
+        raise ValueError(f"unsupported field type {base}")
+
+
+@dataclass
+class Target:
+    """A topic under attack: its publisher and what was sent."""
+
+    topic: str
+    message_class: type
+    publisher: Any
+    sent: int = 0
+    subscribers: set[str] = field(default_factory=set)
+
+
+class Fuzzer(Node):
+    """Finds the system's subscriptions and publishes extreme messages on them."""
+
+    def __init__(self, target_nodes: tuple[str, ...], seed: int) -> None:
+        super().__init__("em_fuzzer")
+        self._target_nodes = target_nodes
+        self._messages = ExtremeMessages(random.Random(seed))
+        self.targets: dict[str, Target] = {}
+        self.failed_publishes = 0
+
+    def discover(self) -> None:
+        """Add every topic with a subscriber among the target nodes (publishers' QoS:
+        reliable, transient local when a subscriber asks for it, keep last 10); note the
+        subscribers of known topics."""
+        for topic, types in self.get_topic_names_and_types():
+            subscribers = [info for info in self.get_subscriptions_info_by_topic(topic)
+                           if info.node_name in self._target_nodes]
+            names = {f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in subscribers}
+            if topic in self.targets:
+                self.targets[topic].subscribers |= names
+                continue
+            if not subscribers:
+                continue
+            durable = any(info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                          for info in subscribers)
+            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=(DurabilityPolicy.TRANSIENT_LOCAL if durable
+                                         else DurabilityPolicy.VOLATILE))
+            message_class = import_message_class(types[0])
+            self.targets[topic] = Target(topic, message_class,
+                                         self.create_publisher(message_class, topic, qos),
+                                         subscribers=names)
+
+    def attack(self, duration_s: float, rate_hz: float) -> None:
+        """Publish round robin over the targets for ``duration_s`` wall seconds (after
+        ``GRAPH_SETTLE_S`` for this new participant to learn the graph)."""
+        time.sleep(GRAPH_SETTLE_S)
+        start = time.monotonic()
+        next_discovery = start
+        sent = 0
+        while (now := time.monotonic()) < start + duration_s:
+            if now >= next_discovery:
+                self.discover()
+                next_discovery = now + REDISCOVER_S
+            targets = sorted(self.targets)
+            if not targets:
+                time.sleep(0.1)
+                continue
+            target = self.targets[targets[sent % len(targets)]]
+            try:
+                target.publisher.publish(self._messages.make(target.message_class))
+                target.sent += 1
+            except RCLError:  # a refused publish is counted, the attack goes on
+                self.failed_publishes += 1
+            sent += 1
+            delay = start + sent / rate_hz - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+
+    def report(self, duration_s: float) -> dict[str, Any]:
+        """What was sent, per topic."""
+        return {"duration_s": duration_s, "messages": sum(t.sent for t in self.targets.values()),
+                "failed_publishes": self.failed_publishes,
+                "topics": {name: {"type": t.message_class.__module__.split(".")[0] + "/"
+                                  + t.message_class.__name__, "sent": t.sent,
+                                  "subscribers": sorted(t.subscribers)}
+                           for name, t in sorted(self.targets.items())}}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of em-fuzz; returns the exit code."""
+    parser = argparse.ArgumentParser(prog="em-fuzz", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--duration", type=float, default=20.0, help="wall seconds (20)")
+    parser.add_argument("--rate", type=float, default=500.0, help="messages per second (500)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the values (0)")
+    parser.add_argument("--nodes", nargs="+", default=list(SYSTEM_NODES),
+                        help=f"node names whose subscriptions are attacked {SYSTEM_NODES}")
+    parser.add_argument("--report", type=Path, help="also write the JSON report here")
+    args = parser.parse_args(argv)
+    if args.duration <= 0 or args.rate <= 0:
+        parser.error("--duration and --rate must be positive")
+    rclpy.init()
+    fuzzer = Fuzzer(tuple(args.nodes), args.seed)
+    try:
+        fuzzer.attack(args.duration, args.rate)
+    except KeyboardInterrupt:
+        pass
+    report = fuzzer.report(args.duration)
+    fuzzer.destroy_node()
+    rclpy.try_shutdown()
+    text = json.dumps(report, sort_keys=True)
+    if args.report:
+        args.report.write_text(text + "\n", encoding="utf-8")
+    print(text, flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

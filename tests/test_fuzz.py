@@ -1,0 +1,148 @@
+"""A running lockstep team under a fuzz attack (issue 11, point 3).
+
+A separate process (em-fuzz, em_exploration_ros/tools/fuzz.py) reads the ROS graph for
+every topic the world, the robots and the evaluator subscribe to and, for a bounded time,
+publishes well-formed messages with extreme values on all of them (NaN, infinities,
+largest or negative ids, steps, sequence numbers and stamps, huge arrays, negative and
+backwards /clock, wrong frame_ids) while a seeded lockstep team explores a small map.
+Then: no process exited, the team chose exactly the targets of the same run without the
+attack, and no process's memory grew by more than 50 MB over that run's (peak VmRSS).
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+from ros_process import (RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
+                         start_team_run)
+
+#: Bound of one team run [s] and of the attack [s], and its rate [messages/s].
+RUN_TIMEOUT_S = 180.0
+FUZZ_S = 10.0
+FUZZ_RATE_HZ = 150.0
+#: Memory a process may gain under the attack over the same run without it [MB].
+RSS_MARGIN_MB = 50.0
+TEAM = ("--robots", "3", "--map-size", "60", "--landmarks", "6", "--seed", "2",
+        "--planner", "CE", "--until-explored", "0.8", "--max-sim-time", "600")
+RUN_PROCESSES = {"world", "evaluator", "robot_0", "robot_1", "robot_2"}
+ATTACKED_TOPICS = {"/clock", "/mission/anchor_pose", "/team/update_requests",
+                   "/world/landmarks"} | {
+    f"/robot_{r}/{name}" for r in range(3)
+    for name in ("sonar", "odom", "motion_command", "team/updates", "estimated_path",
+                 "landmarks")} | {f"/world/ground_truth/robot_{r}" for r in range(3)}
+
+
+def process_name(pid: int) -> str | None:
+    """world / evaluator / robot_<i> for a run's process (None if it is gone)."""
+    try:
+        words = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+    except OSError:
+        return None
+    module = next((w for w in words if w.startswith("em_exploration_ros.")), "")
+    if module.endswith("robot_node"):
+        robot = next(w for w in words if w.startswith("robot_id:="))
+        return f"robot_{robot.split(':=')[1]}"
+    return module.rsplit(".", 1)[-1].removesuffix("_node") or None
+
+
+def rss_mb(pid: int) -> float | None:
+    """VmRSS of a process [MB] (None if it is gone)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+class MemoryWatch:
+    """Peak VmRSS of each process of a run, sampled while it runs."""
+
+    def __init__(self, domain: str) -> None:
+        self.domain = domain
+        self.peak_mb: dict[str, float] = {}
+        self.pids: dict[str, int] = {}
+
+    def sample(self) -> dict[str, float]:
+        """Sample every process of the run now; returns {name: RSS [MB]} of this sample."""
+        now = {}
+        for pid in processes_in_domain(RUN_PROCESS_PATTERN, self.domain):
+            name, rss = process_name(pid), rss_mb(pid)
+            if name not in RUN_PROCESSES or rss is None:
+                continue  # gone, or the fuzzer
+            self.pids.setdefault(name, pid)
+            now[name] = rss
+            self.peak_mb[name] = max(rss, self.peak_mb.get(name, 0.0))
+        return now
+
+
+def run(tmp_path: Path, name: str, attack: bool) -> dict:
+    """One team run, with or without the attack; what the test asserts on."""
+    summary_path = tmp_path / name / "summary.json"
+    team, domain = start_team_run(tmp_path / name, *TEAM, "--summary", str(summary_path))
+    memory = MemoryWatch(domain)
+    report, alive_after_attack, after_mb = None, None, {}
+    with team:
+        if attack:  # mid-run, so that the team is running before and after the attack
+            while "t=   20.0 s" not in team.output() and team.running():
+                memory.sample()
+                time.sleep(0.2)
+            before = dict(memory.pids)
+            report_path = tmp_path / name / "fuzz.json"
+            fuzzer = NodeProcess([sys.executable, "-m", "em_exploration_ros.tools.fuzz",
+                                  "--duration", str(FUZZ_S), "--rate", str(FUZZ_RATE_HZ),
+                                  "--seed", "1", "--report", str(report_path)],
+                                 tmp_path / name / "fuzz.out")
+            with fuzzer:
+                while fuzzer.running():
+                    memory.sample()
+                    time.sleep(0.2)
+                assert fuzzer.wait(10.0) == 0, fuzzer.output()[-3000:]
+            after_mb = memory.sample()
+            alive_after_attack = {n: pid for n, pid in before.items() if rss_mb(pid) is not None}
+            assert alive_after_attack == before, (before, alive_after_attack)
+            report = json.loads(report_path.read_text())
+        deadline = time.monotonic() + RUN_TIMEOUT_S
+        while team.running() and time.monotonic() < deadline:
+            memory.sample()
+            time.sleep(0.2)
+        code = team.wait(10.0)
+    output = team.output()
+    assert code == 0, output[-3000:]
+    assert "exited with code" not in output, output[-3000:]
+    logs = {p.stem: p.read_text() for p in (summary_path.parent / "logs").glob("*.log")}
+    return dict(summary=json.loads(summary_path.read_text()), peak_mb=memory.peak_mb,
+                after_mb=after_mb, report=report, logs=logs)
+
+
+def test_fuzzed_team_keeps_running_its_result_and_its_memory(tmp_path):
+    clean = run(tmp_path, "clean", attack=False)
+    attacked = run(tmp_path, "attacked", attack=True)
+
+    report = attacked["report"]
+    assert ATTACKED_TOPICS <= set(report["topics"]), sorted(report["topics"])
+    subscribers = set().union(*(t["subscribers"] for t in report["topics"].values()))
+    assert {"/em_world", "/em_evaluator", "/robot_0/em_robot", "/robot_1/em_robot",
+            "/robot_2/em_robot"} <= subscribers
+    assert all(report["topics"][t]["sent"] > 0 for t in ATTACKED_TOPICS)
+    for name in RUN_PROCESSES:
+        assert "dropped a message on" in attacked["logs"][name], name
+        assert "Traceback" not in attacked["logs"][name], name
+
+    assert ([r["targets"] for r in attacked["summary"]["robots"]]
+            == [r["targets"] for r in clean["summary"]["robots"]])
+    for key in ("explored_ratio", "distance_m", "loc_rmse_m", "landmark_rmse_m", "decisions"):
+        assert attacked["summary"][key] == clean["summary"][key], key
+
+    assert set(attacked["peak_mb"]) == set(clean["peak_mb"]) == RUN_PROCESSES
+    print(f"\nfuzz: {report['messages']} messages on {len(report['topics'])} topics in "
+          f"{FUZZ_S:g} s")
+    for name in sorted(clean["peak_mb"]):
+        print(f"{name}: peak RSS {clean['peak_mb'][name]:.0f} MB without, "
+              f"{attacked['peak_mb'][name]:.0f} MB with the attack "
+              f"({attacked['after_mb'].get(name, float('nan')):.0f} MB right after it)")
+    for name, peak in attacked["peak_mb"].items():
+        assert peak <= clean["peak_mb"][name] + RSS_MARGIN_MB, (name, peak, clean["peak_mb"])

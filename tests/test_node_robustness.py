@@ -1,0 +1,102 @@
+"""Node processes against bad parameters and a vanishing world (issue 11, points 8 and 9).
+
+- A parameter file with an integer where a float is expected is taken; a wrong type, an
+  out-of-range value or a misspelt name ends the node at once with exit code 2, one
+  fatal line naming the parameter (and the closest valid name), no traceback.
+- Settings read once are read-only: setting them on a running node is refused.
+- A robot started on its own whose world leaves the ROS graph says so and exits (code 4)
+  after world_lost_timeout_s; one that sees the world come back goes on.
+"""
+from __future__ import annotations
+
+import signal
+
+import pytest
+import rclpy
+from rcl_interfaces.srv import SetParameters
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from ros_process import NodeProcess, ros_args
+
+WORLD = "em_exploration_ros.nodes.world_node"
+ROBOT = "em_exploration_ros.nodes.robot_node"
+ONE_ROBOT = {"world.num_robots": 1, "world.width_m": 30.0, "world.height_m": 30.0,
+             "world.num_landmarks": 2}
+START_S = 30.0  # process start-up on a loaded machine
+
+
+def write_params(tmp_path, text: str):
+    path = tmp_path / "params.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_integers_are_taken_where_floats_are_expected(tmp_path):
+    params = write_params(tmp_path, "/**:\n  ros__parameters:\n    world:\n      width_m: 60\n"
+                          "      height_m: 60\n      num_robots: 1\n"
+                          "/em_world:\n  ros__parameters:\n    robot_timeout_s: 5\n")
+    with NodeProcess.start_module(WORLD, ros_args(params_file=params),
+                                  log_path=tmp_path / "world.log") as world:
+        world.wait_for_output("world ready", START_S)
+        assert "60 m x 60 m" in world.output()
+
+
+@pytest.mark.parametrize("text, message", [
+    ("/em_world:\n  ros__parameters:\n    robot_timeout_s: abc\n",
+     "parameter robot_timeout_s: WorldNodeSettings.robot_timeout_s must be a number"),
+    ("/em_world:\n  ros__parameters:\n    robot_timout_s: 3.0\n",
+     "unknown parameter 'robot_timout_s' (did you mean 'robot_timeout_s'?)"),
+    ("/**:\n  ros__parameters:\n    world.num_robots: 0\n", "outside [1, 26]"),
+    ("/**:\n  ros__parameters:\n    planner.name: EM_9\n", "must be one of"),
+])
+def test_bad_parameters_end_the_node_with_exit_code_2_and_no_traceback(tmp_path, text, message):
+    params = write_params(tmp_path, text)
+    world = NodeProcess.start_module(WORLD, ros_args(params_file=params),
+                                     log_path=tmp_path / "world.log")
+    with world:
+        code = world.wait(START_S)
+    output = world.output()
+    assert code == 2, output
+    assert "cannot start" in output and message in output, output
+    assert "Traceback" not in output, output
+
+
+def test_settings_read_once_are_read_only(tmp_path):
+    args = ros_args(params=dict(ONE_ROBOT, robot_id=0), namespace="/robot_0")
+    with NodeProcess.start_module(ROBOT, args, log_path=tmp_path / "robot.log") as robot:
+        robot.wait_for_output("ready", START_S)
+        context = rclpy.Context()
+        rclpy.init(context=context)
+        node = rclpy.create_node("param_setter", context=context)
+        try:
+            client = node.create_client(SetParameters, "/robot_0/em_robot/set_parameters")
+            assert client.wait_for_service(timeout_sec=START_S)
+            request = SetParameters.Request(parameters=[
+                Parameter(name, value=-1.0).to_parameter_msg()
+                for name in ("barrier_timeout_s", "request_period_s", "world.width_m")])
+            future = client.call_async(request)
+            executor = SingleThreadedExecutor(context=context)
+            executor.add_node(node)
+            executor.spin_until_future_complete(future, timeout_sec=START_S)
+            results = future.result().results
+        finally:
+            node.destroy_node()
+            rclpy.try_shutdown(context=context)
+        assert [r.successful for r in results] == [False, False, False]
+        assert all("read-only" in r.reason for r in results), [r.reason for r in results]
+
+
+def test_a_robot_whose_world_leaves_says_so_and_exits(tmp_path):
+    world = NodeProcess.start_module(WORLD, ros_args(params=ONE_ROBOT),
+                                     log_path=tmp_path / "world.log")
+    robot = NodeProcess.start_module(
+        ROBOT, ros_args(params=dict(ONE_ROBOT, robot_id=0, world_lost_timeout_s=3.0),
+                        namespace="/robot_0"), log_path=tmp_path / "robot.log")
+    with world, robot:
+        world.wait_for_output("stepping", START_S)  # the robot is connected
+        world.signal_group(signal.SIGINT)  # a clean exit leaves the graph at once
+        assert world.wait(START_S) == 0
+        robot.wait_for_output("the world left the ROS graph", START_S)
+        assert robot.wait(START_S) == 4
+    assert "the world has been gone for 3 s; exiting (code 4)" in robot.output()
