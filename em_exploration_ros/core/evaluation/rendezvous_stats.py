@@ -20,17 +20,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from em_exploration_ros.core.agent.team_data import RendezvousEvent, RendezvousState
-
-
-@dataclass
-class RendezvousCounts:
-    """How many rendezvous were requested, met, timed out (ended without meeting) and
-    still open at the end of the run."""
-
-    requested: int = 0
-    met: int = 0
-    timed_out: int = 0
-    open: int = 0
+from em_exploration_ros.core.evaluation.summary import RendezvousCounts
 
 
 @dataclass(frozen=True)

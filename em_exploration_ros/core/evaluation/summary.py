@@ -20,8 +20,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from em_exploration_ros.core.evaluation.rendezvous_stats import RendezvousCounts
-
 REQUIRED_KEYS = ("explored_ratio", "distance_m", "loc_rmse_m", "landmark_rmse_m", "decisions",
                  "wall_s", "sim_time_s", "decision_time_median_s", "decision_time_max_s",
                  "robots")
@@ -47,6 +45,17 @@ class RobotSummary:
     decisions: int = 0
     targets: list[TargetEntry] = field(default_factory=list)
     decision_times_s: list[float] = field(default_factory=list)
+
+
+@dataclass
+class RendezvousCounts:
+    """How many rendezvous were requested, met, timed out (ended without meeting) and
+    still open at the end of the run (see ``rendezvous_stats``)."""
+
+    requested: int = 0
+    met: int = 0
+    timed_out: int = 0
+    open: int = 0
 
 
 @dataclass
