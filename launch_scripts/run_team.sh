@@ -22,6 +22,11 @@ RECORD_MODULE=em_exploration_ros.tools.record
 # Grace periods [s] of a stop: after SIGINT (nodes write their results), after SIGTERM.
 STOP_GRACE_S=10
 KILL_GRACE_S=3
+# --respawn: the world's "robot <i> lost" lines within this many seconds after a robot's
+# (re)start are about its previous process (its liveliness lease expiring), not the new one.
+RESPAWN_GRACE_S=15
+# --respawn: at most this many restarts per robot (a robot that keeps crashing stays down).
+MAX_RESPAWNS=10
 
 usage() {
     cat <<EOF
@@ -47,6 +52,9 @@ options:
   --domain-id ID          ROS_DOMAIN_ID, 0..232 (default: a free id in 1..101, held by a lock)
   --record [PATH]         record every topic with em-record
                           (default PATH: bags/<date>_seed<S>_<planner>.mcap)
+  --respawn               restart a robot process that dies, or that the world reports lost
+                          (alive but wedged or silent: SIGKILL, then the same command line);
+                          it rejoins the team where it stopped
   -h, --help              show this help and exit
 EOF
 }
@@ -82,7 +90,7 @@ as_double() { if [[ $1 =~ [.eE] ]]; then printf '%s' "$1"; else printf '%s.0' "$
 # -- arguments -------------------------------------------------------------------------------
 ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME=""
 PARAMS_FILE="$EM_REPO_ROOT/config/exploration.yaml"
-REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH=""
+REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH="" RESPAWN=""
 
 while (( $# )); do
     arg=$1
@@ -126,6 +134,7 @@ while (( $# )); do
         --record)
             RECORD=1
             if (( $# )) && [[ $inline_value == 1 || $1 != -* ]]; then RECORD_PATH=$1; shift; fi ;;
+        --respawn) RESPAWN=1 ;;
         *) usage_error "unknown argument '$arg'" ;;
     esac
 done
@@ -213,7 +222,7 @@ PY
     usage_error "$PROBLEM"
 fi
 mkdir -p "$LOG_DIR" 2>/dev/null || usage_error "--summary: cannot create the log folder '$LOG_DIR'"
-rm -f "$SUMMARY" "$MAP_PNG"
+rm -f "$SUMMARY" "$MAP_PNG" "$LOG_DIR"/*.log  # logs are appended to (a respawned robot's too)
 
 if [[ -n $DOMAIN_ID ]]; then
     export ROS_DOMAIN_ID=$DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -230,7 +239,7 @@ PIDS=() NAMES=()
 start() {
     local name=$1
     shift
-    setsid "$PYTHON" "$@" >"$LOG_DIR/$name.log" 2>&1 </dev/null &
+    setsid "$PYTHON" "$@" >>"$LOG_DIR/$name.log" 2>&1 </dev/null &
     PIDS+=("$!")
     NAMES+=("$name")
 }
@@ -309,11 +318,17 @@ fi
 start evaluator -m "$NODES.evaluator_node" "${COMMON[@]}" -p use_sim_time:=true \
     -p "summary_path:=$SUMMARY" -p "map_png_path:=$MAP_PNG" "${SIM_LIMIT[@]}"
 EVALUATOR_PID=${PIDS[-1]}
-start world -m "$NODES.world_node" "${COMMON[@]}" "${CLOCK[@]}" -p wait_for_evaluator:=true \
+WAIT_FOR=(-p wait_for_evaluator:=true)
+[[ -n $RECORD ]] && WAIT_FOR+=(-p wait_for_recorder:=true)
+start world -m "$NODES.world_node" "${COMMON[@]}" "${CLOCK[@]}" "${WAIT_FOR[@]}" \
     "${SIM_LIMIT[@]}"
+# start_robot ID: robot ID's process; a restart (--respawn) uses the same command line.
+start_robot() {
+    start "robot_$1" -m "$NODES.robot_node" --ros-args -r "__ns:=/robot_$1" \
+        -p "robot_id:=$1" -p use_sim_time:=true --params-file "$PARAMS_FILE" "${OVERRIDES[@]}"
+}
 for (( robot = 0; robot < NUM_ROBOTS; robot++ )); do
-    start "robot_$robot" -m "$NODES.robot_node" --ros-args -r "__ns:=/robot_$robot" \
-        -p "robot_id:=$robot" -p use_sim_time:=true --params-file "$PARAMS_FILE" "${OVERRIDES[@]}"
+    start_robot "$robot"
 done
 
 # The evaluator's log on the terminal (progress lines) until it exits.
@@ -321,24 +336,67 @@ tail -n +1 -F --pid="$EVALUATOR_PID" "$LOG_DIR/evaluator.log" 2>/dev/null &
 TAIL_PID=$!
 
 # A robot that dies leaves its teammates to finish (the world stops waiting for it after
-# robot_timeout_s); the world or the recorder dying ends the run.
+# its liveliness lease or robot_timeout_s); with --respawn it is restarted (respawn_robot).
+# The world or the recorder dying ends the run.
 FAILED=""
-declare -A REPORTED=()
+declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=()
+
+# respawn_robot INDEX WHY: SIGKILL robot INDEX's process group (if alive) and start the same
+# command line again; it rejoins the team (the world takes it back, its teammates re-send
+# its stream).
+respawn_robot() {
+    local index=$1 why=$2 name=${NAMES[$1]} pid=${PIDS[$1]}
+    local robot=${name#robot_}
+    if (( ${RESPAWNS[$robot]:-0} >= MAX_RESPAWNS )); then
+        echo "$PROG: warning: $name $why; restarted $MAX_RESPAWNS times already, left down" >&2
+        REPORTED[$pid]=1
+        return
+    fi
+    RESPAWNS[$robot]=$(( ${RESPAWNS[$robot]:-0} + 1 ))
+    echo "$PROG: warning: $name $why; restarting it (respawn ${RESPAWNS[$robot]})" >&2
+    group_alive "$pid" && kill -KILL -- "-$pid" 2>/dev/null
+    wait "$pid" 2>/dev/null
+    REPORTED[$pid]=1
+    start_robot "$robot"
+    # The new process takes the old one's place in the lists.
+    PIDS[$index]=${PIDS[-1]}
+    unset 'PIDS[-1]' 'NAMES[-1]'
+    STARTED_AT[$robot]=$SECONDS
+}
+
+# lost_count ROBOT: how many times the world has reported robot ROBOT lost so far.
+lost_count() { grep -c "robot $1 lost:" "$LOG_DIR/world.log" 2>/dev/null; }
+
 while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
     for index in "${!PIDS[@]}"; do
         pid=${PIDS[$index]}
         [[ $pid == "$EVALUATOR_PID" || -n ${REPORTED[$pid]:-} ]] && continue
+        name=${NAMES[$index]}
         if ! kill -0 "$pid" 2>/dev/null; then
             wait "$pid"
             status=$?
             REPORTED[$pid]=1
-            if [[ ${NAMES[$index]} == robot_* ]]; then
-                echo "$PROG: warning: ${NAMES[$index]} exited with code $status; the team goes on" \
-                    "without it (see $LOG_DIR/${NAMES[$index]}.log)" >&2
+            if [[ $name == robot_* ]]; then
+                if [[ -n $RESPAWN ]]; then
+                    respawn_robot "$index" "exited with code $status"
+                    continue
+                fi
+                echo "$PROG: warning: $name exited with code $status; the team goes on" \
+                    "without it (see $LOG_DIR/$name.log)" >&2
                 continue
             fi
-            FAILED="${NAMES[$index]} exited early with code $status (see $LOG_DIR/${NAMES[$index]}.log)"
+            FAILED="$name exited early with code $status (see $LOG_DIR/$name.log)"
             break 2
+        fi
+        if [[ -n $RESPAWN && $name == robot_* ]]; then
+            robot=${name#robot_}
+            lost=$(lost_count "$robot")
+            if (( SECONDS - ${STARTED_AT[$robot]:-0} < RESPAWN_GRACE_S )); then
+                LOST_SEEN[$robot]=$lost
+            elif (( lost > ${LOST_SEEN[$robot]:-0} )); then
+                LOST_SEEN[$robot]=$lost
+                respawn_robot "$index" "is alive but lost to the world (wedged or silent)"
+            fi
         fi
     done
     sleep 0.5 &

@@ -56,6 +56,8 @@ REQUIREMENTS=(
     mcap
     mcap-ros2-support
     pytest
+    # em-bench planners --dask: trials on a dask.distributed cluster (and its test)
+    "dask[distributed]"
 )
 
 # Files of the repository whose content the editable install copies or reads (setup.py's

@@ -1,17 +1,27 @@
-"""em-bench latency: runs on a small graph and reports the fast EM step equal to its oracle."""
+"""em-bench latency: runs on small graphs, reports the fast EM step equal to its oracle, the
+approximate U_M's error and a per-candidate line fit."""
 import subprocess
 import sys
 
 
-def test_latency_table_is_printed_with_oracle_agreement():
+def test_latency_table_is_printed_with_oracle_agreement_and_fits():
     result = subprocess.run(
-        [sys.executable, "-m", "em_exploration_ros.tools.bench", "latency", "--sizes", "90",
-         "--repeats", "1", "--planners", "EM_3", "CE"], capture_output=True, text=True,
-        timeout=120)
+        [sys.executable, "-m", "em_exploration_ros.tools.bench", "latency", "--sizes", "60",
+         "90", "--repeats", "1", "--planners", "EM_3", "CE", "--approximate", "1.0"],
+        capture_output=True, text=True, timeout=180)
     assert result.returncode == 0, result.stderr
     lines = result.stdout.strip().splitlines()
     assert lines[0].startswith("machine:") and "EM_3" in lines[2] and "CE" in lines[2]
-    row = lines[3].split()
-    poses, candidates, agreement = int(row[0]), int(row[1]), float(row[-1])
-    assert 80 <= poses <= 90 and candidates >= 10
-    assert agreement < 1e-6  # fast low-rank path equals the re-solve oracle
+    for line, size in ((lines[3], 60), (lines[4], 90)):
+        row = line.split()
+        poses, variables, candidates = int(row[0]), int(row[1]), int(row[2])
+        assert size - 10 <= poses <= size and variables > poses and candidates >= 10
+        em_cpu, em_per_candidate = float(row[5]), float(row[6])
+        assert abs(em_per_candidate - em_cpu / candidates) <= 0.01 + 1e-3 * em_cpu
+        agreement, approximate_error = float(row[-4]), float(row[-3])
+        assert agreement < 1e-6  # fast low-rank path equals the re-solve oracle
+        # Tolerance 1: every history pose keeps its current contribution, U_M differs.
+        assert approximate_error > 0.0 and row[-2] in ("yes", "no")
+    assert "authors: a = 0.057 s, b = 2.7e-4 s" in lines[5]
+    assert lines[6].split()[0] == "EM_3:" and "of the authors' slope" in lines[6]
+    assert lines[7].split()[0] == "CE:"

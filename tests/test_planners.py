@@ -195,3 +195,24 @@ def test_robot_without_a_pose_skips_the_uncertainty_utility() -> None:
     decision = make_planner(PARAMS, "EM_3").choose(dataclasses.replace(ctx, slam=empty))
     assert decision.target is EXPLORE
     assert decision.utilities[0].u_m == 0.0
+
+
+def test_history_change_tolerance_approximates_u_m_and_zero_recomputes_everything() -> None:
+    landmarks = {0: np.array([20.0, 56.0]), 1: np.array([30.0, 62.0])}
+    revisit = Frontier(np.array([16.0, 54.0]), FrontierType.REVISITING)   # closes the loop
+    ctx = context(HIGH_NOISE, landmarks, [revisit, EXPLORE], {})
+    exact = EmPlanner(PARAMS, "EM_2").map_uncertainty(ctx)
+
+    def with_tolerance(tolerance: float) -> np.ndarray:
+        params = PARAMS.replace(planner={"history_change_tolerance": tolerance})
+        return EmPlanner(params, "EM_2").map_uncertainty(ctx)
+
+    np.testing.assert_allclose(with_tolerance(0.0), exact, rtol=1e-12)
+    # The loop closure shrinks the history traces by 0 (anchor) to 96 %: with a 20 %
+    # tolerance the two least changed poses keep their contribution, U_M rises slightly.
+    approximate = with_tolerance(0.2)
+    assert exact[0] < approximate[0] < 1.001 * exact[0]
+    assert approximate[1] == exact[1]        # no loop closure: nothing to approximate
+    assert with_tolerance(0.5)[0] > approximate[0]
+    # Everything under the tolerance: every history pose keeps its current contribution.
+    assert with_tolerance(1.0)[0] > 4.0 * exact[0]

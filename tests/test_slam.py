@@ -17,7 +17,8 @@ from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReadin
 from em_exploration_ros.core.slam.team_slam import (KeyframeBuilder, KeyframeMeasurements,
                                           OdometryAccumulator, SlamNoise, TeamSlam,
                                           body_to_map_covariance, is_landmark_key,
-                                          landmark_key, pose_key)
+                                          landmark_key, landmark_key_mask, pose_key,
+                                          pose_keys)
 from em_exploration_ros.core.sim.world import advance_robot, generate_world, run_seed_sequences
 
 PARAMS = ExplorationParams()
@@ -441,7 +442,15 @@ def test_invalid_robot_ids_are_rejected() -> None:
         TeamSlam(2, 2, PARAMS.slam, poses[(0, 0)])
 
 
+def test_pose_keys_equal_pose_key_one_by_one():
+    indices = np.array([0, 1, 7, 2 ** 40])
+    for robot in (0, 3, 25):
+        assert pose_keys(robot, indices).tolist() == [pose_key(robot, int(i)) for i in indices]
+
+
 def test_landmark_keys_are_told_from_pose_keys() -> None:
     assert is_landmark_key(landmark_key(0)) and is_landmark_key(landmark_key(10**6))
     assert not any(is_landmark_key(pose_key(robot, index))
                    for robot in range(26) for index in (0, 7, 10**6))
+    keys = np.array([landmark_key(3), pose_key(0, 3), pose_key(25, 10**6), landmark_key(0)])
+    assert landmark_key_mask(keys).tolist() == [is_landmark_key(int(k)) for k in keys]

@@ -11,12 +11,17 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import sys
 
 import pytest
 import rclpy
+from em_exploration_msgs.msg import TeamUpdate
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+
+from em_exploration_ros.nodes.qos import TEAM_QOS
 
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
                          start_team_run, wait_until)
@@ -82,7 +87,9 @@ def test_robots_are_separate_processes_blind_to_ground_truth_and_survive_a_dead_
             assert f"/robot_{robot}/sonar" in names and f"/robot_{robot}/odom" in names
             teammates = {f"/robot_{j}/team/updates" for j in range(3) if j != robot}
             assert teammates <= names
-            assert not any(name.startswith(f"/robot_{j}/") and name not in teammates
+            # Besides their updates, only their liveliness (a topic that carries no data).
+            liveliness = {f"/robot_{j}/alive" for j in range(3) if j != robot}
+            assert not any(name.startswith(f"/robot_{j}/") and name not in teammates | liveliness
                            for j in range(3) if j != robot for name in names)
         pids = {robot: robot_pid(domain, robot) for robot in range(3)}
         assert len(set(pids.values())) == 3  # one OS process per robot
@@ -99,14 +106,17 @@ def test_robots_are_separate_processes_blind_to_ground_truth_and_survive_a_dead_
     assert summary["sim_time_s"] > 60.0  # the survivors explored for long after the kill
     assert all(r["distance_m"] > 1.0 for r in summary["robots"] if r["id"] != 1)
     world_log = (summary_path.parent / "logs" / "world.log").read_text()
-    assert "robot 1" in world_log and "stopped" in world_log
+    assert "robot 1 lost:" in world_log
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
 
 
 HOSTILE_PUBLISHER = r'''
 import math, sys, time
 import rclpy
+from em_exploration_msgs.msg import TeamUpdate
 from rclpy.node import Node
+
+from em_exploration_ros.nodes.qos import TEAM_QOS
 from rclpy.serialization import serialize_message
 from em_exploration_msgs.msg import Keyframe, TeamUpdate, TargetRecord, TeammateDetection
 from em_exploration_ros.nodes.qos import TEAM_QOS
@@ -175,3 +185,71 @@ def test_hostile_team_messages_are_rejected_and_change_nothing(tmp_path):
     assert [r["targets"] for r in attacked["robots"]] == [r["targets"] for r in clean["robots"]]
     for key in ("explored_ratio", "loc_rmse_m", "landmark_rmse_m", "sim_time_s", "decisions"):
         assert attacked[key] == clean[key], key
+
+
+def keyframes_in_graph(log: str, robot: int) -> set[int]:
+    """Robot ``robot``'s keyframe indices in the last "team graph keyframes" line of a log."""
+    line = [l for l in log.splitlines() if "team graph keyframes:" in l][-1]
+    ranges = re.search(rf"robot {robot}: \d+ \[([0-9 -]*)\]", line).group(1).split()
+    return {i for r in ranges for i in range(int(r.split("-")[0]), int(r.split("-")[1]) + 1)}
+
+
+def test_killed_and_wedged_robots_are_restarted_and_rejoin_without_losing_keyframes(
+        tmp_path, graph_node):
+    """--respawn: robot 1 is SIGKILLed mid-run, later robot 2 is SIGSTOPped (alive but off
+    the graph, as in the Fast DDS deadlock); both are noticed, restarted and rejoin: their
+    earlier keyframes are all in every robot's graph at the end and the summary shows the
+    downtimes."""
+    summary_path = tmp_path / "summary.json"
+    published: dict[int, set[int]] = {1: set(), 2: set()}
+    for robot in published:
+        graph_node.create_subscription(
+            TeamUpdate, f"/robot_{robot}/team/updates",
+            lambda m, r=robot: published[r].update(k.index for k in m.keyframes), TEAM_QOS)
+    run, domain = start_team_run(tmp_path, "--robots", "3", "--map-size", "80", "--landmarks",
+                                 "8", "--seed", "2", "--max-sim-time", "900", "--respawn",
+                                 "--summary", str(summary_path))
+    evaluator_log = summary_path.parent / "logs" / "evaluator.log"
+
+    executor = SingleThreadedExecutor(context=graph_node.context)
+    executor.add_node(graph_node)
+
+    def spin_until(condition, what: str) -> None:
+        wait_until(condition, RUN_TIMEOUT_S, what,
+                   while_waiting=lambda: executor.spin_once(timeout_sec=0.05))
+
+    with run:
+        spin_until(lambda: "t=   20.0 s" in run.output(), "mid-run")
+        os.kill(robot_pid(domain, 1), signal.SIGKILL)
+        before_crash = set(published[1])
+        spin_until(lambda: "robot 1 rejoined" in evaluator_log.read_text(), "robot 1 rejoining")
+        before_wedge = set(published[2])
+        wedged = robot_pid(domain, 2)
+        os.kill(wedged, signal.SIGSTOP)
+        spin_until(lambda: "robot 2 rejoined" in evaluator_log.read_text(), "robot 2 rejoining")
+        code = run.wait(RUN_TIMEOUT_S)
+    output = run.output()
+    assert code == 0, output[-3000:]
+    assert "robot_1 exited with code 137; restarting it" in output
+    assert "robot_2 is alive but lost to the world (wedged or silent); restarting it" in output
+    summary = json.loads(summary_path.read_text())
+    assert summary["explored_ratio"] >= 0.85, summary["stop_reason"]
+    logs = summary_path.parent / "logs"
+    for name in ("world", "evaluator", "robot_0"):
+        log = (logs / f"{name}.log").read_text()
+        assert "1: liveliness lost" in log and "2: liveliness lost" in log, name
+    assert before_crash and before_wedge
+    log = (logs / "evaluator.log").read_text()
+    assert "robot 1 lost:" in log and "robot 2 lost:" in log
+    assert "robot 2 lost:" in (logs / "world.log").read_text()  # it waited for robot 2
+    for robot in range(3):
+        log = (logs / f"robot_{robot}.log").read_text()
+        assert before_crash <= keyframes_in_graph(log, 1), robot   # 0 keyframes lost
+        assert before_wedge <= keyframes_in_graph(log, 2), robot
+    for robot in (1, 2):
+        entry = summary["robots"][robot]
+        lost, rejoined = entry["status_changes"][:2]
+        assert (lost["status"], rejoined["status"]) == ("lost", "rejoined")
+        # The world may have waited for it (no simulated time lost), but it was down.
+        assert rejoined["wall_s"] > lost["wall_s"] and entry["downtime_wall_s"] > 0.0
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []

@@ -6,7 +6,8 @@ import pytest
 
 from em_exploration_ros.core.params import MotionParams, SensorParams, WorldParams
 from em_exploration_ros.core.sim.world import (World, advance_robot, collides, derive_seed_sequence,
-                                           generate_world, run_seed_sequences, step_pose)
+                                           generate_world, run_seed_sequences, start_region,
+                                           step_pose)
 
 MOTION = MotionParams()
 
@@ -78,6 +79,44 @@ def test_generated_worlds_satisfy_constraints_over_50_seeds(params: WorldParams)
         assert not np.any(collides(world, starts[:, :2]))
 
 
+@pytest.mark.parametrize("size_m", [100.0, 200.0])
+def test_twelve_robots_start_in_a_grown_region_each_sensing_the_robots_placed_before(
+        size_m: float) -> None:
+    params = WorldParams(width_m=size_m, height_m=size_m, num_robots=12)
+    sensors = SensorParams()
+    low, high = start_region(params)
+    default_low, default_high = start_region(WorldParams(width_m=size_m, height_m=size_m))
+    np.testing.assert_allclose(high - low, (default_high - default_low) * math.sqrt(12 / 5))
+    np.testing.assert_allclose(low + high, default_low + default_high)
+    group = params.start_group_robots
+    for seed in range(20):
+        starts = generate_world(params, sensors, np.random.SeedSequence(seed)).start_poses[:, :2]
+        assert np.all((starts >= low) & (starts <= high))
+        assert np.all(_pairwise(starts) >= params.start_min_separation_m)
+        distance = np.linalg.norm(starts[:, None] - starts[None], axis=-1)
+        for robot in range(1, 12):
+            before = distance[robot, max(0, robot - group + 1):robot]
+            assert np.all(before <= params.start_max_separation_m)
+        # The sensing graph at the start is connected: every robot reaches robot 0's anchor.
+        reached, frontier = {0}, [0]
+        while frontier:
+            robot = frontier.pop()
+            for other in np.flatnonzero(distance[robot] < sensors.sonar_max_range_m):
+                if int(other) not in reached:
+                    reached.add(int(other))
+                    frontier.append(int(other))
+        assert reached == set(range(12))
+
+
+def test_start_region_is_the_configured_box_up_to_one_group_and_stays_in_the_map() -> None:
+    low, high = start_region(WorldParams(num_robots=5))
+    np.testing.assert_allclose(low, [10.0, 45.0])
+    np.testing.assert_allclose(high, [20.0, 55.0])
+    low, high = start_region(WorldParams(num_robots=26, start_group_robots=2,
+                                         start_region_x_fraction=(0.0, 0.1)))
+    assert np.all(low >= 0.0) and np.all(high <= 100.0) and low[0] == 0.0
+
+
 def test_start_headings_are_spread_over_the_circle() -> None:
     headings = np.concatenate([
         generate_world(WorldParams(), SensorParams(), np.random.SeedSequence(s)).start_poses[:, 2]
@@ -98,7 +137,7 @@ def test_start_separation_is_capped_below_sonar_range() -> None:
 @pytest.mark.parametrize("params, sensors, message", [
     (WorldParams(num_landmarks=200), SensorParams(), "landmarks"),
     (WorldParams(width_m=40.0, height_m=40.0, num_landmarks=20), SensorParams(), "landmarks"),
-    (WorldParams(num_robots=26), SensorParams(), "robots"),
+    (WorldParams(num_robots=20, start_group_robots=20), SensorParams(), "robots"),
     (WorldParams(start_min_separation_m=8.0, start_max_separation_m=9.0), SensorParams(),
      "sonar_max_range_m"),
     (WorldParams(start_region_x_fraction=(0.3, 0.2)), SensorParams(), "start region"),

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,6 @@ from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg,
                                                   time_to_seconds)
 from em_exploration_ros.nodes.qos import (CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
-from em_exploration_ros.nodes.world_node import STAND_STILL, LockstepBarrier, StepAnswer
 from ros_process import NodeProcess, ros_args, wait_until
 
 WORLD_MODULE = "em_exploration_ros.nodes.world_node"
@@ -68,6 +68,7 @@ class FakeTeam:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.scans: list[dict[int, SonarScan]] = [{} for _ in range(num_robots)]
+        self.scan_arrivals: list[Counter[int]] = [Counter() for _ in range(num_robots)]
         self.odometry: list[dict[float, Odometry]] = [{} for _ in range(num_robots)]
         self.truth: list[dict[float, Odometry]] = [{} for _ in range(num_robots)]
         self.clock_stamps: list[float] = []
@@ -84,8 +85,7 @@ class FakeTeam:
         for robot in range(num_robots):
             ns = f"/robot_{robot}"
             node.create_subscription(SonarScan, f"{ns}/sonar",
-                                     lambda m, r=robot: self.scans[r].__setitem__(int(m.step), m),
-                                     SENSOR_QOS)
+                                     lambda m, r=robot: self._on_scan(r, m), SENSOR_QOS)
             node.create_subscription(Odometry, f"{ns}/odom", lambda m, r=robot: self.odometry[r]
                                      .__setitem__(time_to_seconds(m.header.stamp), m), SENSOR_QOS)
             node.create_subscription(Odometry, f"/world/ground_truth/robot_{robot}",
@@ -94,6 +94,10 @@ class FakeTeam:
             node.create_subscription(TeamUpdate, f"{ns}/team/updates", lambda m: None, TEAM_QOS)
             self.command_pubs.append(node.create_publisher(MotionCommand, f"{ns}/motion_command",
                                                            SENSOR_QOS))
+
+    def _on_scan(self, robot: int, message: SonarScan) -> None:
+        self.scans[robot][int(message.step)] = message
+        self.scan_arrivals[robot][int(message.step)] += 1
 
     def spin(self) -> None:
         self.executor.spin_once(timeout_sec=0.02)
@@ -229,10 +233,10 @@ def test_lockstep_waits_for_every_robot_and_matches_world_simulation(tmp_path, t
         assert "final step 8 reached" in world.output()
 
 
-def test_silent_robot_is_stopped_and_the_world_goes_on(tmp_path, team):
-    seed, timeout_s = 9, 1.0
+def test_silent_robot_gets_the_step_again_is_lost_and_rejoins(tmp_path, team):
+    seed, timeout_s, resend_s = 9, 1.5, 0.4
     sim = WorldSimulation(local_params(seed))
-    with start_world(tmp_path, seed, robot_timeout_s=timeout_s) as world:
+    with start_world(tmp_path, seed, robot_timeout_s=timeout_s, step_resend_s=resend_s) as world:
         team.wait_step(0, STARTUP_S)
         assert_step_matches(team, sim, 0, [0, 0])
         for robot in range(NUM_ROBOTS):
@@ -243,60 +247,45 @@ def test_silent_robot_is_stopped_and_the_world_goes_on(tmp_path, team):
         sim.advance()
         assert_step_matches(team, sim, 1, [1, 2])
 
-        # Robot 1 falls silent on step 1: the world waits robot_timeout_s, then goes on.
+        # Robot 1 falls silent on step 1: the world sends it the step again (the same
+        # messages), then, after robot_timeout_s, goes on without it.
         asked = time.monotonic()
         team.answer(0, 1, *scripted_command(0, 1), team_sequence=5)
         team.wait_step(2, timeout_s + STEP_S)
         assert time.monotonic() - asked >= timeout_s * 0.9
-        assert "robot 1 silent" in world.output()
+        assert "robot 1 lost: no answer to step 1 in time" in world.output()
+        assert team.scan_arrivals[1][1] >= 3   # sent, then re-sent every 0.4 s
         sim.apply_command(0, *scripted_command(0, 1))
         sim.apply_command(1, 0.0, 0.0)
         sim.advance()
         assert_step_matches(team, sim, 2, [5, 2])
 
-        # From now on only robot 0 is waited for; robot 1 stands still, its late answers
-        # are ignored and its barrier entry stays.
-        for step in range(2, 5):
-            team.answer(1, step, 1.0, 1.0, team_sequence=99)
-            team.answer(0, step, *scripted_command(0, step), team_sequence=5)
-            team.wait_step(step + 1, STEP_S)
-            assert time.monotonic() - asked < timeout_s * 2 + STEP_S
-            sim.apply_command(0, *scripted_command(0, step))
-            sim.apply_command(1, 0.0, 0.0)
-            sim.advance()
-            assert_step_matches(team, sim, step + 1, [5, 2])
+        # While lost it stands still and is not waited for.
+        team.answer(0, 2, *scripted_command(0, 2), team_sequence=5)
+        team.wait_step(3, STEP_S)
+        sim.apply_command(0, *scripted_command(0, 2))
+        sim.apply_command(1, 0.0, 0.0)
+        sim.advance()
+        assert_step_matches(team, sim, 3, [5, 2])
 
-        # Robot 0 finishes: every robot is finished or stopped, so the stepping ends.
-        team.answer(0, 5, 0.0, 0.0, team_sequence=5, finished=True)
+        # It answers again: it rejoins where its vehicle stopped and is waited for again.
+        team.answer(1, 3, *scripted_command(1, 3), team_sequence=7)
+        wait_until(lambda: "robot 1 rejoined at step 3" in world.output(), STEP_S,
+                   "robot 1 rejoining", while_waiting=team.spin)
+        team.spin_for(QUIET_S)
+        assert 4 not in team.scans[0]  # robot 0 has not answered yet
+        team.answer(0, 3, *scripted_command(0, 3), team_sequence=5)
+        team.wait_step(4, STEP_S)
+        for robot in range(NUM_ROBOTS):
+            sim.apply_command(robot, *scripted_command(robot, 3))
+        sim.advance()
+        assert_step_matches(team, sim, 4, [5, 7])
+
+        # Every robot finishes: the stepping ends.
+        team.answer(0, 4, 0.0, 0.0, team_sequence=5, finished=True)
+        team.answer(1, 4, 0.0, 0.0, team_sequence=7, finished=True)
         team.spin_for(QUIET_S * 2)
-        assert 6 not in team.scans[0]
+        assert 5 not in team.scans[0]
         assert "every robot finished or stopped" in world.output()
         assert world.running()
         assert world.stop() == 0
-
-
-def test_lockstep_barrier_bookkeeping():
-    barrier = LockstepBarrier(3, robot_timeout_s=2.0)
-    barrier.open(0, now_s=100.0)
-    go = StepAnswer(1.0, 0.1, 4, False)
-    assert barrier.answer(0, 0, go) == LockstepBarrier.ACCEPTED
-    assert barrier.answer(0, 0, go) == LockstepBarrier.DUPLICATE
-    assert barrier.answer(1, 1, go) == LockstepBarrier.FUTURE
-    assert not barrier.complete and barrier.waiting_for() == [1, 2]
-    assert barrier.expire(101.9) == []
-    assert barrier.answer(1, 0, StepAnswer(0.5, 0.0, 3, True)) == LockstepBarrier.ACCEPTED
-    assert barrier.expire(102.0) == [2]
-    assert barrier.complete
-    assert barrier.close() == [go, StepAnswer(0.5, 0.0, 3, True), STAND_STILL]
-    assert barrier.team_sequences == [4, 3, 0] and barrier.finished == [False, True, False]
-    assert not barrier.all_done
-    barrier.open(1, now_s=200.0)
-    assert barrier.answer(2, 1, go) == LockstepBarrier.IGNORED
-    assert barrier.answer(0, 0, go) == LockstepBarrier.STALE
-    assert barrier.answer(0, 1, StepAnswer(0.0, 0.0, 6, True)) == LockstepBarrier.ACCEPTED
-    assert not barrier.complete  # a finished robot still answers every step
-    assert barrier.answer(1, 1, StepAnswer(0.0, 0.0, 3, True)) == LockstepBarrier.ACCEPTED
-    assert barrier.complete
-    barrier.close()
-    assert barrier.team_sequences == [6, 3, 0] and barrier.all_done
-

@@ -29,7 +29,14 @@ class WorldNodeSettings:
                                     0.01, 1000.0)
     robot_timeout_s: float = _param(
         30.0, "Lockstep: wall seconds a robot may stay silent on a step before it is treated "
-        "as stopped (zero motion from then on).", 0.01, 1e6)
+        "as lost (zero motion until it answers again).", 0.01, 1e6)
+    liveliness_grace_s: float = _param(
+        4.0, "Lockstep: wall seconds a robot whose liveliness was reported lost may stay "
+        "silent on a step before it is treated as lost (a live robot answers within this "
+        "even when a lossy network delayed its liveliness).", 0.01, 1e6)
+    step_resend_s: float = _param(
+        2.0, "Lockstep: wall seconds between re-sends of a step's sensor messages to a robot "
+        "whose answer is missing.", 0.01, 1e6)
     startup_timeout_s: float = _param(
         60.0, "Wall seconds to wait for every robot to connect before the first step; robots "
         "not connected by then are treated as stopped.", 0.0, 1e6)
@@ -43,6 +50,9 @@ class WorldNodeSettings:
     wait_for_evaluator: bool = _param(
         False, "Before the first step, also wait until an evaluator listens to the ground "
         "truth and to every robot's team updates.")
+    wait_for_recorder: bool = _param(
+        False, "Before the first step, also wait until a second listener (the recorder) "
+        "listens to the clock, the ground truth and every robot's sensors.")
 
 
 @dataclass(frozen=True)
@@ -61,6 +71,12 @@ class RobotNodeSettings:
     world_lost_timeout_s: float = _param(
         120.0, "Wall seconds to wait, logging, for a world that left the ROS graph after "
         "the run started before the robot exits (exit code 4).", 1.0, 1e6)
+    rejoin_settle_s: float = _param(
+        1.0, "After a restart: wall seconds to listen for teammates' copies of this robot's "
+        "earlier stream before resuming.", 0.0, 1e3)
+    rejoin_timeout_s: float = _param(
+        20.0, "After a restart: wall seconds after which the robot resumes with what it "
+        "recovered of its stream, even if records are missing.", 0.1, 1e6)
 
 
 @dataclass(frozen=True)
@@ -83,6 +99,9 @@ class EvaluatorNodeSettings:
     silence_timeout_s: float = _param(
         120.0, "End the run (exit code 3) when no ground truth arrived for this many wall "
         "seconds; a world that leaves the ROS graph is logged at once.", 0.1, 1e6)
+    liveliness_grace_s: float = _param(
+        4.0, "Wall seconds a robot's liveliness must stay lost before the robot counts as "
+        "lost.", 0.0, 1e6)
 
 
 #: Node name -> its settings table.

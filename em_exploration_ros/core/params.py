@@ -50,7 +50,13 @@ class WorldParams:
         2.0, "Minimum distance between two robots' start positions [m].", 0.0, 10.0)
     start_max_separation_m: float = _param(
         6.0, "Maximum distance between two robots' start positions [m]; must stay below "
-        "the sonar range so every robot sees every other at the start.", 0.0, 100.0)
+        "the sonar range so a robot senses those teammates at the start.", 0.0, 100.0)
+    start_group_robots: int = _param(
+        5, "Largest team whose robots all start within start_max_separation_m of each other "
+        "in the start region. A larger team's start region grows with the team (sides "
+        "scaled by sqrt(num_robots / start_group_robots) about the same centre, clipped to "
+        "the map) and each robot starts within that distance of the start_group_robots - 1 "
+        "robots placed before it (a chain of readings anchors every robot).", 2, 26)
     landmark_clearance_from_start_m: float = _param(
         3.0, "Minimum distance between a landmark and a robot's start position [m].", 0.0, 50.0)
     landmark_edge_margin_m: float = _param(
@@ -230,6 +236,11 @@ class PlannerParams:
     q_min: float = _param(
         0.55, "Algorithm 2: minimum probability of being observed for a cell to count "
         "(the explored threshold as a probability of observation).", 0.0, 1.0)
+    history_change_tolerance: float = _param(
+        1e-12, "U_M: a history pose whose covariance trace a candidate reduces by at most "
+        "this fraction keeps its current virtual-map contribution. The default is round-off "
+        "(exact U_M); a larger value (e.g. 1e-3) is an approximation that recomputes only the "
+        "cells of materially changed poses (error measured by em-bench latency).", 0.0, 1.0)
     utility_variant: str = _param(
         "paper", "'paper': Eq. (13) with U_M over cells observed in both maps; 'reference': "
         "the reference implementation's weights (U_M over all cells, U_T * 100 max(1-r, 0), "

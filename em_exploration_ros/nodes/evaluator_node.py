@@ -45,7 +45,6 @@ from nav_msgs.msg import Odometry, Path as PathMsg
 from builtin_interfaces.msg import Time
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
 from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
@@ -62,6 +61,7 @@ from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, fir
                                                         sequence_entry_problem, size_problem,
                                                         stamp_step_problem, step_problem)
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
+from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness
 from em_exploration_ros.core.evaluation.run_monitor import DecisionEntry, RunMonitor
 from em_exploration_ros.core.evaluation.summary import RunSummary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
@@ -71,8 +71,10 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, landma
                                                   odometry_pose, path_from_msg, robot_namespace,
                                                   seconds_to_time,
                                                   time_to_seconds)
+from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
-from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
+from em_exploration_ros.nodes.qos import (ESTIMATE_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS,
+                                          TEAM_QOS)
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   content_problem, header_problem,
                                                   publish_or_log)
@@ -81,11 +83,6 @@ from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
 
 EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
-#: Reader side of the robots' latched estimates (LATCHED_QOS writers): the same durability and
-#: reliability, with a queue, so no keyframe's estimate is overwritten before it is filed.
-ESTIMATE_HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
-                                  reliability=ReliabilityPolicy.RELIABLE,
-                                  durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: Wall period of the silence check [s].
 _WATCH_PERIOD_S = 1.0
 
@@ -169,6 +166,8 @@ class EvaluatorNode(Node):
         self._first_step_wall_s: float | None = None
         self._last_data_wall_s = time.monotonic()
         self._world_watch = WorldWatch(self.silence_timeout_s)
+        self._started_wall_s = time.monotonic()
+        self.liveness = TeamLiveness(self.num_robots, settings.liveliness_grace_s)
         self._create_interfaces()
         self.get_logger().info(
             f"evaluating {self.num_robots} robots every {self.interval_steps} steps; stop at "
@@ -189,14 +188,15 @@ class EvaluatorNode(Node):
                                      lambda m, r=robot: self._on_truth(r, m), STREAM_QOS)
             self.create_subscription(PathMsg, f"/{ns}/estimated_path",
                                      lambda m, r=robot: self._on_path(r, m),
-                                     ESTIMATE_HISTORY_QOS)
+                                     ESTIMATE_QOS)
             self.create_subscription(LandmarkArray, f"/{ns}/landmarks",
                                      lambda m, r=robot: self._on_landmark_estimates(r, m),
-                                     ESTIMATE_HISTORY_QOS)
+                                     ESTIMATE_QOS)
             self.create_subscription(TeamUpdate, f"/{ns}/team/updates",
                                      lambda m, r=robot: self._on_team_update(r, m), TEAM_QOS)
             self.create_subscription(MotionCommand, f"/{ns}/motion_command",
                                      lambda m, r=robot: self._on_command(r, m), SENSOR_QOS)
+        watch_liveliness(self, list(range(self.num_robots)), self._on_liveliness)
         self.create_timer(_WATCH_PERIOD_S, self._watch,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
@@ -323,6 +323,22 @@ class EvaluatorNode(Node):
         if self.monitor.stopped:
             self._process()
 
+    def _status_times(self) -> tuple[float, float]:
+        """(simulation time of the latest recorded step, wall seconds since the start) [s]."""
+        return (self._stamp_s(max(self.recorded_step, 0)),
+                time.monotonic() - self._started_wall_s)
+
+    def _on_liveliness(self, robot: int, alive: bool, restarted: bool) -> None:
+        if alive:
+            self.get_logger().info(f"robot {robot}: liveliness asserted"
+                                   + (" by a new process (restarted)" if restarted else ""))
+            if self.liveness.liveliness_back(robot, restarted):
+                self.get_logger().warn(f"robot {robot} lost: its process was restarted")
+            return
+        self.liveness.liveliness_lost(robot, *self._status_times())
+        self.get_logger().warn(f"robot {robot}: liveliness lost (process dead, stopped or "
+                               f"wedged, or its assertions lost on the network)")
+
     def _on_command(self, robot: int, message: MotionCommand) -> None:
         last = self._last_command[robot]
         step, problem = self._stamp_problem(message.header.stamp)
@@ -340,15 +356,33 @@ class EvaluatorNode(Node):
         if last is not None and message.step <= last.step:
             return  # an older answer arriving late
         self._last_command[robot] = message
-        if self._all_finished_step is None and all(
-                c is not None and c.finished for c in self._last_command):
-            self._all_finished_step = max(int(c.step) for c in self._last_command)
+        if self.liveness.heard(robot, *self._status_times(), "answers the world again"):
+            self.get_logger().info(f"robot {robot} rejoined: it answers the world again "
+                                   f"(step {message.step})")
+        if message.finished:
+            self.liveness.finished(robot, self._stamp_s(int(message.step)),
+                                   time.monotonic() - self._started_wall_s)
+        self._check_all_finished()
+
+    def _check_all_finished(self) -> None:
+        """Every robot that is not lost has reported ``finished`` (at least one has): the
+        run ends at the latest step they answered, as soon as its ground truth is in."""
+        if self._all_finished_step is not None:
+            return
+        present = [c for r, c in enumerate(self._last_command)
+                   if self.liveness.status(r) != LOST]
+        if present and all(c is not None and c.finished for c in present):
+            self._all_finished_step = max(int(c.step) for c in present)
             self._process()
 
     def _watch(self) -> None:
         if self.exit_code is not None:
             return
         self._watch_world()
+        for robot in self.liveness.confirm(time.monotonic() - self._started_wall_s):
+            self.get_logger().warn(f"robot {robot} lost: no liveliness for "
+                                   f"{self.liveness.grace_s:g} s")
+            self._check_all_finished()
         self._request_missing_updates()
         self._process()
         silent_s = time.monotonic() - self._last_data_wall_s
@@ -401,10 +435,13 @@ class EvaluatorNode(Node):
                 return
             if self._pending is None:
                 if not self._complete_steps:
-                    return
+                    if not self._finished_unevaluated():
+                        return
+                    self._pending = (self.recorded_step, time.monotonic())
+                    continue
                 step = self._complete_steps.popleft()
                 self._record_step(step)
-                if step >= self.monitor.final_step or step == self._all_finished_step or (
+                if step >= self.monitor.final_step or self._finished_by(step) or (
                         step > 0 and step % self.interval_steps == 0):
                     self._pending = (step, time.monotonic())
                 continue
@@ -414,8 +451,7 @@ class EvaluatorNode(Node):
                 return
             self._pending = None
             metrics = self.evaluate(step)
-            all_finished = (self._all_finished_step is not None
-                            and step >= self._all_finished_step)
+            all_finished = self._finished_by(step)
             if self.monitor.observe(step, metrics, all_finished):
                 self._stream_wait_deadline_s = time.monotonic() + self.estimate_wait_s
                 self._request_missing_updates()
@@ -433,6 +469,16 @@ class EvaluatorNode(Node):
                     f"robot {g.robot_id} #{g.first_sequence}-{g.last_sequence}"
                     for g in missing))
         self.finish(self.monitor.stop_reason, EXIT_OK)
+
+    def _finished_by(self, step: int) -> bool:
+        return self._all_finished_step is not None and step >= self._all_finished_step
+
+    def _finished_unevaluated(self) -> bool:
+        """Every robot finished at a step already recorded (its ground truth came before
+        the robots' answers) that was not evaluated yet."""
+        history = self.monitor.history
+        return (self._finished_by(self.recorded_step)
+                and (not history or history[-1].stamp_s != self._stamp_s(self.recorded_step)))
 
     def _record_step(self, step: int) -> None:
         stamp_s = self._stamp_s(step)
@@ -529,10 +575,17 @@ class EvaluatorNode(Node):
                 for records in self.targets]
 
     def summary(self) -> RunSummary:
-        """The run's summary (the run monitor's, em-sim's schema)."""
+        """The run's summary (the run monitor's, em-sim's schema) with each robot's status,
+        status changes and downtime."""
         wall_s = (0.0 if self._first_step_wall_s is None
                   else time.monotonic() - self._first_step_wall_s)
-        return self.monitor.summary(self._decisions(), wall_s, self.rendezvous_events)
+        summary = self.monitor.summary(self._decisions(), wall_s, self.rendezvous_events)
+        until_s = self._status_times()
+        for entry in summary.robots:
+            entry.status = self.liveness.status(entry.id)
+            entry.status_changes = self.liveness.changes(entry.id)
+            entry.downtime_s, entry.downtime_wall_s = self.liveness.downtime_s(entry.id, *until_s)
+        return summary
 
     def map_layers(self, title: str) -> TeamMapLayers:
         """The final map's layers: the truth and the estimates of the last evaluation."""

@@ -14,7 +14,12 @@ from typing import Callable, TypeVar
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
+
+#: The error rclpy raises when a call into its C library fails (e.g. publishing after the
+#: context was shut down).
+RCLError = rclpy_implementation.RCLError
 
 EXIT_BAD_PARAMETERS = 2
 
@@ -44,6 +49,10 @@ def run_node(make_node: Callable[[], NodeType], logger_name: str,
             rclpy.spin_until_future_complete(node, done)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():
+            raise
+        # A callback published while Ctrl-C / SIGTERM shut the context down: a shutdown.
     finally:
         code = 0
         if node is not None:

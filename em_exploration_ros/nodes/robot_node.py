@@ -8,7 +8,16 @@ Lockstep: each SonarScan carries the world's barrier (``team_sequences``). The n
 processes a step only when it holds every teammate's updates up to the barrier, asking
 for missing ones again (TeamUpdateRequest) while it waits; a teammate silent past
 ``barrier_timeout_s`` is skipped with a warning. In real-time mode the barrier is empty
-and steps are processed as they come.
+and steps are processed as they come. A step the world sends again (its barrier repair) is
+answered again with the same command.
+
+Liveliness (``nodes/liveliness.py``): the node offers its own and logs a warning when a
+teammate's is lost. Rejoin: a node whose first step is not step 0 was restarted after a
+crash. It asks its teammates for its own earlier stream (``/team/update_requests`` with
+itself as requester; each teammate re-sends what it holds on ``/robot_<i>/team/history``),
+waits until it holds it up to the sequence number the world's barrier names for it, then
+resumes (``RobotAgent.resume``): its graph, targets and numbering continue where its stream
+left off and its published path holds its whole history.
 
 Every message is checked before it touches any state (``scan_problem``,
 ``odometry_problem``, ``core.agent.input_checks``); unusable ones are dropped with a
@@ -37,6 +46,8 @@ from rclpy.task import Future
 from visualization_msgs.msg import MarkerArray
 
 from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariances_from_poses
+from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
+                                                  keyframe_ranges)
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, barrier_problem,
                                                         first_problem, frame_problem,
@@ -59,8 +70,9 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_m
                                                   robot_namespace, seconds_to_time,
                                                   team_update_to_msg,
                                                   teammate_reading_from_msg, time_to_seconds)
+from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
-from em_exploration_ros.nodes.qos import LATCHED_QOS, SENSOR_QOS, TEAM_QOS
+from em_exploration_ros.nodes.qos import ESTIMATE_QOS, LATCHED_QOS, SENSOR_QOS, TEAM_QOS
 from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
                                                   checked_team_update, content_problem,
                                                   header_problem, publish_or_log)
@@ -96,6 +108,10 @@ class RobotNode(Node):
         self.agent: RobotAgent | None = None
         self.inbox = TeamUpdateInbox(self.robot_id, self.num_robots)
         self.resends = ResendScheduler(self.settings.resend_interval_s)
+        self.archive = StreamArchive(self.robot_id, self.num_robots)
+        self._recovery: OwnHistoryRecovery | None = None
+        self._served_history: dict[int, float] = {}
+        self._last_reply: MotionCommand | None = None
         self.rejected_updates = 0
         self.exit_code = EXIT_OK
         self.done = Future()
@@ -119,9 +135,9 @@ class RobotNode(Node):
         self.update_pub = self.create_publisher(TeamUpdate, f"/{ns}/team/updates", TEAM_QOS)
         self.request_pub = self.create_publisher(TeamUpdateRequest, "/team/update_requests",
                                                  TEAM_QOS)
-        self.path_pub = self.create_publisher(Path, f"/{ns}/estimated_path", LATCHED_QOS)
+        self.path_pub = self.create_publisher(Path, f"/{ns}/estimated_path", ESTIMATE_QOS)
         self.landmarks_pub = self.create_publisher(LandmarkArray, f"/{ns}/landmarks",
-                                                   LATCHED_QOS)
+                                                   ESTIMATE_QOS)
         self.grid_pub = self.create_publisher(OccupancyGrid, f"/{ns}/virtual_map", LATCHED_QOS)
         self.markers_pub = self.create_publisher(MarkerArray, f"/{ns}/markers", LATCHED_QOS)
         self.target_pub = self.create_publisher(PointStamped, f"/{ns}/target", LATCHED_QOS)
@@ -131,12 +147,18 @@ class RobotNode(Node):
         self.create_subscription(Odometry, f"/{ns}/odom", self._on_odometry, SENSOR_QOS)
         self.create_subscription(TeamUpdateRequest, "/team/update_requests",
                                  self._on_update_request, TEAM_QOS)
-        for teammate in range(self.num_robots):
-            if teammate != self.robot_id:
-                self.create_subscription(
-                    TeamUpdate, f"/{robot_namespace(teammate)}/team/updates",
-                    lambda message, sender=teammate: self._on_team_update(sender, message),
-                    TEAM_QOS)
+        self.create_subscription(TeamUpdate, f"/{ns}/team/history", self._on_own_history,
+                                 TEAM_QOS)
+        teammates = [r for r in range(self.num_robots) if r != self.robot_id]
+        self.history_pubs = {r: self.create_publisher(
+            TeamUpdate, f"/{robot_namespace(r)}/team/history", TEAM_QOS) for r in teammates}
+        for teammate in teammates:
+            self.create_subscription(
+                TeamUpdate, f"/{robot_namespace(teammate)}/team/updates",
+                lambda message, sender=teammate: self._on_team_update(sender, message),
+                TEAM_QOS)
+        self.alive_pub = offer_liveliness(self, self.robot_id)
+        watch_liveliness(self, teammates, self._on_teammate_liveliness)
         # Wall (steady) time: in lockstep the sim clock stands still while the world waits.
         self.create_timer(0.1, self._maintain, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
@@ -199,7 +221,24 @@ class RobotNode(Node):
                 or stamp_step_problem(stamp_ns, step, self.time_step_s)
                 or content_problem(message))
 
+    def _on_teammate_liveliness(self, teammate: int, alive: bool, restarted: bool) -> None:
+        if alive:
+            self.get_logger().info(f"teammate {teammate}: liveliness asserted"
+                                   + (" by a new process (restarted)" if restarted else ""))
+        else:
+            self.get_logger().warn(f"teammate {teammate}: liveliness lost (process dead, stopped "
+                                   f"or wedged, or its assertions lost on the network)")
+
+    def _processed(self, step: int) -> bool:
+        return self._next_step is not None and step < self._next_step
+
     def _on_scan(self, message: SonarScan) -> None:
+        if message.robot_id == self.robot_id and self._processed(int(message.step)):
+            # The world sent the step again: our answer did not arrive. Answer again.
+            if self._last_reply is not None and self._last_reply.step == message.step:
+                publish_or_log(self.command_pub, self._last_reply, self,
+                               f"the command of step {message.step} again")
+            return
         if not self.inputs.check(f"/{robot_namespace(self.robot_id)}/sonar",
                                  self.scan_problem(message)):
             return
@@ -209,6 +248,8 @@ class RobotNode(Node):
     def _on_odometry(self, message: Odometry) -> None:
         stamp_s = time_to_seconds(message.header.stamp)
         step = int(round(stamp_s / self.time_step_s)) if math.isfinite(stamp_s) else -1
+        if self._processed(step):
+            return  # a re-sent step this robot already answered
         if not self.inputs.check(f"/{robot_namespace(self.robot_id)}/odom",
                                  self.odometry_problem(message, step)):
             return
@@ -225,9 +266,38 @@ class RobotNode(Node):
             return
         self._process_ready_steps()
 
+    def _on_own_history(self, message: TeamUpdate) -> None:
+        """A teammate's copy of one of this robot's earlier records (after a restart)."""
+        if self._recovery is None:
+            return
+        try:
+            self._recovery.receive(checked_team_update(message))
+        except InvalidTeamUpdate as error:
+            self.rejected_updates += 1
+            self.get_logger().warn(f"rejected a relayed record of this robot's history: {error}")
+
+    def _serve_history(self, requester: int) -> None:
+        """Re-send what this robot holds of a restarted teammate's stream (at most once per
+        ``request_period_s`` per teammate)."""
+        now = time.monotonic()
+        if now - self._served_history.get(requester, -float("inf")) < self.settings.request_period_s:
+            return
+        self._served_history[requester] = now
+        held = self.archive.held(requester)
+        for update in held:
+            publish_or_log(self.history_pubs[requester], team_update_to_msg(update), self,
+                           f"robot {requester}'s record {update.sequence}")
+        self.get_logger().info(f"robot {requester} restarted: re-sent the {len(held)} records "
+                               f"of its stream this robot holds")
+
     def _on_update_request(self, message: TeamUpdateRequest) -> None:
         """File a teammate's (or the evaluator's) request for some of this robot's updates;
-        they are re-sent by ``_send_due_resends``, rate-limited per requester."""
+        they are re-sent by ``_send_due_resends``, rate-limited per requester. A restarted
+        teammate asking for its own stream gets what this robot holds of it."""
+        asker, owner = int(message.requester_id), int(message.robot_id)
+        if asker == owner and asker in self.history_pubs:
+            self._serve_history(asker)
+            return
         if message.robot_id != self.robot_id:
             return  # addressed to a teammate
         problem = request_problem(message.requester_id, message.first_sequence,
@@ -253,13 +323,22 @@ class RobotNode(Node):
                     throttle_duration_sec=LOG_PERIOD_S)
 
     def _maintain(self) -> None:
-        """Re-send what was asked for; ask again for missing team updates; give up waiting
-        on silent teammates; notice a world that left the graph."""
+        """Re-send what was asked for; ask again for missing team updates (or, after a
+        restart, for this robot's own stream); give up waiting on silent teammates; notice a
+        world that left the graph."""
         self._send_due_resends()
         self._watch_world()
+        now = time.monotonic()
+        if self._recovery is not None:
+            if self._recovery.complete(now):
+                self._process_ready_steps()
+            elif (self._recovery.short_of
+                  and now - self._last_request >= self.settings.request_period_s):
+                self._last_request = now
+                self._request_own_history()
+            return
         if self._waiting_since is None:
             return
-        now = time.monotonic()
         if now - self._last_request >= self.settings.request_period_s:
             self._last_request = now
             for gap in self.inbox.missing(self._barrier):
@@ -298,11 +377,52 @@ class RobotNode(Node):
 
     # -- stepping ------------------------------------------------------------------------
 
+    def _request_own_history(self) -> None:
+        request = TeamUpdateRequest(requester_id=self.robot_id, robot_id=self.robot_id,
+                                    first_sequence=1, last_sequence=0)
+        request.header.stamp = self.get_clock().now().to_msg()
+        self.request_pub.publish(request)
+
+    def _start_recovery(self, scan: SonarScan) -> None:
+        """This process starts in the middle of a run: it was restarted after a crash."""
+        barrier = list(scan.team_sequences)
+        needed = int(barrier[self.robot_id]) if barrier else 0
+        now = time.monotonic()
+        self._recovery = OwnHistoryRecovery(self.robot_id, self.num_robots, needed, now,
+                                            self.settings.rejoin_settle_s,
+                                            self.settings.rejoin_timeout_s)
+        self.get_logger().warn(
+            f"first step is {scan.step}, not 0: restarted in a running team; asking the "
+            f"teammates for this robot's stream (the team holds it up to sequence {needed})")
+        self._last_request = now
+        self._request_own_history()
+
+    def _resume(self) -> None:
+        recovery, self._recovery = self._recovery, None
+        history = recovery.history()
+        if recovery.short_of:
+            self.get_logger().error(
+                f"resuming without {recovery.short_of} records of this robot's stream (up to "
+                f"sequence {recovery.needed_sequence}): no teammate sent them")
+        self.agent.resume(history)
+        keyframes = np.array([keyframe.index for update in history
+                              for keyframe in update.keyframes], dtype=int)
+        self.get_logger().info(
+            f"rejoined: recovered {len(history)} records of this robot's stream (keyframes "
+            f"{keyframe_ranges(keyframes)}, {len(self.agent.decisions)} targets); continuing "
+            f"at sequence {len(history) + 1}")
+
     def _process_ready_steps(self, ignore_barrier: bool = False) -> None:
         """Process every step whose sensor data (and barrier) is complete, in order."""
         while self.agent is not None:
             if self._next_step is None and self._scans:
                 self._next_step = min(self._scans)
+                if self._next_step > 0:
+                    self._start_recovery(self._scans[self._next_step])
+            if self._recovery is not None:
+                if not self._recovery.complete(time.monotonic()):
+                    return
+                self._resume()
             step = self._next_step
             if step is None or step not in self._scans or step not in self._odometry:
                 return
@@ -323,7 +443,9 @@ class RobotNode(Node):
         agent = self.agent
         step = int(scan.step)
         stamp_s = sim_time_s(step, self.time_step_s)
-        agent.apply_team_updates(self.inbox.pop_ready(limits))
+        released = self.inbox.pop_ready(limits)
+        agent.apply_team_updates(released)
+        self.archive.keep(released)
         decisions_before = len(agent.decisions)
         command = agent.step(StepInput(
             step, stamp_s, odometry_pose(odometry),
@@ -341,6 +463,7 @@ class RobotNode(Node):
         reply.header = scan.header
         reply.twist.linear.x, reply.twist.angular.z = linear_x, angular_z
         publish_or_log(self.command_pub, reply, self, f"the command of step {step}")
+        self._last_reply = reply
         if step % self.params.slam.keyframe_interval_steps == 0:
             self._publish_estimates(stamp_s)
         if len(agent.decisions) != decisions_before:
@@ -385,11 +508,28 @@ class RobotNode(Node):
             visualization.landmark_markers(slam.landmark_estimates(),
                                            self.params.world.landmark_radius_m, stamp_s)))
 
+    def log_team_graph(self) -> None:
+        """One line with the keyframes of every robot this robot's graph holds."""
+        if self.agent is None:
+            return
+        parts = []
+        for robot in range(self.num_robots):
+            indices, _ = self.agent.slam.trajectory(robot)
+            parts.append(f"robot {robot}: {keyframe_ranges(indices)}")
+        self.get_logger().info("team graph keyframes: " + "; ".join(parts))
+
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of em-robot; returns the exit code (2 for invalid parameters, 4 when
     its world left the graph for good)."""
-    return run_node(RobotNode, "em_robot", args, wrap_up=lambda node: node.exit_code)
+    return run_node(RobotNode, "em_robot", args, wrap_up=_log_graph)
+
+
+def _log_graph(node: RobotNode) -> int:
+    """At the end (Ctrl-C, SIGTERM, world gone): what the team graph holds, for the run's
+    logs; returns the node's exit code."""
+    node.log_team_graph()
+    return node.exit_code
 
 
 if __name__ == "__main__":

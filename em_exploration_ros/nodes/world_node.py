@@ -10,14 +10,19 @@ It is the system's clock and its only source of ground truth. Topics (QoS from n
   ``world``, every step), ``/world/landmarks`` (LandmarkArray, latched) and
   ``/world/markers`` (MarkerArray, latched: landmarks and the map border).
 
-Lockstep mode (default): once every robot is connected, for ``startup_settle_s`` (or
-``startup_timeout_s`` passed),
+Lockstep mode (default): once every robot is connected (and the evaluator and the recorder
+listen, if required), for ``startup_settle_s`` (or ``startup_timeout_s`` passed),
 step k publishes /clock, every robot's sonar (with the barrier ``team_sequences``) and
 odometry, and the ground truth; it then waits until every live robot has answered step k
-with a MotionCommand, or ``robot_timeout_s`` wall seconds passed for a robot (which is then
-treated as stopped: zero motion from then on). The commands are applied in robot id order
-and the world advances: the same order as ``core.sim.team_runner.TeamRunner.step_once``, so em-sim
-and the ROS system draw the same noise.
+with a MotionCommand (``core.sim.lockstep.LockstepBarrier``). A robot whose answer is
+missing gets the step's sensor messages again every ``step_resend_s`` (the same messages,
+so a missed start or a lost packet changes nothing); a robot still silent after
+``robot_timeout_s`` wall seconds (``liveliness_grace_s`` once its liveliness lease expired,
+``nodes/liveliness.py``) is *lost*: the world logs ``robot <i> lost: <why>`` and stops waiting for it (zero motion).
+A lost robot that answers again (recovered, or restarted with the same id) rejoins at the
+pose where its vehicle stopped. The commands are applied in robot id order and the world
+advances: the same order as ``core.sim.team_runner.TeamRunner.step_once``, so em-sim and the
+ROS system draw the same noise.
 
 Real-time mode: a wall timer advances the world every ``time_step_s / realtime_factor``
 seconds with each robot's latest command (none yet: stand still); no barrier.
@@ -30,10 +35,8 @@ config/exploration.yaml -p world.num_robots:=3``
 """
 from __future__ import annotations
 
-import math
 import sys
 import time
-from dataclasses import dataclass
 
 import numpy as np
 from em_exploration_msgs.msg import LandmarkArray, MotionCommand, SonarScan
@@ -48,6 +51,7 @@ from em_exploration_ros.core.agent.input_checks import command_problem, sequence
 from em_exploration_ros.core.agent.team_data import MAX_SEQUENCE_LEAD
 from em_exploration_ros.core.node_settings import LOCKSTEP, REALTIME, WorldNodeSettings
 from em_exploration_ros.core.evaluation.run_monitor import final_step
+from em_exploration_ros.core.sim.lockstep import STAND_STILL, LockstepBarrier, StepAnswer
 from em_exploration_ros.core.sim.simulation import WorldSimulation
 from em_exploration_ros.core.agent.team_data import LandmarkEstimate
 from em_exploration_ros.core.sim.world import World
@@ -56,6 +60,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
                                                   odometry_to_msg, robot_namespace,
                                                   seconds_to_time, sonar_scan_to_msg,
                                                   yaw_to_quaternion)
+from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS
 from em_exploration_ros.nodes.input_guard import InputGuard, content_problem, header_problem
@@ -70,100 +75,6 @@ _LOG_EVERY_STEPS = 500
 #: Height of the landmark cylinders drawn in /world/markers [m].
 _MARKER_HEIGHT_M = 1.0
 
-
-@dataclass(frozen=True)
-class StepAnswer:
-    """A robot's MotionCommand for one step: velocity (m/s, rad/s), barrier entry, finished."""
-
-    linear_x: float
-    angular_z: float
-    team_sequence: int
-    finished: bool
-
-
-#: What a robot that does not move answers.
-STAND_STILL = StepAnswer(0.0, 0.0, 0, False)
-
-
-class LockstepBarrier:
-    """Book-keeping of the lockstep protocol for one step at a time (no ROS, wall time given).
-
-    A step is complete when every live robot has answered it. A robot still silent at the
-    step's deadline (``robot_timeout_s`` after the step opened) is stopped for the rest of
-    the run: it moves no more and keeps its last barrier entry.
-    """
-
-    ACCEPTED, STALE, DUPLICATE, FUTURE, IGNORED = "accepted", "stale", "duplicate", "future", "ignored"
-
-    def __init__(self, num_robots: int, robot_timeout_s: float) -> None:
-        self.num_robots = num_robots
-        self.robot_timeout_s = robot_timeout_s
-        self.step = -1
-        self.stopped: set[int] = set()
-        self.finished = [False] * num_robots
-        self.team_sequences = [0] * num_robots
-        self._answers: dict[int, StepAnswer] = {}
-        self._deadline_s = math.inf
-
-    def open(self, step: int, now_s: float) -> None:
-        """Start waiting for the answers to ``step``; ``now_s`` is monotonic wall time [s]."""
-        self.step = step
-        self._answers = {}
-        self._deadline_s = now_s + self.robot_timeout_s
-
-    def answer(self, robot_id: int, step: int, answer: StepAnswer) -> str:
-        """File a robot's answer; returns how it was taken (ACCEPTED or why not)."""
-        if robot_id in self.stopped:
-            return self.IGNORED
-        if step < self.step:
-            return self.STALE
-        if step > self.step:
-            return self.FUTURE
-        if robot_id in self._answers:
-            return self.DUPLICATE
-        self._answers[robot_id] = answer
-        return self.ACCEPTED
-
-    def waiting_for(self) -> list[int]:
-        """Live robots that have not answered the current step, in id order."""
-        return [r for r in range(self.num_robots)
-                if r not in self.stopped and r not in self._answers]
-
-    def expire(self, now_s: float) -> list[int]:
-        """Stop the robots still silent at the deadline; returns those newly stopped."""
-        if now_s < self._deadline_s:
-            return []
-        late = self.waiting_for()
-        self.stopped.update(late)
-        return late
-
-    def stop(self, robot_ids: list[int]) -> None:
-        """Treat robots as stopped from now on (e.g. never connected)."""
-        self.stopped.update(robot_ids)
-
-    @property
-    def complete(self) -> bool:
-        """True when every live robot has answered the current step."""
-        return not self.waiting_for()
-
-    def close(self) -> list[StepAnswer]:
-        """The step's answers in robot id order (stopped robots stand still) and update the
-        barrier (team sequences) and finished flags for the next step."""
-        answers = []
-        for robot in range(self.num_robots):
-            answer = self._answers.get(robot)
-            if answer is None:
-                answers.append(STAND_STILL)
-                continue
-            answers.append(answer)
-            self.team_sequences[robot] = answer.team_sequence
-            self.finished[robot] = answer.finished
-        return answers
-
-    @property
-    def all_done(self) -> bool:
-        """True when every robot has finished or is stopped."""
-        return all(self.finished[r] or r in self.stopped for r in range(self.num_robots))
 
 
 def world_markers(world: World, stamp_s: float) -> MarkerArray:
@@ -208,12 +119,17 @@ class WorldNode(Node):
         self.wait_for_evaluator = self.settings.wait_for_evaluator
         robot_timeout_s, max_sim_time_s = (self.settings.robot_timeout_s,
                                            self.settings.max_sim_time_s)
+        liveliness_grace_s = self.settings.liveliness_grace_s
+        step_resend_s = self.settings.step_resend_s
+        self.wait_for_recorder = self.settings.wait_for_recorder
         self.params = declare_exploration_params(self)
         refuse_unknown_overrides(self)
         self.num_robots = self.params.world.num_robots
         self.final_step = final_step(self.params, max_sim_time_s)
         self.sim = WorldSimulation(self.params)
-        self.barrier = LockstepBarrier(self.num_robots, robot_timeout_s)
+        self.barrier = LockstepBarrier(self.num_robots, robot_timeout_s, step_resend_s,
+                                       liveliness_grace_s)
+        self._step_messages: list[tuple[SonarScan, Odometry] | None] = [None] * self.num_robots
         self._latest = [STAND_STILL] * self.num_robots
         self.running = False
         self.stepping_over = False
@@ -244,6 +160,7 @@ class WorldNode(Node):
             self.command_subs.append(self.create_subscription(
                 MotionCommand, f"/{ns}/motion_command",
                 lambda message, robot=robot: self._on_command(robot, message), SENSOR_QOS))
+        watch_liveliness(self, list(range(self.num_robots)), self._on_liveliness)
 
     def _publish_mission(self) -> None:
         """The latched mission set-up: robot 0's launch pose, the landmarks, the markers."""
@@ -276,9 +193,22 @@ class WorldNode(Node):
     def _evaluator_connected(self) -> bool:
         return all(pub.get_subscription_count() >= 1 for pub in self.truth_pubs)
 
+    def _recorder_connected(self) -> bool:
+        """A listener besides the robots and the evaluator on every world topic."""
+        truth_listeners = 1 + (1 if self.wait_for_evaluator else 0)
+        return (self.clock_pub.get_subscription_count() >= 1
+                and all(pub.get_subscription_count() >= truth_listeners
+                        for pub in self.truth_pubs)
+                and all(pub.get_subscription_count() >= 2
+                        for pub in self.sonar_pubs + self.odom_pubs))
+
+    def _observers_connected(self) -> bool:
+        return ((not self.wait_for_evaluator or self._evaluator_connected())
+                and (not self.wait_for_recorder or self._recorder_connected()))
+
     def _try_start(self) -> None:
         connected = [self.robot_connected(r) for r in range(self.num_robots)]
-        ready = all(connected) and (not self.wait_for_evaluator or self._evaluator_connected())
+        ready = all(connected) and self._observers_connected()
         now = time.monotonic()
         if not ready:
             self._ready_since_s = None
@@ -293,8 +223,9 @@ class WorldNode(Node):
             self.get_logger().warn(f"robots {missing} not connected after "
                                    f"{self.startup_timeout_s:g} s: treated as stopped")
             self.barrier.stop(missing)
-        if self.wait_for_evaluator and not self._evaluator_connected():
-            self.get_logger().warn("no evaluator listens to the ground truth; starting anyway")
+        if not self._observers_connected():
+            self.get_logger().warn("the evaluator or the recorder does not listen yet; "
+                                   "starting anyway")
         self.running = True
         self.get_logger().info(f"all set after {waited:.1f} s: stepping ({self.clock_mode})")
         self._publish_step()
@@ -314,10 +245,13 @@ class WorldNode(Node):
         if self.stepping_over or self.clock_mode == REALTIME:
             self._poll_timer.cancel()
             return
-        for robot in self.barrier.expire(time.monotonic()):
-            self.get_logger().warn(
-                f"robot {robot} silent for {self.barrier.robot_timeout_s:g} s on step "
-                f"{self.barrier.step}: treated as stopped (zero motion from now on)")
+        now = time.monotonic()
+        for robot in self.barrier.due_for_resend(now):
+            self._send_step_messages(robot)
+        for robot in self.barrier.expire(now):
+            self._log_lost(robot, f"no answer to step {self.barrier.step} in time"
+                                  + (" (liveliness lost)" if robot in self.barrier.suspects
+                                     else ""))
         self._check_step_complete()
 
     def command_problem(self, robot: int, message: MotionCommand) -> str | None:
@@ -339,6 +273,22 @@ class WorldNode(Node):
                 or sequence_entry_problem(message.team_sequence, last_sequence,
                                           MAX_SEQUENCE_LEAD, "team_sequence"))
 
+    def _log_lost(self, robot: int, why: str) -> None:
+        """The line run_team.sh --respawn reacts to (it restarts the robot's process)."""
+        self.get_logger().warn(f"robot {robot} lost: {why}; the team goes on without it "
+                               f"(zero motion) until it answers again")
+
+    def _on_liveliness(self, robot: int, alive: bool, restarted: bool) -> None:
+        if alive:
+            self.barrier.trust(robot)
+            self.get_logger().info(f"robot {robot}: liveliness asserted"
+                                   + (" by a new process (restarted)" if restarted else ""))
+            return
+        self.barrier.suspect(robot, time.monotonic())
+        self.get_logger().warn(
+            f"robot {robot}: liveliness lost (process dead, stopped or wedged, or its "
+            f"assertions lost on the network)")
+
     def _on_command(self, robot: int, message: MotionCommand) -> None:
         topic = f"/{robot_namespace(robot)}/motion_command"
         if not self.inputs.check(topic, self.command_problem(robot, message)):
@@ -350,8 +300,11 @@ class WorldNode(Node):
             return
         if not self.running or self.stepping_over:
             return
-        outcome = self.barrier.answer(robot, int(message.step), answer)
-        if outcome in (LockstepBarrier.DUPLICATE, LockstepBarrier.FUTURE):
+        outcome = self.barrier.answer(robot, int(message.step), answer, time.monotonic())
+        if outcome == LockstepBarrier.REJOINED:
+            self.get_logger().info(f"robot {robot} rejoined at step {self.barrier.step} "
+                                   f"(answered step {message.step})")
+        elif outcome == LockstepBarrier.FUTURE:
             self.get_logger().warn(f"ignored a {outcome} command of robot {robot} for step "
                                    f"{message.step} (current step {self.barrier.step})")
         elif outcome != LockstepBarrier.ACCEPTED:
@@ -387,6 +340,12 @@ class WorldNode(Node):
         self.get_logger().info(f"stepping over at step {self.sim.step} (t = {self.sim.stamp_s:g}"
                                f" s): {reason}; still serving the latched topics until stopped")
 
+    def _send_step_messages(self, robot: int) -> None:
+        """(Re-)send the current step's sonar and odometry of ``robot``."""
+        scan, odometry = self._step_messages[robot]
+        self.sonar_pubs[robot].publish(scan)
+        self.odom_pubs[robot].publish(odometry)
+
     def _publish_step(self) -> None:
         """/clock, then every robot's sensors and ground truth for the current step."""
         sim = self.sim
@@ -397,8 +356,9 @@ class WorldNode(Node):
         max_range = self.params.sensors.sonar_max_range_m
         for robot in range(self.num_robots):
             frame = sim.sense(robot)
-            self.sonar_pubs[robot].publish(sonar_scan_to_msg(frame, max_range, sequences))
-            self.odom_pubs[robot].publish(dead_reckoning_to_msg(frame))
+            self._step_messages[robot] = (sonar_scan_to_msg(frame, max_range, sequences),
+                                          dead_reckoning_to_msg(frame))
+            self._send_step_messages(robot)
             self.truth_pubs[robot].publish(odometry_to_msg(
                 robot, sim.stamp_s, sim.true_pose(robot), WORLD_FRAME,
                 f"{robot_namespace(robot)}/base_link"))

@@ -172,7 +172,7 @@ def read_record(path: Path) -> dict[str, Any] | None:
     return record if isinstance(record, dict) and "status" in record else None
 
 
-def _write_json(path: Path, data: dict[str, Any]) -> None:
+def write_json(path: Path, data: dict[str, Any]) -> None:
     """Write JSON atomically (temporary file, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(path.name + ".tmp")
@@ -185,8 +185,8 @@ def _base_record(spec: TrialSpec) -> dict[str, Any]:
             "code_version": spec.code_version, "params": params_record(spec.params)}
 
 
-def run_trial(spec: TrialSpec) -> None:
-    """Worker entry: run one trial and write its record (status done or failed)."""
+def trial_record(spec: TrialSpec) -> dict[str, Any]:
+    """Run one trial; its record (status done or failed, wall time)."""
     started = time.perf_counter()
     record = _base_record(spec)
     try:
@@ -196,7 +196,19 @@ def run_trial(spec: TrialSpec) -> None:
         record.update(status="failed", error=describe_error(error),
                       traceback=traceback.format_exc())
     record["wall_s"] = time.perf_counter() - started
-    _write_json(spec.path, record)
+    return record
+
+
+def run_trial(spec: TrialSpec) -> None:
+    """Worker process entry: run one trial and write its record."""
+    write_json(spec.path, trial_record(spec))
+
+
+def failed_record(spec: TrialSpec, error: str, wall_s: float) -> dict[str, Any]:
+    """The record of a trial that ended without a record of its own."""
+    record = _base_record(spec)
+    record.update(status="failed", wall_s=wall_s, error=error)
+    return record
 
 
 def describe_error(error: BaseException) -> str:
@@ -360,10 +372,9 @@ def record_after_exit(spec: TrialSpec, exitcode: int | None, wall_s: float) -> d
     """The record a finished worker wrote, or a failed record if it wrote none."""
     record = read_record(spec.path)
     if record is None:
-        record = _base_record(spec)
-        record.update(status="failed", wall_s=wall_s,
-                      error=f"worker process exited with code {exitcode} without a result")
-        _write_json(spec.path, record)
+        record = failed_record(
+            spec, f"worker process exited with code {exitcode} without a result", wall_s)
+        write_json(spec.path, record)
     return record
 
 
@@ -466,7 +477,7 @@ def write_outputs(out_dir: Path, last_invocation: dict[str, Any]) -> None:
     """results.csv and summary.json from the trial records, then the plots and results.md."""
     records = load_records(out_dir)
     rows = write_results_csv(records, out_dir / "results.csv")
-    _write_json(out_dir / "summary.json",
+    write_json(out_dir / "summary.json",
                 {**summarize(records), "last_invocation": last_invocation})
     made = bench_plots.make_all(out_dir)
     _LOG.info("wrote %s (%d rows), %s, results.md and %d plots", out_dir / "results.csv",
@@ -476,18 +487,28 @@ def write_outputs(out_dir: Path, last_invocation: dict[str, Any]) -> None:
 def command_planners(args: argparse.Namespace) -> int:
     """``em-bench planners``: run what is missing, then write all outputs."""
     out_dir: Path = args.out
+    if args.dask:
+        from em_exploration_ros.tools import bench_dask  # only with --dask: slow import
+        bench_dask.parse_address(args.dask)
     specs = trial_specs(args, out_dir, code_version())
     to_run, earlier = split_finished(specs)
-    _LOG.info("%d trials: %d finished earlier, %d to run on %d worker(s)",
-              len(specs), len(earlier), len(to_run), args.jobs)
+    where = f"dask cluster {args.dask}" if args.dask else f"{args.jobs} worker(s)"
+    _LOG.info("%d trials: %d finished earlier, %d to run on %s",
+              len(specs), len(earlier), len(to_run), where)
     started = time.perf_counter()
-    if to_run:
+    if to_run and args.dask:
+        with bench_dask.connect(args.dask) as client:
+            progress = ProgressBar(len(to_run), bench_dask.worker_slots(client), sys.stderr,
+                                   earlier)
+            bench_dask.run_on_cluster(client, to_run, progress)
+    elif to_run:
         progress = ProgressBar(len(to_run), args.jobs, sys.stderr, earlier)
         run_trials(to_run, args.jobs, progress)
     wall = time.perf_counter() - started
     _LOG.info("ran %d trials in %s", len(to_run), _duration(wall))
     write_outputs(out_dir, {"trials": len(specs), "finished_earlier": len(earlier),
-                            "ran": len(to_run), "jobs": args.jobs, "wall_s": wall})
+                            "ran": len(to_run), "jobs": args.jobs, "dask": args.dask,
+                            "wall_s": wall})
     return 0
 
 
@@ -518,6 +539,10 @@ def build_parser() -> argparse.ArgumentParser:
                           help="stop a trial when the team has travelled this far [m]")
     planners.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
                           help="parallel worker processes (default: number of CPUs)")
+    planners.add_argument("--dask", metavar="ADDRESS",
+                          help="run the trials on a dask.distributed cluster instead of "
+                          "--jobs local worker processes: local:N (a local cluster of N "
+                          "worker processes) or a scheduler address, e.g. tcp://host:8786")
     planners.add_argument("--out", type=Path, required=True, help="output folder")
     planners.set_defaults(handler=command_planners)
     planners.epilog = ("--map-size and --cell-size take one or more values (one cell size "

@@ -5,10 +5,13 @@ map with 20 landmarks, exact measurements with the sensor-derived noise models, 
 readings whenever two robots are within sonar range at the same keyframe) with 250, 500,
 1000 and 2000 poses, gives robot 0 about 20 candidates (exploration frontiers around it,
 revisiting frontiers near landmarks, rendezvous at the teammates' targets) and prints the
-median wall and CPU time of one decision of each planner, and the agreement of the fast
-EM step with the re-solve oracle (largest relative difference of a 3x3 covariance block)
-together with the oracle's time per candidate. BLAS is single-threaded by default (see
-the package docstring).
+median wall and CPU time of one decision of each planner and that time per candidate,
+the agreement of the fast EM step with the re-solve oracle (largest relative difference
+of a 3x3 covariance block) together with the oracle's time per candidate, and the error
+of the approximate U_M (planner.history_change_tolerance) against the exact one; then a
+least-squares line ``time per candidate = a + b * graph variables`` per planner, to set
+against the authors' 0.057 s + 2.7e-4 s per variable. BLAS is single-threaded by default
+(see the package docstring).
 """
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ import argparse
 import os
 import platform
 import time
+from typing import Sequence
 
 import numpy as np
 
@@ -103,9 +107,10 @@ def build_context(num_poses: int, seed: int) -> PlanningContext:
                            grid.explored_ratio())
 
 
-def timed_decisions(ctx: PlanningContext, name: str, repeats: int) -> tuple[float, float]:
+def timed_decisions(ctx: PlanningContext, params: ExplorationParams, name: str,
+                    repeats: int) -> tuple[float, float]:
     """Median wall and CPU time [s] of ``repeats`` decisions (after one warm-up)."""
-    planner = make_planner(PARAMS, name)
+    planner = make_planner(params, name)
     planner.choose(ctx)
     wall, cpu = [], []
     for _ in range(repeats):
@@ -142,6 +147,29 @@ def oracle_agreement(ctx: PlanningContext, count: int) -> tuple[float, float]:
     return worst, float(np.median(oracle_times))
 
 
+def approximation_error(ctx: PlanningContext, tolerance: float) -> tuple[float, bool, float]:
+    """EM_3's approximate U_M (``history_change_tolerance``) against the exact one: the
+    largest relative difference over the candidates, whether the chosen target differs,
+    and the approximate decision's median CPU time [s]."""
+    exact_planner = make_planner(PARAMS, "EM_3")
+    approximate_params = PARAMS.replace(planner={"history_change_tolerance": tolerance})
+    approximate_planner = make_planner(approximate_params, "EM_3")
+    exact = exact_planner.choose(ctx)
+    approximate = approximate_planner.choose(ctx)
+    exact_u_m = np.array([u.u_m for u in exact.utilities])
+    approximate_u_m = np.array([u.u_m for u in approximate.utilities])
+    error = float(np.max(np.abs(approximate_u_m - exact_u_m)
+                         / np.maximum(np.abs(exact_u_m), 1e-12)))
+    _, cpu = timed_decisions(ctx, approximate_params, "EM_3", 3)
+    return error, approximate.target is not exact.target, cpu
+
+
+def fit_line(x: Sequence[float], y: Sequence[float]) -> tuple[float, float]:
+    """Least-squares ``y = a + b x``: returns ``(a, b)``."""
+    slope, intercept = np.polyfit(np.asarray(x, dtype=float), np.asarray(y, dtype=float), 1)
+    return float(intercept), float(slope)
+
+
 #: One-line help of the ``latency`` subcommand of em-bench.
 LATENCY_HELP = "planner decision time against the number of poses in the graph"
 
@@ -149,33 +177,53 @@ LATENCY_HELP = "planner decision time against the number of poses in the graph"
 def add_latency_arguments(latency: argparse.ArgumentParser) -> None:
     """Description, options and handler of ``latency``, the em-bench subcommand's parser."""
     latency.description = __doc__.split("\n\n")[1].replace("\n", " ")
-    latency.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000, 2000],
+    latency.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000, 2000, 4000],
                          help="numbers of poses in the team graph")
     latency.add_argument("--planners", nargs="+", type=PLANNER_TYPE, choices=PLANNER_NAMES,
                          default=["EM_2", "EM_3", "BSP", "CE", "NEAREST"],
                          help="planners to time")
     latency.add_argument("--repeats", type=int, default=7, help="timed decisions per size")
     latency.add_argument("--seed", type=int, default=3, help="seed of the synthetic team")
+    latency.add_argument("--approximate", type=float, default=1e-3, metavar="TOLERANCE",
+                         help="planner.history_change_tolerance whose U_M error against "
+                         "the exact U_M is reported (EM_3; default 1e-3)")
     latency.set_defaults(handler=command_latency)
 
 
 def command_latency(args: argparse.Namespace) -> int:
-    """Print the latency table (one row per graph size)."""
+    """Print the latency table (one row per graph size), then the per-candidate fits."""
     print(f"machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs, Python {platform.python_version()}, "
           f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}, "
           f"load average {os.getloadavg()[0]:.2f}")
-    print("median wall / CPU time of one decision [ms]")
-    header = "".join(f"{name:>16}" for name in args.planners)
-    print(f"{'poses':>6} {'cands':>5}{header} {'oracle/cand [ms]':>17} {'fast vs oracle':>14}")
+    print("median wall / CPU time of one decision [ms], and CPU time per candidate [ms]")
+    header = "".join(f"{name:>18}{'/cand':>7}" for name in args.planners)
+    print(f"{'poses':>6} {'vars':>5} {'cands':>5}{header} {'oracle/cand [ms]':>17} "
+          f"{'fast vs oracle':>14} {'approx. U_M err':>15} {'argmin moved':>12} "
+          f"{'approx. CPU [ms]':>16}")
+    variables, per_candidate = [], {name: ([], []) for name in args.planners}
     for size in args.sizes:
         ctx = build_context(size, args.seed)
-        timings = "".join(
-            "{:>9.1f} /{:>5.1f}".format(*(1e3 * t for t in timed_decisions(ctx, name,
-                                                                           args.repeats)))
-            for name in args.planners)
+        count = len(ctx.candidates)
+        columns = ""
+        for name in args.planners:
+            wall, cpu = timed_decisions(ctx, PARAMS, name, args.repeats)
+            per_candidate[name][0].append(wall / count)
+            per_candidate[name][1].append(cpu / count)
+            columns += f"{wall * 1e3:>9.1f} / {cpu * 1e3:>6.1f}{cpu / count * 1e3:>7.2f}"
         error, oracle_s = oracle_agreement(ctx, 3)
+        approximate_error, moved, approximate_cpu = approximation_error(ctx, args.approximate)
         poses = ctx.slam.num_variables() - len(ctx.slam.landmark_estimates())
-        print(f"{poses:>6} {len(ctx.candidates):>5}{timings} {oracle_s * 1e3:>17.1f} "
-              f"{error:>14.1e}", flush=True)
+        variables.append(ctx.slam.num_variables())
+        print(f"{poses:>6} {variables[-1]:>5} {count:>5}{columns} {oracle_s * 1e3:>17.1f} "
+              f"{error:>14.1e} {approximate_error:>15.1e} {'yes' if moved else 'no':>12} "
+              f"{approximate_cpu * 1e3:>16.1f}", flush=True)
+    if len(variables) > 1:
+        print("time per candidate = a + b * graph variables (least squares over the sizes); "
+              "authors: a = 0.057 s, b = 2.7e-4 s")
+        for name in args.planners:
+            wall_fit, cpu_fit = (fit_line(variables, times) for times in per_candidate[name])
+            print(f"{name:>6}: wall a = {wall_fit[0]:.2e} s, b = {wall_fit[1]:.2e} s; "
+                  f"CPU a = {cpu_fit[0]:.2e} s, b = {cpu_fit[1]:.2e} s "
+                  f"({cpu_fit[1] / 2.7e-4:.4f} of the authors' slope)")
     return 0

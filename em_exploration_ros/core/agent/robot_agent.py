@@ -36,7 +36,8 @@ from em_exploration_ros.core.planning.rendezvous import Meeting, RendezvousBook,
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.planners import Decision, PlanningContext, make_planner
-from em_exploration_ros.core.sim.sensors import LandmarkReading, OdometryReading, TeammateReading
+from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReading, TeammateReading,
+                                                odometry_covariance_per_step)
 from em_exploration_ros.core.slam.team_slam import KeyframeBuilder, KeyframeMeasurements, TeamSlam
 from em_exploration_ros.core.agent.team_data import (LandmarkEstimate, RendezvousEvent,
                                                RendezvousState, TargetRecord,
@@ -154,6 +155,7 @@ class RobotAgent:
         self._last_heard_s: dict[int, float] = {}
         self.meeting_effects: list[MeetingEffect] = []
         self._watched_meeting: Meeting | None = None
+        self._gap_covariance: np.ndarray | None = None
 
     # -- inputs --------------------------------------------------------------------------
 
@@ -175,12 +177,53 @@ class RobotAgent:
         if updates:
             self._update_slam()
 
+    def resume(self, history: list[TeamUpdate]) -> None:
+        """Take back this robot's own earlier stream after its process restarted.
+
+        ``history``: its records from sequence 1 on, as its teammates hold them. The own
+        keyframes go back into the graph, the targets into the decision list, rendezvous
+        events into the bookkeeping, and numbering continues after the last record. The
+        next odometry reading is linked to the last keyframe: the dead-reckoning pose there
+        is the composition of the keyframe deltas (the stream started at the odometry
+        origin, step 0, as every lockstep robot's does), and the motion since, which
+        nobody recorded, gets the covariance of ``keyframe_interval_steps`` steps at full
+        speed (the vehicle moved for less than one interval before it stopped).
+        """
+        self.outbox.restore(history)
+        odom_pose, last_keyframe = np.zeros(3), None
+        for update in history:
+            for keyframe in update.keyframes:
+                self.slam.add_keyframe(keyframe)
+                if not keyframe.is_first:
+                    odom_pose = compose(odom_pose, keyframe.odom_delta)
+                last_keyframe = keyframe
+            for target in update.targets:
+                self.team_targets[self.robot_id].append(target)
+                partner = None if target.partner_id == self.robot_id else target.partner_id
+                self.decisions.append(DecisionRecord(
+                    target.decision_index, target.stamp_s,
+                    Frontier(target.position.copy(), target.kind, partner),
+                    target.planning_time_s, 0, float("nan"), target.planner_failed))
+            for event in update.rendezvous:
+                self._apply_rendezvous_event(event)
+        if last_keyframe is None:
+            return
+        self.slam.update()
+        self._keyframes.resume(last_keyframe.index)
+        self._dead_reckoning.resume(odom_pose)
+        motion = self.params.motion
+        per_step = odometry_covariance_per_step(motion.speed_mps * motion.time_step_s, True,
+                                                self.params.sensors)
+        self._gap_covariance = per_step * self.params.slam.keyframe_interval_steps
+
     def step(self, sensed: StepInput) -> MotionCommand:
         """Process one step of own sensor data; returns the motion for the next step."""
         self._stamp_s = sensed.stamp_s
         increment = self._dead_reckoning.increment(sensed.odom_pose)
-        odometry = None if increment is None else OdometryReading(
-            increment, np.asarray(sensed.odom_increment_covariance, dtype=float))
+        covariance = np.asarray(sensed.odom_increment_covariance, dtype=float)
+        if increment is not None and self._gap_covariance is not None:
+            covariance, self._gap_covariance = covariance + self._gap_covariance, None
+        odometry = None if increment is None else OdometryReading(increment, covariance)
         if odometry is not None:
             self._since_keyframe = compose(self._since_keyframe, odometry.delta)
         keyframe = self._keyframes.add_step(sensed.step, sensed.stamp_s, odometry,

@@ -360,6 +360,15 @@ class TeamUpdateOutbox:
         self._sent.append(update)
         return update
 
+    def restore(self, history: list[TeamUpdate]) -> None:
+        """Take back this robot's earlier records (sequence 1..n, in order, e.g. relayed by
+        teammates after a restart): re-sending serves them and numbering continues at n+1."""
+        for expected, update in enumerate(history, start=1):
+            if update.robot_id != self._robot_id or update.sequence != expected:
+                raise ValueError(f"history record {update.robot_id}/{update.sequence} is not "
+                                 f"record {expected} of robot {self._robot_id}")
+        self._sent = list(history)
+
     def resend(self, first_sequence: int, last_sequence: int) -> list[TeamUpdate]:
         """Stored updates with sequence in [first, last] (last = 0: up to the latest)."""
         last = self.last_sequence if last_sequence == 0 else min(last_sequence,

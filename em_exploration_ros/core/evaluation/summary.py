@@ -4,7 +4,10 @@ Top-level keys (units in the names): ``explored_ratio``, ``distance_m`` (all rob
 ``loc_rmse_m``, ``landmark_rmse_m``, ``decisions``, ``wall_s``, ``sim_time_s``,
 ``decision_time_median_s``, ``decision_time_max_s``, ``robots`` (per robot: ``id``,
 ``distance_m``, ``decisions``, ``targets`` (in order: ``x``, ``y`` [m, map frame],
-``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``), plus ``seed``,
+``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``, ``status``
+(active / finished / lost / rejoined at the end), ``status_changes`` (``status``,
+``sim_time_s``, ``wall_s``, ``reason``), ``downtime_s`` and ``downtime_wall_s`` (simulated and
+wall seconds lost)), plus ``seed``,
 ``planner``, ``num_robots``, ``map_size_m``, ``num_landmarks``, ``stop_reason`` and
 ``history``: samples of the metrics against distance travelled; ``decisions_by_type``
 (decisions per frontier type), ``planner_failures`` (decisions where the planner failed and
@@ -19,6 +22,8 @@ import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+from em_exploration_ros.core.agent.liveness import ACTIVE, StatusChange
 
 REQUIRED_KEYS = ("explored_ratio", "distance_m", "loc_rmse_m", "landmark_rmse_m", "decisions",
                  "wall_s", "sim_time_s", "decision_time_median_s", "decision_time_max_s",
@@ -45,6 +50,10 @@ class RobotSummary:
     decisions: int = 0
     targets: list[TargetEntry] = field(default_factory=list)
     decision_times_s: list[float] = field(default_factory=list)
+    status: str = ACTIVE
+    status_changes: list[StatusChange] = field(default_factory=list)
+    downtime_s: float = 0.0
+    downtime_wall_s: float = 0.0
 
 
 @dataclass

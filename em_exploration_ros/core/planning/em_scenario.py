@@ -34,7 +34,8 @@ from numpy.typing import ArrayLike, NDArray
 from em_exploration_ros.core.geometry import between, range_bearing
 from em_exploration_ros.core.params import MotionParams, SensorParams
 from em_exploration_ros.core.sim.sensors import LandmarkReading, odometry_covariance_per_step
-from em_exploration_ros.core.slam.team_slam import SlamNoise, TeamSlam, landmark_key, pose_key
+from em_exploration_ros.core.slam.team_slam import (SlamNoise, TeamSlam, landmark_key, pose_key,
+                                                    pose_keys)
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -152,7 +153,7 @@ class TeamSnapshot:
         return cls(robot_id, slam.graph(), slam.values(), start_keys, start_poses, next_index,
                    np.array([landmark_key(i) for i in ids], dtype=np.int64),
                    np.array([landmarks[i] for i in ids], dtype=float).reshape(-1, 2),
-                   tuple(pose_key(robot_id, int(i)) for i in indices), poses)
+                   tuple(pose_keys(robot_id, indices).tolist()), poses)
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from em_exploration_ros.core.planning.em_scenario import (TeamSnapshot, VirtualFactors,
                                                           VirtualScenario, graph_with_virtual)
-from em_exploration_ros.core.slam.team_slam import is_landmark_key
+from em_exploration_ros.core.slam.team_slam import is_landmark_key, landmark_key_mask
 
 _LOG = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -52,6 +52,11 @@ IntArray = NDArray[np.int64]
 def _key_dim(key: int) -> int:
     """Tangent dimension of a team-graph variable: 2 for a landmark, 3 for a pose."""
     return 2 if is_landmark_key(key) else 3
+
+
+def _key_dims(keys: Sequence[int]) -> IntArray:
+    """:func:`_key_dim` of many keys, ``(K,)``."""
+    return np.where(landmark_key_mask(np.asarray(keys, dtype=np.int64).reshape(-1)), 2, 3)
 
 
 @dataclass(frozen=True)
@@ -206,8 +211,9 @@ class DecisionFactorization:
                                ) -> gtsam.GaussianFactorGraph:
         """Eliminate (COLAMD order) every pose that is neither tracked nor in the boundary:
         their conditionals are not needed. Landmarks stay, which keeps the rest sparse."""
-        keep = set(self.tracked_keys) | set(self.boundary_keys)
-        eliminated = [k for k in set(linear.keyVector()) if k not in keep and _key_dim(k) == 3]
+        keep = np.array(self.tracked_keys + self.boundary_keys, dtype=np.int64)
+        keys = np.fromiter(set(linear.keyVector()), dtype=np.int64)  # set order, as always
+        eliminated = keys[(_key_dims(keys) == 3) & ~np.isin(keys, keep)].tolist()
         if not eliminated:
             return linear
         _, remaining = _retry_if_indeterminate(
@@ -221,9 +227,9 @@ class DecisionFactorization:
         boundary = set(self.boundary_keys)
         colamd = gtsam.Ordering.ColamdGaussianFactorGraph(reduced)
         ordering = gtsam.Ordering()
-        for index in range(colamd.size()):
-            if colamd.at(index) not in boundary:
-                ordering.push_back(colamd.at(index))
+        for key in (colamd.at(index) for index in range(colamd.size())):
+            if key not in boundary:
+                ordering.push_back(key)
         for key in self.boundary_keys:
             ordering.push_back(key)
         return ordering
@@ -235,8 +241,16 @@ class DecisionFactorization:
         Conditionals are looked up by frontal key: GTSAM emits them per connected component
         of the graph, so a boundary landmark in a component of its own does not come last.
         """
-        conditionals = {bayes_net.at(i).firstFrontalKey(): bayes_net.at(i)
-                        for i in range(bayes_net.size())}
+        conditionals = {}
+        missing = set(self.boundary_keys)
+        for index in range(bayes_net.size() - 1, -1, -1):  # boundary conditionals are late
+            conditional = bayes_net.at(index)
+            key = conditional.firstFrontalKey()
+            if key in missing:
+                conditionals[key] = conditional
+                missing.discard(key)
+                if not missing:
+                    break
         root = np.zeros((self.boundary_dim, self.boundary_dim))
         for key in self.boundary_keys:
             conditional = conditionals[key]
@@ -260,17 +274,21 @@ class DecisionFactorization:
         boundary dimension ``b``."""
         if not self.tracked_keys:
             return np.zeros((0, 3, self.boundary_dim))
-        zeros = gtsam.VectorValues()
-        for key in sorted(set(reduced.keyVector()) - set(self.boundary_keys)):
-            zeros.insert(key, np.zeros(_key_dim(key)))
+        # One right-hand side, zero off the boundary; its boundary part is replaced per b.
+        rhs = gtsam.VectorValues()
+        free = sorted(set(reduced.keyVector()) - set(self.boundary_keys))
+        for key, dim in zip(free, _key_dims(free).tolist()):
+            rhs.insert(key, np.zeros(dim))
+        for key, offset in self.boundary_offsets.items():
+            rhs.insert(key, np.zeros(_key_dim(key)))
         tracked = gtsam.KeyVector(list(self.tracked_keys))
         columns = np.empty((3 * len(self.tracked_keys), self.boundary_dim))
         for b in range(self.boundary_dim):
-            rhs = gtsam.VectorValues()
+            boundary = gtsam.VectorValues()
             for key, offset in self.boundary_offsets.items():
-                rhs.insert(key, boundary_rhs[offset:offset + _key_dim(key), b].copy())
-            columns[:, b] = bayes_net.backSubstitute(gtsam.VectorValues(zeros, rhs)).vector(
-                tracked)
+                boundary.insert(key, boundary_rhs[offset:offset + _key_dim(key), b].copy())
+            rhs.update(boundary)
+            columns[:, b] = bayes_net.backSubstitute(rhs).vector(tracked)
         return columns.reshape(len(self.tracked_keys), 3, self.boundary_dim)
 
     def _tracked_marginals(self, linear: gtsam.GaussianFactorGraph) -> FloatArray:

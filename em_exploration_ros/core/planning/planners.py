@@ -38,7 +38,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
-from em_exploration_ros.core.virtual_map.cell_uncertainty import CellObservations, observation_confidence
+from em_exploration_ros.core.virtual_map.cell_uncertainty import (CellObservations,
+                                                                 CovarianceIntersectionSums,
+                                                                 observation_confidence)
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams, PlannerParams
 from em_exploration_ros.core.slam.team_slam import TeamSlam
@@ -50,9 +52,9 @@ FloatArray = NDArray[np.float64]
 
 _LOG = logging.getLogger(__name__)
 
-#: A history pose whose covariance trace shrinks by less than this fraction keeps its
-#: virtual map contribution (round-off of a candidate without loop closure).
-_UNCHANGED = 1e-12
+#: Relative covariance changes up to this are round-off (``history_change_tolerance``
+#: at or below it is the exact U_M).
+_ROUND_OFF = 1e-12
 
 
 @dataclass(frozen=True)
@@ -308,10 +310,9 @@ class EmPlanner(_PropagationPlanner):
         for index, scenario in enumerate(scenarios):
             result = factorization.propagate(scenario)
             new = new_poses.pose_range(bounds[index], bounds[index + 1])
-            # Candidates without a loop closure leave the history untouched (to round-off).
-            reduction = current_traces - np.trace(result.history_covariances, axis1=1, axis2=2)
-            history_sums = (history.intersection_sums(result.history_covariances, num_cells)
-                            if np.any(reduction > _UNCHANGED * current_traces) else current_sums)
+            history_sums = _history_sums(history, current, current_sums, current_traces,
+                                         result.history_covariances, num_cells,
+                                         planner.history_change_tolerance)
             sums = history_sums + new.intersection_sums(result.next_covariances, num_cells)
             traces = sums.covariance_traces()
             if planner.utility_variant == "reference":
@@ -321,6 +322,29 @@ class EmPlanner(_PropagationPlanner):
                 local = observation_confidence(counts, self.params.map) > planner.q_min
                 u_m[index] = np.sum(traces[local & team_observed])
         return u_m
+
+
+def _history_sums(history: CellObservations, current: FloatArray,
+                  current_sums: CovarianceIntersectionSums, current_traces: FloatArray,
+                  propagated: FloatArray, num_cells: int,
+                  tolerance: float) -> CovarianceIntersectionSums:
+    """Covariance-intersection sums of alpha's history poses with their ``propagated``
+    covariances (K, 3, 3), given those of the ``current`` ones.
+
+    Poses whose trace shrinks by at most ``tolerance`` (a fraction) keep their current
+    contribution. Candidates without a loop closure leave every pose unchanged; otherwise
+    everything is recomputed when ``tolerance`` is round-off (the default, exact), and only
+    the changed poses' contributions are replaced for a larger (approximating) tolerance.
+    """
+    reduction = current_traces - np.trace(propagated, axis1=1, axis2=2)
+    changed = reduction > tolerance * current_traces
+    if not np.any(changed):
+        return current_sums
+    if tolerance <= _ROUND_OFF or np.all(changed):
+        return history.intersection_sums(propagated, num_cells)
+    subset = history.of_poses(changed)
+    return (current_sums - subset.intersection_sums(current, num_cells)
+            + subset.intersection_sums(propagated, num_cells))
 
 
 def make_planner(params: ExplorationParams, name: str | None = None) -> Planner:

@@ -102,6 +102,11 @@ class DeadReckoningDifferencer:
     def __init__(self) -> None:
         self._previous: np.ndarray | None = None
 
+    def resume(self, odom_pose: np.ndarray) -> None:
+        """Take ``odom_pose`` as the previous pose (after a restart: the pose at the last
+        keyframe), so the next increment bridges the gap."""
+        self._previous = np.asarray(odom_pose, dtype=float).copy()
+
     def increment(self, odom_pose: np.ndarray) -> np.ndarray | None:
         """The motion since the previous odometry pose (body frame), None for the first."""
         pose = np.asarray(odom_pose, dtype=float)

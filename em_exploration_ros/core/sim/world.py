@@ -76,16 +76,26 @@ def _read_only(array: ArrayLike, dtype: type) -> NDArray:
 
 
 def _pick_candidate(rng: np.random.Generator, low: FloatArray, high: FloatArray,
-                    placed: FloatArray, min_dist: float, max_dist: float,
+                    placed: FloatArray, min_dist: float, max_dist: float, near_count: int,
                     keep_out: FloatArray, keep_out_dist: float) -> FloatArray | None:
-    """First of a batch of uniform candidates in the box ``[low, high]`` that lies
-    ``[min_dist, max_dist]`` from every ``placed`` point and at least ``keep_out_dist``
-    from every ``keep_out`` point; None if no candidate of the batch qualifies."""
+    """First of a batch of uniform candidates in the box ``[low, high]`` that lies at least
+    ``min_dist`` from every ``placed`` point, at most ``max_dist`` from the last
+    ``near_count`` of them and at least ``keep_out_dist`` from every ``keep_out`` point;
+    None if no candidate of the batch qualifies.
+
+    Once more points are placed than ``near_count`` (a team past its first group), the
+    candidates are drawn in the part of the box within ``max_dist`` (per axis) of the last
+    point, where every admissible candidate lies; before, in the whole box (which keeps
+    the layouts of teams up to one group as they always were)."""
+    if 0 < near_count < len(placed):
+        low = np.maximum(low, placed[-1] - max_dist)
+        high = np.minimum(high, placed[-1] + max_dist)
     candidates = rng.uniform(low, high, size=(_CANDIDATES_PER_DRAW, 2))
     ok = np.ones(_CANDIDATES_PER_DRAW, dtype=bool)
     if placed.size:
         dist = np.linalg.norm(candidates[:, None, :] - placed[None, :, :], axis=-1)
-        ok &= np.all((dist >= min_dist) & (dist <= max_dist), axis=1)
+        ok &= np.all(dist >= min_dist, axis=1)
+        ok &= np.all(dist[:, len(placed) - min(near_count, len(placed)):] <= max_dist, axis=1)
     if keep_out.size:
         dist = np.linalg.norm(candidates[:, None, :] - keep_out[None, :, :], axis=-1)
         ok &= np.all(dist >= keep_out_dist, axis=1)
@@ -94,14 +104,14 @@ def _pick_candidate(rng: np.random.Generator, low: FloatArray, high: FloatArray,
 
 
 def _place_points(rng: np.random.Generator, count: int, low: FloatArray, high: FloatArray,
-                  min_dist: float, max_dist: float, keep_out: FloatArray,
+                  min_dist: float, max_dist: float, near_count: int, keep_out: FloatArray,
                   keep_out_dist: float) -> FloatArray | None:
     """``count`` points placed one after the other by :func:`_pick_candidate`, restarting
     the whole layout when one point cannot be placed; None after the attempt budget."""
     for _ in range(_MAX_LAYOUT_ATTEMPTS):
         placed = np.empty((0, 2))
         for _ in range(count):
-            point = _pick_candidate(rng, low, high, placed, min_dist, max_dist,
+            point = _pick_candidate(rng, low, high, placed, min_dist, max_dist, near_count,
                                     keep_out, keep_out_dist)
             if point is None:
                 break
@@ -121,6 +131,22 @@ def _packing_bound(low: FloatArray, high: FloatArray, separation: float) -> floa
     return 2.0 / np.sqrt(3.0) * area / separation ** 2 + perimeter / (2.0 * separation) + 1.0
 
 
+def start_region(world_params: WorldParams) -> tuple[FloatArray, FloatArray]:
+    """Corners ``low``, ``high`` (2,) [m] of the start region of the team: the
+    ``start_region_*_fraction`` box for up to ``start_group_robots`` robots; for a larger
+    team its sides grow by ``sqrt(num_robots / start_group_robots)`` (area in proportion to
+    the team) about the same centre, clipped to the map."""
+    wp = world_params
+    size = np.array([wp.width_m, wp.height_m])
+    low = size * np.array([wp.start_region_x_fraction[0], wp.start_region_y_fraction[0]])
+    high = size * np.array([wp.start_region_x_fraction[1], wp.start_region_y_fraction[1]])
+    if wp.num_robots <= wp.start_group_robots:
+        return low, high
+    centre, half = 0.5 * (low + high), 0.5 * (high - low)
+    half = half * np.sqrt(wp.num_robots / wp.start_group_robots)
+    return np.maximum(centre - half, 0.0), np.minimum(centre + half, size)
+
+
 def _check_box(name: str, low: FloatArray, high: FloatArray) -> None:
     """Raise ValueError if the sampling box is empty."""
     if np.any(low > high):
@@ -131,10 +157,13 @@ def generate_world(world_params: WorldParams, sensor_params: SensorParams,
                    seed_sequence: np.random.SeedSequence) -> World:
     """A random environment drawn from ``seed_sequence`` (same sequence, same world).
 
-    Robots start in the middle-left start region (``start_region_*_fraction`` of the map)
-    with random headings; every pair of start positions is ``[start_min_separation_m,
-    start_max_separation_m]`` apart and strictly closer than the sonar range, so every
-    robot senses every other. Landmarks are uniform in the map shrunk by
+    Robots start in the middle-left start region (:func:`start_region`) with random
+    headings, placed one after the other: every pair of start positions is at least
+    ``start_min_separation_m`` apart, and each robot is at most ``start_max_separation_m``
+    (and strictly less than the sonar range) from each of the ``start_group_robots - 1``
+    robots placed before it, so it senses them: in a team of up to ``start_group_robots``
+    every robot senses every other, in a larger one the readings chain every robot to
+    robot 0 (whose launch pose anchors the map). Landmarks are uniform in the map shrunk by
     ``landmark_edge_margin_m``, at least ``landmark_min_separation_m`` apart and
     ``landmark_clearance_from_start_m`` from every start position; their ids are
     ``0..M-1``.
@@ -146,8 +175,7 @@ def generate_world(world_params: WorldParams, sensor_params: SensorParams,
     wp = world_params
     rng = np.random.default_rng(seed_sequence)
     size = np.array([wp.width_m, wp.height_m])
-    start_low = size * np.array([wp.start_region_x_fraction[0], wp.start_region_y_fraction[0]])
-    start_high = size * np.array([wp.start_region_x_fraction[1], wp.start_region_y_fraction[1]])
+    start_low, start_high = start_region(wp)
     _check_box("start", start_low, start_high)
     if np.any(start_low < 0.0) or np.any(start_high > size):
         raise ValueError("start region must lie inside the map (fractions within [0, 1])")
@@ -160,12 +188,14 @@ def generate_world(world_params: WorldParams, sensor_params: SensorParams,
             f"{max_separation} (start_max_separation_m, strictly below sonar_max_range_m="
             f"{sensor_params.sonar_max_range_m})")
     starts = _place_points(rng, wp.num_robots, start_low, start_high,
-                           wp.start_min_separation_m, max_separation, np.empty((0, 2)), 0.0)
+                           wp.start_min_separation_m, max_separation,
+                           wp.start_group_robots - 1, np.empty((0, 2)), 0.0)
     if starts is None:
         raise ValueError(
             f"cannot place {wp.num_robots} robots in the start region {start_low.tolist()}-"
             f"{start_high.tolist()} m with pairwise separation in "
-            f"[{wp.start_min_separation_m}, {max_separation}] m after "
+            f"[{wp.start_min_separation_m}, {max_separation}] m (the maximum to the "
+            f"{wp.start_group_robots - 1} robots placed before) after "
             f"{_MAX_LAYOUT_ATTEMPTS} attempts")
     headings = wrap_angle(rng.uniform(-np.pi, np.pi, size=wp.num_robots))
 
@@ -178,7 +208,7 @@ def generate_world(world_params: WorldParams, sensor_params: SensorParams,
             f"{wp.num_landmarks} landmarks cannot be {wp.landmark_min_separation_m} m apart in "
             f"a {wp.width_m} x {wp.height_m} m map with edge margin {wp.landmark_edge_margin_m} m")
     landmarks = _place_points(rng, wp.num_landmarks, landmark_low, landmark_high,
-                              wp.landmark_min_separation_m, np.inf, starts,
+                              wp.landmark_min_separation_m, np.inf, 0, starts,
                               wp.landmark_clearance_from_start_m)
     if landmarks is None:
         raise ValueError(

@@ -52,6 +52,12 @@ def pose_key(robot_id: int, index: int) -> int:
     return gtsam.symbol(chr(ord("a") + robot_id), index)
 
 
+def pose_keys(robot_id: int, indices: np.ndarray) -> np.ndarray:
+    """:func:`pose_key` of many keyframe indices ``(K,)`` at once, ``(K,)`` int64 (a GTSAM
+    symbol is its character in the top byte and the index below)."""
+    return (np.int64(ord("a") + robot_id) << np.int64(56)) | np.asarray(indices, dtype=np.int64)
+
+
 def landmark_key(landmark_id: int) -> int:
     """GTSAM key of landmark ``landmark_id`` (``'L'``)."""
     return gtsam.symbol("L", landmark_id)
@@ -60,6 +66,12 @@ def landmark_key(landmark_id: int) -> int:
 def is_landmark_key(key: int) -> bool:
     """True for the key of a landmark, False for a pose's (by the key's symbol character)."""
     return gtsam.symbolChr(int(key)) == ord("L")
+
+
+def landmark_key_mask(keys: np.ndarray) -> np.ndarray:
+    """:func:`is_landmark_key` of many keys ``(K,)`` at once (the symbol character is the
+    key's top byte), ``(K,)`` bool."""
+    return np.asarray(keys, dtype=np.int64) >> np.int64(56) == ord("L")
 
 
 def body_to_map_covariance(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
@@ -137,6 +149,12 @@ class KeyframeBuilder:
         self._interval = slam_params.keyframe_interval_steps
         self._accumulator = OdometryAccumulator()
         self._last_index: int | None = None
+
+    def resume(self, last_index: int) -> None:
+        """Continue a stream whose latest keyframe is ``last_index`` (after a restart): the
+        next keyframe links to it, with the odometry fed since."""
+        self._accumulator = OdometryAccumulator()
+        self._last_index = last_index
 
     def add_step(self, step: int, stamp_s: float, odometry: OdometryReading | None,
                  sonar: Iterable[LandmarkReading],
@@ -404,6 +422,13 @@ class TeamSlam:
         self._graph = _TeamGraph(num_robots, self.noise, anchor_pose)
         self._isam = gtsam.ISAM2(_isam_params(slam_params))
         self._estimate = gtsam.Values()
+        #: Landmark positions (L, 2) extracted from ``_estimate``, None until asked for
+        #: after the estimate changed (extracting scans every variable of the graph).
+        self._landmark_points: np.ndarray | None = None
+
+    def _set_estimate(self, estimate: gtsam.Values) -> None:
+        self._estimate = estimate
+        self._landmark_points = None
 
     # -- input -------------------------------------------------------------------------
 
@@ -427,7 +452,7 @@ class TeamSlam:
             if result.getVariablesRelinearized() == 0:
                 break
             result = self._isam.update()
-        self._estimate = self._isam.calculateEstimate()
+        self._set_estimate(self._isam.calculateEstimate())
         return added
 
     def converge(self, tolerance: float = 1e-9, max_iterations: int = 50) -> int:
@@ -450,7 +475,7 @@ class TeamSlam:
                     or largest_step >= previous_step):
                 break
             previous_step = largest_step
-        self._estimate = self._isam.calculateEstimate()
+        self._set_estimate(self._isam.calculateEstimate())
         return iterations
 
     # -- graph access (EM planner) ----------------------------------------------------
@@ -498,7 +523,10 @@ class TeamSlam:
 
     def landmark_estimates(self) -> dict[int, np.ndarray]:
         """Map-frame position ``(2,)`` [m] of every landmark in the graph, by id."""
-        points = gtsam.utilities.extractPoint2(self._estimate)
+        if self._landmark_points is None:
+            self._landmark_points = gtsam.utilities.extractPoint2(self._estimate)
+            self._landmark_points.setflags(write=False)
+        points = self._landmark_points
         return {landmark_id: points[row] for row, landmark_id in
                 enumerate(self._graph.landmark_ids)}
 

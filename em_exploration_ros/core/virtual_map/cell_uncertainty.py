@@ -144,6 +144,11 @@ class CovarianceIntersectionSums:
         return CovarianceIntersectionSums(self.weight + other.weight,
                                           self.weighted_information + other.weighted_information)
 
+    def __sub__(self, other: "CovarianceIntersectionSums") -> "CovarianceIntersectionSums":
+        """The sums without the observations ``other`` holds (a subset of these)."""
+        return CovarianceIntersectionSums(self.weight - other.weight,
+                                          self.weighted_information - other.weighted_information)
+
     @property
     def observed(self) -> NDArray[np.bool_]:
         """Cells ``(C,)`` with at least one observation."""
@@ -230,6 +235,13 @@ class CellObservations:
         return CellObservations(self.pose_index[first:last] - start, self.flat_cell[first:last],
                                 self.coefficients[first:last], self.noise[first:last],
                                 stop - start)
+
+    def of_poses(self, selected: NDArray[np.bool_]) -> "CellObservations":
+        """The observations of the poses where ``selected`` ``(num_poses,)`` is True, pose
+        numbering kept (covariances are still given for all ``num_poses``)."""
+        keep = np.asarray(selected, dtype=bool)[self.pose_index]
+        return CellObservations(self.pose_index[keep], self.flat_cell[keep],
+                                self.coefficients[keep], self.noise[keep], self.num_poses)
 
     def _pair_entries(self, pose_covariances: ArrayLike) -> FloatArray:
         """Cell covariance entries ``(P, 3)`` (xx, xy, yy) [m^2] of every pair."""

@@ -1,0 +1,106 @@
+"""Which robots of the team are alive: status per robot with the times it changed.
+
+A robot is ``active`` from the start; ``lost`` when the middleware reported its liveliness
+lost (its process died, was stopped or wedged: its participant no longer asserts
+liveliness within the lease) and did not report it back within ``grace_s`` (on a lossy
+network a liveliness assertion can miss its lease while the robot works on); ``rejoined``
+when it is heard again after being lost; ``finished`` when it reports that it has nothing
+left to explore. Every change is kept with the simulation time and the wall time (seconds
+since the caller's start) at which it happened, so a run's summary can show downtimes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+ACTIVE, FINISHED, LOST, REJOINED = "active", "finished", "lost", "rejoined"
+
+
+@dataclass(frozen=True)
+class StatusChange:
+    """A robot's status from ``sim_time_s`` / ``wall_s`` on [s], and why it changed."""
+
+    status: str
+    sim_time_s: float
+    wall_s: float
+    reason: str
+
+
+class TeamLiveness:
+    """Status of every robot of a team (see module docstring); no clock of its own."""
+
+    def __init__(self, num_robots: int, grace_s: float) -> None:
+        """``grace_s``: wall seconds a liveliness loss must last to count as lost."""
+        self.grace_s = grace_s
+        self._changes: list[list[StatusChange]] = [[] for _ in range(num_robots)]
+        self._unconfirmed: dict[int, tuple[float, float]] = {}
+
+    def status(self, robot: int) -> str:
+        """The robot's current status."""
+        changes = self._changes[robot]
+        return changes[-1].status if changes else ACTIVE
+
+    def changes(self, robot: int) -> list[StatusChange]:
+        """The robot's status changes in order (empty: active all along)."""
+        return list(self._changes[robot])
+
+    def liveliness_lost(self, robot: int, sim_time_s: float, wall_s: float) -> None:
+        """The middleware reported the robot's liveliness lost at these times [s]."""
+        if self.status(robot) != LOST and robot not in self._unconfirmed:
+            self._unconfirmed[robot] = (sim_time_s, wall_s)
+
+    def liveliness_back(self, robot: int, restarted: bool) -> bool:
+        """The middleware reported the robot's liveliness again: an unconfirmed loss is void,
+        unless the liveliness comes from a new process (``restarted``): then the robot was
+        lost from the time of the loss (returns True). A lost robot rejoins only when
+        ``heard``."""
+        unconfirmed = self._unconfirmed.pop(robot, None)
+        if not (restarted and unconfirmed is not None):
+            return False
+        return self._change(robot, LOST, *unconfirmed, "process restarted")
+
+    def confirm(self, wall_s: float) -> list[int]:
+        """Robots whose liveliness loss has lasted ``grace_s`` at ``wall_s``: now lost (from
+        the time of the loss); returns them."""
+        confirmed = [r for r, (_, since) in sorted(self._unconfirmed.items())
+                     if wall_s - since >= self.grace_s]
+        for robot in confirmed:
+            sim_time_s, since = self._unconfirmed.pop(robot)
+            self._change(robot, LOST, sim_time_s, since,
+                         f"liveliness lost for {wall_s - since:.1f} s")
+        return confirmed
+
+    def heard(self, robot: int, sim_time_s: float, wall_s: float, reason: str) -> bool:
+        """A robot gave a sign of life: a lost robot has rejoined; True if that is news."""
+        if self.status(robot) != LOST:
+            return False
+        return self._change(robot, REJOINED, sim_time_s, wall_s, reason)
+
+    def finished(self, robot: int, sim_time_s: float, wall_s: float) -> bool:
+        """A robot reported that it finished; True if that is news."""
+        if self.status(robot) in (FINISHED, LOST):
+            return False
+        return self._change(robot, FINISHED, sim_time_s, wall_s, "reported finished")
+
+    def downtime_s(self, robot: int, until_sim_time_s: float, until_wall_s: float
+                   ) -> tuple[float, float]:
+        """(simulation, wall) seconds the robot spent lost up to the given times [s]. The
+        simulated downtime is 0 when the world waited for the robot."""
+        return (self._lost_for(robot, "sim_time_s", until_sim_time_s),
+                self._lost_for(robot, "wall_s", until_wall_s))
+
+    def _lost_for(self, robot: int, clock: str, until_s: float) -> float:
+        total, lost_since = 0.0, None
+        for change in self._changes[robot]:
+            if change.status == LOST and lost_since is None:
+                lost_since = getattr(change, clock)
+            elif change.status != LOST and lost_since is not None:
+                total += getattr(change, clock) - lost_since
+                lost_since = None
+        if lost_since is not None:
+            total += max(until_s - lost_since, 0.0)
+        return total
+
+    def _change(self, robot: int, status: str, sim_time_s: float, wall_s: float,
+                reason: str) -> bool:
+        self._changes[robot].append(StatusChange(status, sim_time_s, wall_s, reason))
+        return True

@@ -1,0 +1,167 @@
+"""The world's side of the lockstep protocol, one step at a time (no ROS; wall time given).
+
+Step k is *open* while the world waits for every live robot's answer (its motion command
+for step k). The barrier repairs itself before it gives up on anyone:
+
+- a robot whose answer is missing ``resend_period_s`` after the step opened (or after the
+  previous re-send) is due a re-send of the step's sensor data (``due_for_resend``): a
+  robot that missed the start or lost a packet answers then; a robot that already
+  answered but whose answer was lost answers again;
+- a robot still silent ``robot_timeout_s`` after the step opened for it is *stopped*: it
+  stands still and is not waited for, and keeps its last barrier entry. A robot whose
+  liveliness the middleware reports lost is *suspect* (``suspect``) until it is reported
+  alive again (``trust``): it gets only ``suspect_timeout_s`` to answer. A live robot
+  answers within a second, so a liveliness report lost on a lossy network changes nothing,
+  while a dead or wedged robot is given up after the lease plus ``suspect_timeout_s``
+  instead of ``robot_timeout_s``;
+- a stopped robot that answers again (a wedged process that recovered, or a process
+  restarted with the same id) *rejoins*: an answer to the open step is used at once, an
+  answer to an earlier step puts it back on the list of robots the open step waits for,
+  with a fresh deadline.
+
+Nothing is kept beyond one step: bookkeeping is O(number of robots).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class StepAnswer:
+    """A robot's MotionCommand for one step: velocity (m/s, rad/s), barrier entry, finished."""
+
+    linear_x: float
+    angular_z: float
+    team_sequence: int
+    finished: bool
+
+
+#: What a robot that does not move answers.
+STAND_STILL = StepAnswer(0.0, 0.0, 0, False)
+
+
+class LockstepBarrier:
+    """Book-keeping of the lockstep protocol (see module docstring)."""
+
+    ACCEPTED, REJOINED, STALE, DUPLICATE, FUTURE = (
+        "accepted", "rejoined", "stale", "duplicate", "future")
+
+    def __init__(self, num_robots: int, robot_timeout_s: float,
+                 resend_period_s: float = math.inf, suspect_timeout_s: float = math.inf) -> None:
+        """``robot_timeout_s``: wall seconds a robot may stay silent on a step before it is
+        stopped (``suspect_timeout_s`` for a suspect robot, if shorter);
+        ``resend_period_s``: wall seconds between re-sends of a step to a robot whose answer
+        is missing (inf: never)."""
+        self.num_robots = num_robots
+        self.robot_timeout_s = robot_timeout_s
+        self.resend_period_s = resend_period_s
+        self.suspect_timeout_s = suspect_timeout_s
+        self.suspects: set[int] = set()
+        self.step = -1
+        self.stopped: set[int] = set()
+        self.finished = [False] * num_robots
+        self.team_sequences = [0] * num_robots
+        self._answers: dict[int, StepAnswer] = {}
+        self._deadline_s = [math.inf] * num_robots
+        self._next_resend_s = [math.inf] * num_robots
+
+    def open(self, step: int, now_s: float) -> None:
+        """Start waiting for the answers to ``step``; ``now_s`` is monotonic wall time [s]."""
+        self.step = step
+        self._answers = {}
+        for robot in range(self.num_robots):
+            self._arm(robot, now_s)
+
+    def _arm(self, robot: int, now_s: float) -> None:
+        self._deadline_s[robot] = now_s + self._timeout_s(robot)
+        self._next_resend_s[robot] = now_s + self.resend_period_s
+
+    def _timeout_s(self, robot: int) -> float:
+        if robot in self.suspects:
+            return min(self.robot_timeout_s, self.suspect_timeout_s)
+        return self.robot_timeout_s
+
+    def suspect(self, robot: int, now_s: float) -> None:
+        """The robot's liveliness was reported lost at ``now_s``: it has at most
+        ``suspect_timeout_s`` from now to answer the open step (and each later one) until
+        ``trust``."""
+        self.suspects.add(robot)
+        self._deadline_s[robot] = min(self._deadline_s[robot], now_s + self._timeout_s(robot))
+
+    def trust(self, robot: int) -> None:
+        """The robot's liveliness is reported again: from the next step on it gets
+        ``robot_timeout_s`` again."""
+        self.suspects.discard(robot)
+
+    def answer(self, robot_id: int, step: int, answer: StepAnswer, now_s: float) -> str:
+        """File a robot's answer; returns how it was taken (ACCEPTED, REJOINED or why not).
+
+        REJOINED: a stopped robot answered again and is waited for from now on (its answer
+        counts when it is for the open step)."""
+        rejoined = robot_id in self.stopped and step <= self.step
+        if rejoined:
+            self.stopped.discard(robot_id)
+            self._arm(robot_id, now_s)
+        if step < self.step:
+            return self.REJOINED if rejoined else self.STALE
+        if step > self.step:
+            return self.FUTURE
+        if robot_id in self._answers:
+            return self.DUPLICATE
+        if robot_id in self.stopped:  # stopped and answering the open step: handled above
+            return self.STALE
+        self._answers[robot_id] = answer
+        return self.REJOINED if rejoined else self.ACCEPTED
+
+    def waiting_for(self) -> list[int]:
+        """Live robots that have not answered the open step, in id order."""
+        return [r for r in range(self.num_robots)
+                if r not in self.stopped and r not in self._answers]
+
+    def due_for_resend(self, now_s: float) -> list[int]:
+        """Robots (live or stopped) without an answer to the open step whose re-send is due
+        at ``now_s``; each is due again ``resend_period_s`` later."""
+        due = []
+        for robot in range(self.num_robots):
+            if robot not in self._answers and now_s >= self._next_resend_s[robot]:
+                due.append(robot)
+                self._next_resend_s[robot] = now_s + self.resend_period_s
+        return due
+
+    def expire(self, now_s: float) -> list[int]:
+        """Stop the live robots still silent at their deadline; returns those newly stopped."""
+        late = [r for r in self.waiting_for() if now_s >= self._deadline_s[r]]
+        self.stopped.update(late)
+        return late
+
+    def stop(self, robot_ids: list[int]) -> list[int]:
+        """Treat robots as stopped from now on (e.g. never connected); returns those that
+        were live."""
+        newly = [r for r in robot_ids if r not in self.stopped]
+        self.stopped.update(newly)
+        return newly
+
+    @property
+    def complete(self) -> bool:
+        """True when every live robot has answered the open step."""
+        return not self.waiting_for()
+
+    def close(self) -> list[StepAnswer]:
+        """The step's answers in robot id order (stopped robots stand still) and update the
+        barrier (team sequences) and finished flags for the next step."""
+        answers = []
+        for robot in range(self.num_robots):
+            answer = self._answers.get(robot)
+            if answer is None:
+                answers.append(STAND_STILL)
+                continue
+            answers.append(answer)
+            self.team_sequences[robot] = answer.team_sequence
+            self.finished[robot] = answer.finished
+        return answers
+
+    @property
+    def all_done(self) -> bool:
+        """True when every robot has finished or is stopped."""
+        return all(self.finished[r] or r in self.stopped for r in range(self.num_robots))

@@ -1,0 +1,45 @@
+"""Team liveness bookkeeping: statuses, their changes and downtimes."""
+from __future__ import annotations
+
+from em_exploration_ros.core.agent.liveness import (ACTIVE, FINISHED, LOST, REJOINED,
+                                                    StatusChange, TeamLiveness)
+
+
+def test_a_liveliness_loss_counts_after_the_grace_and_downtime_is_summed():
+    team = TeamLiveness(3, grace_s=4.0)
+    assert [team.status(r) for r in range(3)] == [ACTIVE] * 3
+    assert team.heard(0, 1.0, 1.0, "answers") is False        # never lost: no change
+    team.liveliness_lost(0, 2.0, 2.0)                          # a lossy network ...
+    team.liveliness_back(0, restarted=False)                   # ... and it is back
+    assert team.confirm(100.0) == [] and team.status(0) == ACTIVE
+
+    team.liveliness_lost(1, 10.0, 5.0)
+    team.liveliness_lost(1, 11.0, 6.0)                         # repeated report: no news
+    assert team.confirm(8.9) == [] and team.status(1) == ACTIVE
+    assert team.confirm(9.0) == [1] and team.status(1) == LOST
+    team.liveliness_back(1, restarted=True)                    # a restarted process ...
+    assert team.status(1) == LOST                              # ... is lost until it answers
+    assert team.heard(1, 30.0, 15.0, "answers again")
+    assert team.status(1) == REJOINED
+    team.liveliness_lost(1, 50.0, 20.0)
+    assert team.confirm(30.0) == [1]
+    assert team.downtime_s(1, until_sim_time_s=70.0, until_wall_s=40.0) == (
+        (30.0 - 10.0) + (70.0 - 50.0), (15.0 - 5.0) + (40.0 - 20.0))
+    assert team.changes(1) == [StatusChange(LOST, 10.0, 5.0, "liveliness lost for 4.0 s"),
+                               StatusChange(REJOINED, 30.0, 15.0, "answers again"),
+                               StatusChange(LOST, 50.0, 20.0, "liveliness lost for 10.0 s")]
+    assert team.finished(2, 40.0, 18.0) and team.status(2) == FINISHED
+    assert not team.finished(2, 41.0, 19.0)
+    assert not team.finished(1, 60.0, 22.0)  # a lost robot's flag is stale news
+    assert team.downtime_s(0, 70.0, 40.0) == (0.0, 0.0) and team.changes(0) == []
+
+
+def test_a_restart_within_the_grace_counts_as_lost_from_the_loss():
+    team = TeamLiveness(2, grace_s=4.0)
+    team.liveliness_lost(1, 20.0, 8.0)
+    assert not team.heard(1, 20.0, 9.0, "answers")   # the new process answered first ...
+    assert team.liveliness_back(1, restarted=True)   # ... its liveliness came 2 s later
+    assert team.status(1) == LOST
+    assert team.changes(1) == [StatusChange(LOST, 20.0, 8.0, "process restarted")]
+    assert team.heard(1, 26.0, 12.0, "answers again")
+    assert team.downtime_s(1, 99.0, 99.0) == (6.0, 4.0)

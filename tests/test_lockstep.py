@@ -1,0 +1,92 @@
+"""The world's lockstep barrier: answers, re-sends, timeouts, liveliness stops, rejoins."""
+from __future__ import annotations
+
+from em_exploration_ros.core.sim.lockstep import STAND_STILL, LockstepBarrier, StepAnswer
+
+GO = StepAnswer(1.0, 0.1, 4, False)
+
+
+def test_answers_timeouts_and_close():
+    barrier = LockstepBarrier(3, robot_timeout_s=2.0)
+    barrier.open(0, now_s=100.0)
+    assert barrier.answer(0, 0, GO, 100.1) == LockstepBarrier.ACCEPTED
+    assert barrier.answer(0, 0, GO, 100.2) == LockstepBarrier.DUPLICATE
+    assert barrier.answer(1, 1, GO, 100.2) == LockstepBarrier.FUTURE
+    assert not barrier.complete and barrier.waiting_for() == [1, 2]
+    assert barrier.expire(101.9) == []
+    assert barrier.answer(1, 0, StepAnswer(0.5, 0.0, 3, True), 101.9) == LockstepBarrier.ACCEPTED
+    assert barrier.expire(102.0) == [2]
+    assert barrier.complete
+    assert barrier.close() == [GO, StepAnswer(0.5, 0.0, 3, True), STAND_STILL]
+    assert barrier.team_sequences == [4, 3, 0] and barrier.finished == [False, True, False]
+    assert not barrier.all_done
+    barrier.open(1, now_s=200.0)
+    assert barrier.answer(0, 0, GO, 200.0) == LockstepBarrier.STALE
+    assert barrier.answer(0, 1, StepAnswer(0.0, 0.0, 6, True), 200.0) == LockstepBarrier.ACCEPTED
+    assert not barrier.complete  # a finished robot still answers every step
+    assert barrier.answer(1, 1, StepAnswer(0.0, 0.0, 3, True), 200.0) == LockstepBarrier.ACCEPTED
+    assert barrier.complete  # robot 2 is stopped: not waited for
+    barrier.close()
+    assert barrier.team_sequences == [6, 3, 0] and barrier.all_done
+
+
+def test_missing_answers_are_due_a_resend_before_the_timeout():
+    barrier = LockstepBarrier(2, robot_timeout_s=10.0, resend_period_s=1.0)
+    barrier.open(0, now_s=0.0)
+    assert barrier.due_for_resend(0.5) == []
+    barrier.answer(0, 0, GO, 0.6)
+    assert barrier.due_for_resend(1.0) == [1]  # robot 1 missed the start
+    assert barrier.due_for_resend(1.5) == []   # not again before one more period
+    assert barrier.due_for_resend(2.0) == [1]
+    assert barrier.expire(9.9) == []
+    assert barrier.answer(1, 0, GO, 9.9) == LockstepBarrier.ACCEPTED
+    assert barrier.due_for_resend(20.0) == [] and barrier.complete
+    barrier.close()
+    barrier.open(1, now_s=30.0)  # a new step re-arms every robot's re-send and deadline
+    assert barrier.due_for_resend(30.5) == [] and barrier.due_for_resend(31.0) == [0, 1]
+    assert barrier.expire(39.9) == [] and barrier.expire(40.0) == [0, 1]
+
+
+def test_stopped_robot_rejoins_when_it_answers_again():
+    barrier = LockstepBarrier(2, robot_timeout_s=5.0, resend_period_s=1.0)
+    barrier.open(3, now_s=0.0)
+    assert barrier.stop([1]) == [1] and barrier.stop([1]) == []   # liveliness lost
+    barrier.answer(0, 3, GO, 0.1)
+    assert barrier.complete
+    assert barrier.close()[1] == STAND_STILL
+    barrier.open(4, now_s=1.0)
+    barrier.answer(0, 4, GO, 1.5)
+    assert barrier.due_for_resend(2.0) == [1]      # a stopped robot is still sent its steps
+    assert barrier.complete                          # ... but not waited for
+    # It answers an earlier step (a restarted process catching up): waited for from now on,
+    # with a fresh deadline.
+    assert barrier.answer(1, 2, GO, 4.0) == LockstepBarrier.REJOINED
+    assert barrier.waiting_for() == [1]
+    assert barrier.expire(8.9) == []
+    assert barrier.answer(1, 4, StepAnswer(0.2, 0.0, 9, False), 5.0) == LockstepBarrier.ACCEPTED
+    assert barrier.close()[1] == StepAnswer(0.2, 0.0, 9, False)
+    assert barrier.team_sequences[1] == 9
+    # A stopped robot answering the open step is used at once.
+    barrier.open(5, now_s=10.0)
+    barrier.stop([0])
+    assert barrier.answer(0, 5, GO, 10.5) == LockstepBarrier.REJOINED
+    assert barrier.answer(1, 5, GO, 10.5) == LockstepBarrier.ACCEPTED
+    assert barrier.complete and barrier.close() == [GO, GO]
+
+
+def test_suspect_robot_gets_the_short_timeout_until_trusted():
+    barrier = LockstepBarrier(2, robot_timeout_s=30.0, suspect_timeout_s=4.0)
+    barrier.open(0, now_s=0.0)
+    barrier.suspect(1, now_s=2.0)              # liveliness lost while the world waits
+    barrier.answer(0, 0, GO, 2.5)
+    assert barrier.expire(5.9) == []
+    assert barrier.answer(1, 0, GO, 5.9) == LockstepBarrier.ACCEPTED  # it was alive: no harm
+    barrier.close()
+    barrier.open(1, now_s=10.0)                # still suspect: 4 s again
+    assert barrier.expire(13.9) == [] and barrier.expire(14.0) == [1]
+    barrier.trust(1)
+    barrier.answer(1, 1, GO, 15.0)             # rejoins
+    barrier.answer(0, 1, GO, 15.0)
+    barrier.close()
+    barrier.open(2, now_s=20.0)                # trusted again: the long timeout
+    assert barrier.expire(49.9) == [] and barrier.expire(50.0) == [0, 1]

@@ -1,0 +1,109 @@
+"""Rejoining after a restart: teammates keep a robot's stream, the restarted robot takes it
+back and continues it (core: StreamArchive, OwnHistoryRecovery, RobotAgent.resume)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
+                                                  keyframe_ranges)
+from em_exploration_ros.core.agent.robot_agent import RobotAgent
+from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TeamUpdateOutbox
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.sim.team_runner import TeamRunner, step_input
+
+PARAMS = ExplorationParams().replace(
+    planner={"name": "NF"}, world={"width_m": 50.0, "height_m": 50.0, "num_landmarks": 5},
+    run={"seed": 3, "max_steps": 1500})
+
+
+def stream(robot: int, count: int):
+    outbox = TeamUpdateOutbox(robot)
+    return [outbox.publish(float(i)) for i in range(count)]
+
+
+def test_archive_keeps_teammates_streams_in_order():
+    archive = StreamArchive(own_robot_id=0, num_robots=3)
+    one, two = stream(1, 3), stream(2, 2)
+    archive.keep([one[0], two[0], one[1]])
+    archive.keep([one[1], two[1], one[2]])     # a repeated record is not kept twice
+    assert archive.held(1) == one and archive.held(2) == two
+    assert archive.held(0) == [] and archive.held(7) == []
+
+
+def test_recovery_waits_for_the_needed_records_then_settles():
+    records = stream(1, 4)
+    recovery = OwnHistoryRecovery(1, 3, needed_sequence=3, started_s=0.0, settle_s=1.0,
+                                  give_up_s=20.0)
+    with pytest.raises(InvalidTeamUpdate):
+        recovery.receive(stream(2, 1)[0])
+    assert recovery.receive(records[1]) and recovery.receive(records[0])
+    assert not recovery.receive(records[0])
+    assert recovery.history() == records[:2] and recovery.short_of == 1
+    assert not recovery.complete(5.0)
+    recovery.receive(records[3])
+    recovery.receive(records[2])
+    assert recovery.history() == records and recovery.short_of == 0
+    assert not recovery.complete(0.5) and recovery.complete(1.0)
+    lonely = OwnHistoryRecovery(1, 3, needed_sequence=2, started_s=0.0, settle_s=1.0,
+                                give_up_s=20.0)
+    assert not lonely.complete(19.9) and lonely.complete(20.0) and lonely.short_of == 2
+
+
+def test_outbox_restore_continues_numbering_and_refuses_a_gap():
+    records = stream(1, 3)
+    outbox = TeamUpdateOutbox(1)
+    outbox.restore(records)
+    assert outbox.last_sequence == 3 and outbox.resend(2, 0) == records[1:]
+    assert outbox.publish(9.0).sequence == 4
+    with pytest.raises(ValueError):
+        TeamUpdateOutbox(1).restore([records[0], records[2]])
+
+
+def test_keyframe_ranges():
+    assert keyframe_ranges(np.array([0, 1, 2, 5, 6, 9])) == "6 [0-2 5-6 9-9]"
+    assert keyframe_ranges(np.array([], dtype=int)) == "0 []"
+
+
+def test_restarted_agent_resumes_its_stream_graph_and_odometry():
+    runner = TeamRunner(PARAMS)
+    interval = PARAMS.slam.keyframe_interval_steps
+    crash_step = 12 * interval + 3   # between two keyframes: the motion since is unrecorded
+    for _ in range(crash_step):
+        runner.step_once()
+    old = runner.agents[1]
+    history = old.outbox.resend(1, 0)
+    old_indices, old_poses = old.slam.trajectory(1)
+
+    sim = runner.simulation
+    for _ in range(2 * interval + 4):     # downtime: the vehicle stands still
+        for robot in range(PARAMS.world.num_robots):
+            sim.apply_command(robot, 0.0, 0.0)
+        sim.advance()
+
+    new = RobotAgent(1, PARAMS, sim.world.start_poses[0])
+    new.resume(history)
+    # Its teammates' streams come back through the ordinary re-send protocol.
+    new.apply_team_updates([update for robot in (0, 2)
+                            for update in runner.agents[robot].outbox.resend(1, 0)])
+    indices, poses = new.slam.trajectory(1)
+    np.testing.assert_array_equal(indices, old_indices)
+    np.testing.assert_allclose(poses, old_poses, atol=0.05)
+    assert new.outbox.last_sequence == old.outbox.last_sequence
+    assert [d.decision_index for d in new.decisions] == [d.decision_index for d in old.decisions]
+    assert [t.position.tolist() for t in new.team_targets[1]] == \
+        [t.position.tolist() for t in old.team_targets[1]]
+
+    # The first keyframe after the restart links to the last one before the crash, and the
+    # robot knows where it stands.
+    while sim.step % interval:
+        new.step(step_input(sim.sense(1), PARAMS.motion.time_step_s))
+        sim.apply_command(1, 0.0, 0.0)
+        sim.advance()
+    new.step(step_input(sim.sense(1), PARAMS.motion.time_step_s))
+    update = new.take_outgoing()
+    assert update.sequence == old.outbox.last_sequence + 1
+    keyframe = update.keyframes[0]
+    assert not keyframe.is_first and keyframe.previous_index == int(old_indices[-1])
+    assert keyframe.index == sim.step // interval
+    assert np.linalg.norm(new.current_pose()[:2] - sim.true_pose(1)[:2]) < 1.0
