@@ -97,8 +97,8 @@ class MeetingEffect:
 
     ``trace_before_m2`` / ``trace_after_m2``: trace of the marginal covariance of this
     robot's latest keyframe pose (x, y, theta; m^2 and rad^2 summed) just before and just
-    after the SLAM update that added the first inter-robot factor with ``partner_id`` since
-    the request, at simulation time ``stamp_s`` [s].
+    after the SLAM update that added the first inter-robot factor with ``partner_id``
+    between the request and this robot's next decision, at simulation time ``stamp_s`` [s].
     """
 
     rendezvous_id: int
