@@ -1,4 +1,6 @@
 """Python package of em_exploration_ros: the ROS-free core, the ROS 2 nodes and the tools."""
+from glob import glob
+
 from setuptools import find_packages, setup
 
 PACKAGE_NAME = "em_exploration_ros"
@@ -13,6 +15,7 @@ CONSOLE_SCRIPTS = {
     "em-record": "em_exploration_ros.tools.record:main",
     "em-replay": "em_exploration_ros.tools.replay:main",
     "em-bag": "em_exploration_ros.tools.bag:main",
+    "em-foxglove": "em_exploration_ros.tools.foxglove_bridge:main",
     "em-fuzz": "em_exploration_ros.tools.fuzz:main",
 }
 
@@ -20,12 +23,17 @@ setup(
     name=PACKAGE_NAME,
     version="0.1.0",
     packages=find_packages(include=[PACKAGE_NAME, f"{PACKAGE_NAME}.*"]),
+    # The ament_python layout for colcon; in the venv, setup_env.sh lays it out with
+    # em_exploration_ros/tools/ament_install.py (an editable pip install skips data_files).
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE_NAME}"]),
         (f"share/{PACKAGE_NAME}", ["package.xml"]),
-        (f"share/{PACKAGE_NAME}/config", ["config/exploration.yaml"]),
+        (f"share/{PACKAGE_NAME}/config", sorted(glob("config/*"))),
     ],
-    install_requires=["numpy", "gtsam", "mcap", "mcap-ros2-support", "PyYAML", "matplotlib"],
+    # foxglove-sdk: the WebSocket server of em-foxglove (tools/foxglove_bridge.py), the live view;
+    # no node imports it.
+    install_requires=["numpy", "gtsam", "mcap", "mcap-ros2-support", "PyYAML", "matplotlib",
+                      "foxglove-sdk"],
     python_requires=">=3.11",
     zip_safe=False,
     maintainer="em_exploration_ros maintainers",

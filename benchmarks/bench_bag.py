@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -77,7 +78,7 @@ def _group_cpu_s(group: int) -> float:
 
 def bench_recorder(directory: Path, rate: float, size: int, topics: int, seconds: float) -> None:
     """Publish at ``rate`` msg/s in total and compare what em-record wrote."""
-    bag = directory / f"load_{int(rate)}_{size}.mcap"
+    bag = directory / f"load_{int(rate)}_{size}"  # a bag directory
     recorder = subprocess.Popen(
         [sys.executable, "-m", "em_exploration_ros.tools.record", "-o", str(bag),
          "--regex", "^/bench/", "--poll-interval", "0.2", "--chunk-interval", "0.2"],
@@ -116,7 +117,7 @@ def bench_recorder(directory: Path, rate: float, size: int, topics: int, seconds
     print(f"em-record at {sent / publish_s:7.0f} msg/s x {size} B on {topics} topics "
           f"({sent * size / publish_s / 1e6:6.2f} MB/s): sent {sent}, recorded {recorded}, "
           f"recorder CPU {100 * cpu_s / window_s:4.0f}% of one core")
-    bag.unlink()
+    shutil.rmtree(bag)
 
 
 def bench_publish(count: int = 20_000) -> None:

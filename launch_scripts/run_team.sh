@@ -19,6 +19,7 @@ PLANNERS=(EM_2 EM_3 CE BSP NEAREST)
 declare -A RENAMED_PLANNERS=([NF]=NEAREST)
 NODES=em_exploration_ros.nodes
 RECORD_MODULE=em_exploration_ros.tools.record
+FOXGLOVE_MODULE=em_exploration_ros.tools.foxglove_bridge
 # Grace periods [s] of a stop: after SIGINT (nodes write their results), after SIGTERM.
 STOP_GRACE_S=10
 KILL_GRACE_S=3
@@ -50,8 +51,10 @@ options:
   --summary FILE          summary JSON (default: runs/<date>_seed<S>_<planner>/summary.json);
                           the map picture goes beside it (<stem>_map.png), logs in logs/
   --domain-id ID          ROS_DOMAIN_ID, 0..232 (default: a free id in 1..101, held by a lock)
-  --record [PATH]         record every topic with em-record
-                          (default PATH: bags/<date>_seed<S>_<planner>.mcap)
+  --record [PATH]         record every topic with em-record into the bag directory PATH
+                          (default: bags/<date>_seed<S>_<planner>; must not exist)
+  --foxglove [PORT]       serve the team live to the Foxglove app with em-foxglove on
+                          ws://127.0.0.1:PORT (default PORT: 8765); the run goes on if it stops
   --respawn               restart a robot process that dies, or that the world reports lost
                           (alive but wedged or silent: SIGKILL, then the same command line);
                           it rejoins the team where it stopped
@@ -90,7 +93,7 @@ as_double() { if [[ $1 =~ [.eE] ]]; then printf '%s' "$1"; else printf '%s.0' "$
 # -- arguments -------------------------------------------------------------------------------
 ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME=""
 PARAMS_FILE="$EM_REPO_ROOT/config/exploration.yaml"
-REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH="" RESPAWN=""
+REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH="" FOXGLOVE_PORT="" RESPAWN=""
 
 while (( $# )); do
     arg=$1
@@ -134,6 +137,11 @@ while (( $# )); do
         --record)
             RECORD=1
             if (( $# )) && [[ $inline_value == 1 || $1 != -* ]]; then RECORD_PATH=$1; shift; fi ;;
+        --foxglove)
+            FOXGLOVE_PORT=8765
+            if (( $# )) && { [[ $inline_value == 1 ]] || is_int "$1"; }; then
+                check_number "$arg" "$1" 1 65535 int; FOXGLOVE_PORT=$1; shift
+            fi ;;
         --respawn) RESPAWN=1 ;;
         *) usage_error "unknown argument '$arg'" ;;
     esac
@@ -199,7 +207,7 @@ SUMMARY_STEM=$(basename "$SUMMARY")
 MAP_PNG="$(dirname "$SUMMARY")/${SUMMARY_STEM%.*}_map.png"
 LOG_DIR="$(dirname "$SUMMARY")/logs"
 if [[ -n $RECORD ]]; then
-    RECORD_PATH=${RECORD_PATH:-"$EM_REPO_ROOT/bags/$RUN_NAME.mcap"}
+    RECORD_PATH=${RECORD_PATH:-"$EM_REPO_ROOT/bags/$RUN_NAME"}
     mkdir -p "$(dirname "$RECORD_PATH")" 2>/dev/null \
         || usage_error "--record: cannot create the folder of '$RECORD_PATH'"
 fi
@@ -284,7 +292,7 @@ except (OSError, ValueError) as error:
 PY
     [[ -f $MAP_PNG ]] && echo "$PROG: map:     $MAP_PNG"
     echo "$PROG: logs:    $LOG_DIR"
-    [[ -n $RECORD && -f $RECORD_PATH ]] && echo "$PROG: bag:     $RECORD_PATH"
+    [[ -n $RECORD && -d $RECORD_PATH ]] && echo "$PROG: bag:     $RECORD_PATH"
 }
 
 # shellcheck disable=SC2317  # called through the traps below
@@ -315,6 +323,11 @@ echo "$PROG: $NUM_ROBOTS robots, planner $RUN_PLANNER, seed $RUN_SEED, $MODE," \
 if [[ -n $RECORD ]]; then
     start record -m "$RECORD_MODULE" -o "$RECORD_PATH" --ros-args -p use_sim_time:=true
 fi
+if [[ -n $FOXGLOVE_PORT ]]; then
+    start foxglove -m "$FOXGLOVE_MODULE" --port "$FOXGLOVE_PORT" --ros-args -p use_sim_time:=true
+    echo "$PROG: Foxglove: open a Foxglove WebSocket connection to ws://127.0.0.1:$FOXGLOVE_PORT" \
+         "(layout: config/foxglove_layout.json)"
+fi
 start evaluator -m "$NODES.evaluator_node" "${COMMON[@]}" -p use_sim_time:=true \
     -p "summary_path:=$SUMMARY" -p "map_png_path:=$MAP_PNG" "${SIM_LIMIT[@]}"
 EVALUATOR_PID=${PIDS[-1]}
@@ -337,7 +350,7 @@ TAIL_PID=$!
 
 # A robot that dies leaves its teammates to finish (the world stops waiting for it after
 # its liveliness lease or robot_timeout_s); with --respawn it is restarted (respawn_robot).
-# The world or the recorder dying ends the run.
+# The Foxglove bridge is only a viewer; the world or the recorder dying ends the run.
 FAILED=""
 declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=()
 
@@ -383,6 +396,11 @@ while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
                 fi
                 echo "$PROG: warning: $name exited with code $status; the team goes on" \
                     "without it (see $LOG_DIR/$name.log)" >&2
+                continue
+            fi
+            if [[ $name == foxglove ]]; then
+                echo "$PROG: warning: em-foxglove exited with code $status; the run goes on" \
+                    "without the live view (see $LOG_DIR/$name.log)" >&2
                 continue
             fi
             FAILED="$name exited early with code $status (see $LOG_DIR/$name.log)"

@@ -13,10 +13,16 @@
 #   2. em_exploration_msgs   the interface package msg_schemas/ built with ament_cmake and
 #                        rosidl_default_generators and installed into the venv prefix (Python
 #                        package in site-packages, libraries in .venv/lib, ament index entry and
-#                        .msg files in .venv/share). Inputs: msg_schemas/ and step 1.
-#   3. em_exploration_ros    editable install (pip install -e .) of this project, so the venv
-#                        imports the working tree. Inputs: PROJECT_INPUTS and step 1. Skipped
-#                        while the repository has no setup.py or pyproject.toml.
+#                        .msg files in .venv/share). Inputs: MSGS_INPUTS and step 1.
+#   3. tf2_msgs          the same for msg_schemas/tf2_msgs/ (TFMessage of /tf), only when the
+#                        venv's Python cannot import a tf2_msgs already (one that a ROS 2 install
+#                        or a wheel provides is used as it is, never shadowed). Inputs:
+#                        TF2_MSGS_INPUTS and step 1.
+#   4. em_exploration_ros    editable install (pip install -e .) of this project, so the venv
+#                        imports the working tree, then the layout colcon gives an ament_python
+#                        package (ament index marker, share/em_exploration_ros/, executables in
+#                        lib/em_exploration_ros/ for `ros2 run`). Inputs: PROJECT_INPUTS and
+#                        step 1. Skipped while the repository has no setup.py or pyproject.toml.
 # Logs go to build/*.log. A failed step names itself, its log and a fix, and exits non-zero.
 #
 # --update-constraints installs REQUIREMENTS (and the project) into a scratch venv under the
@@ -58,11 +64,20 @@ REQUIREMENTS=(
     pytest
     # em-bench planners --dask: trials on a dask.distributed cluster (and its test)
     "dask[distributed]"
+    # Test-only: rosbags reads bag directories independently of this project (recording
+    # tests); websockets is the client that checks the Foxglove bridge's WebSocket server.
+    rosbags
+    websockets
 )
+
+# Inputs of the interface packages' builds (steps 2 and 3).
+MSGS_INPUTS=(msg_schemas/CMakeLists.txt msg_schemas/package.xml msg_schemas/msg msg_schemas/cmake)
+TF2_MSGS_INPUTS=(msg_schemas/tf2_msgs msg_schemas/cmake)
 
 # Files of the repository whose content the editable install copies or reads (setup.py's
 # metadata, entry points and data_files); a change to any of them redoes step 3.
-PROJECT_INPUTS=(setup.py setup.cfg pyproject.toml package.xml resource config)
+PROJECT_INPUTS=(setup.py setup.cfg pyproject.toml package.xml resource config
+                em_exploration_ros/tools/ament_install.py)
 
 # Print the path of the machine's Python 3.11 with its C headers (the msgs build compiles a
 # Python extension), or fail. The base interpreter is printed, also when the python3.11 or
@@ -176,49 +191,76 @@ step_packages() {
     trap - EXIT
 }
 
-# Remove the files the previous msgs build installed, so a deleted message type does not
-# stay importable from the venv.
-uninstall_previous_msgs() {
-    local manifest="$STAMP_DIR/msgs_install_manifest.txt"
+# Remove the files the previous build of interface package NAME installed (the install manifest
+# that step KEY kept in the stamp folder), so a deleted message type does not stay importable.
+uninstall_interface_package() {  # uninstall_interface_package KEY NAME
+    local name=$2 manifest="$STAMP_DIR/$1_install_manifest.txt"
     if [[ -f $manifest ]]; then
         xargs -r -d '\n' rm -f <"$manifest"
-        # Folders named after the package (include/em_exploration_msgs/,
-        # share/em_exploration_msgs/, site-packages/em_exploration_msgs*/) go whole, with the
-        # bytecode caches Python wrote there: a leftover em_exploration_msgs/ in site-packages
-        # would still import, as a namespace package.
-        awk -v root="$EM_VENV/" '
+        # Folders named after the package (include/NAME/, share/NAME/, site-packages/NAME*/)
+        # go whole, with the bytecode caches Python wrote there: a leftover NAME/ in
+        # site-packages would still import, as a namespace package.
+        awk -v root="$EM_VENV/" -v name="$name" '
             index($0, root) == 1 {
                 rel = substr($0, length(root) + 1)
-                if (match(rel, "(^|/)em_exploration_msgs[^/]*/"))
+                if (match(rel, "(^|/)" name "[^/]*/"))
                     print root substr(rel, 1, RSTART + RLENGTH - 2)
             }' "$manifest" | sort -u | xargs -r -d '\n' rm -rf
         rm -f "$manifest"
     fi
 }
 
-step_msgs() {
-    local build="$EM_BUILD_DIR/msgs" configure_log="$EM_BUILD_DIR/msgs-configure.log"
-    uninstall_previous_msgs
+# Build the interface package NAME in folder SOURCE_DIR of the repository with CMake (in
+# build/KEY) and install it into the venv prefix, keeping its install manifest for the next
+# uninstall.
+build_interface_package() {  # build_interface_package KEY NAME SOURCE_DIR
+    local key=$1 name=$2 source="$EM_REPO_ROOT/$3" build="$EM_BUILD_DIR/$1"
+    local configure_log="$EM_BUILD_DIR/$1-configure.log"
+    uninstall_interface_package "$key" "$name"
     rm -rf "$build"
-    cmake -S "$EM_REPO_ROOT/msg_schemas" -B "$build" \
+    cmake -S "$source" -B "$build" \
         -DCMAKE_BUILD_TYPE=Release \
         -DBUILD_TESTING=OFF \
         -DCMAKE_INSTALL_PREFIX="$EM_VENV" \
         -DPython3_EXECUTABLE="$EM_VENV/bin/python" 2>&1 | tee "$configure_log"
     # The configure must be clean, not merely successful.
     if grep -nE 'CMake (Warning|Error)|Generate step failed' "$configure_log"; then
-        echo "the CMake configure of msg_schemas/ printed the warnings or errors above" >&2
+        echo "the CMake configure of $3/ printed the warnings or errors above" >&2
         return 1
     fi
     cmake --build "$build" --parallel "$(nproc)"
     cmake --install "$build"
-    cp "$build/install_manifest.txt" "$STAMP_DIR/msgs_install_manifest.txt"
-    python -c 'import em_exploration_msgs.msg'
+    cp "$build/install_manifest.txt" "$STAMP_DIR/${key}_install_manifest.txt"
+    python -c "import $name.msg"
+}
+
+step_msgs() {
+    build_interface_package msgs em_exploration_msgs msg_schemas
+}
+
+step_tf2_msgs() {
+    build_interface_package tf2_msgs tf2_msgs msg_schemas/tf2_msgs
+}
+
+# Print where the venv's Python imports tf2_msgs from, or fail if it cannot import it: a
+# tf2_msgs that some other installation provides (a ROS 2 install the venv sees, a wheel) is
+# used as it is and never shadowed by the project's build.
+tf2_msgs_provider() {
+    "$EM_VENV/bin/python" -c '
+import importlib.util, sys
+spec = importlib.util.find_spec("tf2_msgs")
+if spec is None or not spec.submodule_search_locations:
+    sys.exit(1)
+print(list(spec.submodule_search_locations)[0])' 2>/dev/null
 }
 
 step_project() {
     pip_install "$EM_VENV" --editable "$EM_REPO_ROOT"
     check_pins
+    # The ament_python layout colcon would install (ament index marker, share/, executables
+    # in lib/em_exploration_ros/ for `ros2 run`), see em_exploration_ros/tools/ament_install.py.
+    "$EM_VENV/bin/python" -m em_exploration_ros.tools.ament_install --prefix "$EM_VENV" \
+        --manifest "$STAMP_DIR/project_install_manifest.txt"
 }
 
 update_constraints() {
@@ -265,7 +307,7 @@ main() {
         return 0
     fi
 
-    local packages_hash msgs_hash project_hash
+    local packages_hash msgs_hash tf2_msgs_hash project_hash provider
     packages_hash=$(hash_inputs constraints.txt -- "${REQUIREMENTS[@]}" \
         "$("$PYTHON" -c 'import sys; print(sys.executable, sys.version)')")
     if stamp_matches packages "$packages_hash" && [[ -x "$EM_VENV/bin/python" ]]; then
@@ -277,7 +319,7 @@ main() {
         write_stamp packages "$packages_hash"
     fi
 
-    msgs_hash=$(hash_inputs msg_schemas -- "$packages_hash")
+    msgs_hash=$(hash_inputs "${MSGS_INPUTS[@]}" -- "$packages_hash")
     if stamp_matches msgs "$msgs_hash"; then
         skip_step "em_exploration_msgs" "up to date"
     else
@@ -286,6 +328,21 @@ main() {
             "correct the .msg file or msg_schemas/CMakeLists.txt named in the log; a configure warning also fails this step" \
             step_msgs
         write_stamp msgs "$msgs_hash"
+    fi
+
+    tf2_msgs_hash=$(hash_inputs "${TF2_MSGS_INPUTS[@]}" -- "$packages_hash")
+    if stamp_matches tf2_msgs "$tf2_msgs_hash"; then
+        skip_step "tf2_msgs" "up to date"
+    else
+        rm -f "$STAMP_DIR/tf2_msgs.sha256"
+        uninstall_interface_package tf2_msgs tf2_msgs
+        if provider=$(tf2_msgs_provider); then
+            skip_step "tf2_msgs" "provided by the environment ($provider)"
+        else
+            run_step "tf2_msgs" "$EM_BUILD_DIR/tf2_msgs.log" \
+                "see the log; msg_schemas/tf2_msgs/ builds like msg_schemas/" step_tf2_msgs
+        fi
+        write_stamp tf2_msgs "$tf2_msgs_hash"
     fi
 
     if [[ ! -f "$EM_REPO_ROOT/setup.py" && ! -f "$EM_REPO_ROOT/pyproject.toml" ]]; then

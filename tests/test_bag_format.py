@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 from builtin_interfaces.msg import Time
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, Footer, Header, Message, Schema
@@ -22,9 +23,12 @@ from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
 from mcap_ros2.decoder import DecoderFactory
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
+from rosbags.rosbag2 import Reader as RosbagsReader
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
+from em_exploration_ros.bag_format.bag_directory import (
+    METADATA_FILE, BagDirectoryWriter, BagPathError, mcap_file, read_metadata_yaml)
 from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, NotMcapError, scan_bag
 from em_exploration_ros.bag_format.bag_writer import BagWriter
 from em_exploration_ros.bag_format.interface_index import find_interface_file, read_type_hash
@@ -36,7 +40,6 @@ from em_exploration_ros.bag_format.qos_yaml import (
 from em_exploration_ros.bag_format.rosbag2_metadata import (
     BagMetadata, TopicInformation, parse_bag_metadata, serialize_bag_metadata)
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
-from em_exploration_ros.bag_format.yaml_emit import dump_block
 from em_exploration_ros.tools.bag import format_info, repair
 from em_bag_cli import run_em_bag
 
@@ -164,17 +167,17 @@ ROSBAG2_QOS_TEXT = (
     "  avoid_ros_namespace_conventions: false")
 
 
-def test_qos_yaml_matches_rosbag2_layout_and_round_trips() -> None:
+def test_qos_yaml_reads_rosbag2_text_and_round_trips() -> None:
     profile = QosProfile(history="keep_last", depth=1)
-    assert qos_profiles_to_yaml([profile]) == ROSBAG2_QOS_TEXT
     assert qos_profiles_from_yaml(ROSBAG2_QOS_TEXT) == [profile]
+    assert yaml.safe_load(qos_profiles_to_yaml([profile])) == yaml.safe_load(ROSBAG2_QOS_TEXT)
     latched = QosProfile(history="unknown", depth=0, durability="transient_local",
                          deadline_ns=INFINITE, lifespan_ns=INFINITE, liveliness="automatic",
                          liveliness_lease_duration_ns=INFINITE)
     text = qos_profiles_to_yaml([profile, latched])
-    assert "sec: 9223372036\n    nsec: 854775807" in text
+    assert yaml.safe_load(text)[1]["deadline"] == {"sec": 9223372036, "nsec": 854775807}
     assert qos_profiles_from_yaml(text) == [profile, latched]
-    assert qos_profiles_to_yaml([]) == "[]"
+    assert qos_profiles_from_yaml(qos_profiles_to_yaml([])) == []
     assert qos_profiles_from_yaml("") == []
 
 
@@ -212,13 +215,6 @@ def test_playback_qos_follows_recorded_offers() -> None:
     assert offer_for_playback([], 7) == QosProfile(depth=7)
 
 
-def test_yaml_emitter_layout() -> None:
-    node = {"a": [], "b": {"c": 1, "d": [{"e": "x/y", "f": {"g": True}}]}, "h": None,
-            "i": "", "j": "true", "k": ["p", "q"]}
-    assert dump_block(node) == ('a:\n  []\nb:\n  c: 1\n  d:\n    - e: x/y\n      f:\n'
-                                '        g: true\nh: ~\ni: ""\nj: "true"\nk:\n  - p\n  - q')
-
-
 def _metadata() -> BagMetadata:
     qos = QosProfile(history="unknown", depth=0)
     return BagMetadata(
@@ -226,8 +222,8 @@ def _metadata() -> BagMetadata:
         topics=(TopicInformation("/chatter", "std_msgs/msg/String", 3, (qos,), "RIHS01_ab"),))
 
 
-def test_bag_metadata_yaml_matches_rosbag2_layout() -> None:
-    expected = (
+def test_bag_metadata_yaml_reads_rosbag2_text_and_writes_the_same_document() -> None:
+    rosbag2_text = (
         "version: 9\nstorage_identifier: mcap\nduration:\n  nanoseconds: 20\n"
         "starting_time:\n  nanoseconds_since_epoch: 5\nmessage_count: 3\n"
         "topics_with_message_count:\n  - topic_metadata:\n      name: /chatter\n"
@@ -243,9 +239,11 @@ def test_bag_metadata_yaml_matches_rosbag2_layout() -> None:
         'compression_format: ""\ncompression_mode: ""\nrelative_file_paths:\n  - run.mcap\n'
         "files:\n  - path: run.mcap\n    starting_time:\n      nanoseconds_since_epoch: 5\n"
         "    duration:\n      nanoseconds: 20\n    message_count: 3\n"
-        "custom_data: ~\nros_distro: jazzy")
-    assert serialize_bag_metadata(_metadata()) == expected
-    assert parse_bag_metadata(expected) == _metadata()
+        "custom_data: ~\nros_distro: jazzy")  # as yaml-cpp's YAML::Dump lays it out
+    assert parse_bag_metadata(rosbag2_text) == _metadata()
+    written = serialize_bag_metadata(_metadata())
+    assert yaml.safe_load(written) == yaml.safe_load(rosbag2_text)
+    assert list(yaml.safe_load(written)) == list(yaml.safe_load(rosbag2_text))  # key order
 
 
 def test_bag_metadata_reads_version_8_with_qos_string() -> None:
@@ -295,10 +293,12 @@ OFFERS = {"/chatter": (QosProfile(history="unknown", depth=0),),
 
 
 def _write_bag(path: Path, count: int = 300, compression: str = "zstd",
-               chunk_size: int = 2048) -> list[tuple[str, int, bytes]]:
-    """Write a bag; returns what was written as (topic, log time, data)."""
+               chunk_size: int = 2048, directory: bool = False) -> list[tuple[str, int, bytes]]:
+    """Write a bag (an .mcap file, or a bag directory); returns what was written as (topic,
+    log time, data)."""
     written = []
-    with BagWriter(path, compression=compression, chunk_size=chunk_size) as writer:
+    writer_class = BagDirectoryWriter if directory else BagWriter
+    with writer_class(path, compression=compression, chunk_size=chunk_size) as writer:
         channels = {topic: writer.add_topic(topic, build_message_definition(type_name),
                                             OFFERS[topic], read_type_hash(type_name))
                     for topic, type_name in TYPES.items()}
@@ -404,6 +404,44 @@ def test_flush_makes_chunks_readable_before_close(tmp_path: Path) -> None:
     assert info.message_count == 5
     writer.close()
     assert scan_bag(path).message_count == 6
+
+
+def test_bag_directory_is_what_rosbag2_writes(tmp_path: Path) -> None:
+    bag = tmp_path / "run"
+    written = _write_bag(bag, count=40, directory=True)
+    assert sorted(p.name for p in bag.iterdir()) == [METADATA_FILE, "run_0.mcap"]
+    assert mcap_file(bag) == bag / "run_0.mcap"
+    metadata = read_metadata_yaml(bag)
+    assert metadata == scan_bag(bag).rosbag2_metadata()  # metadata.yaml = embedded record
+    assert metadata.relative_file_path == "run_0.mcap"
+    assert metadata.message_count == len(written) == scan_bag(bag).message_count
+    # rosbags, an independent reader of rosbag2 bag directories, reads every message.
+    with RosbagsReader(bag) as reader:
+        assert reader.message_count == len(written)
+        assert {c.topic: c.msgtype for c in reader.connections} == TYPES
+        read = [(c.topic, stamp, bytes(data)) for c, stamp, data in reader.messages()]
+    assert read == written
+    with pytest.raises(FileExistsError):
+        BagDirectoryWriter(bag)
+
+
+def test_bag_directory_of_a_killed_recording_and_unsupported_ones(tmp_path: Path) -> None:
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / "killed_0.mcap").write_bytes(b"")  # no metadata.yaml: the recorder died
+    assert mcap_file(killed) == killed / "killed_0.mcap"
+    (killed / "killed_1.mcap").write_bytes(b"")
+    with pytest.raises(BagError, match="2 storage files"):
+        scan_bag(killed)
+    sqlite = tmp_path / "sqlite"
+    sqlite.mkdir()
+    (sqlite / METADATA_FILE).write_text(
+        "rosbag2_bagfile_information:\n  storage_identifier: sqlite3\n"
+        "  relative_file_paths: [sqlite_0.db3]\n")
+    with pytest.raises(BagPathError, match="not mcap"):
+        mcap_file(sqlite)
+    with pytest.raises(BagError, match="no such file or directory"):
+        scan_bag(tmp_path / "nothing")
 
 
 # ----- damaged files ----------------------------------------------------------------------

@@ -1,9 +1,10 @@
 """The committed sample recording and ``em-bag info`` / ``em-bag render`` on it.
 
-bags/sample_3robots.mcap is a real 3-robot lockstep run recorded with run_team.sh --record
-(bags/README.md). It is read back by readers other than the writer (the ``mcap`` stream
-reader with CRC validation, the ``mcap_ros2`` schema-driven decoder, rclpy's deserializer)
-and by the project's validating scanner; then the CLI reports on it and draws its map.
+bags/sample_3robots/ is a real 3-robot lockstep run recorded with run_team.sh --record
+(bags/README.md), a bag directory. It is read back by readers other than the writer (the
+``mcap`` stream reader with CRC validation, the ``mcap_ros2`` schema-driven decoder, rclpy's
+deserializer, rosbags) and by the project's validating scanner; then the CLI reports on it
+and draws its map.
 """
 from __future__ import annotations
 
@@ -22,9 +23,14 @@ from mcap.records import Chunk, Footer, Header, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from rclpy.serialization import deserialize_message, serialize_message
+from rosbags.rosbag2 import Reader as RosbagsReader
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
+from visualization_msgs.msg import MarkerArray
 from std_msgs.msg import String
 
+from em_exploration_ros.bag_format.bag_directory import mcap_file, read_metadata_yaml
 from em_exploration_ros.bag_format.bag_reader import BagScanner, scan_bag
 from em_exploration_ros.bag_format.bag_writer import BagWriter
 from em_exploration_ros.bag_format.mcap_ros2_schema import build_message_definition
@@ -35,7 +41,8 @@ from em_exploration_ros.tools.bag_render import read_team_map
 from em_bag_cli import run_em_bag
 
 REPO = Path(__file__).resolve().parents[1]
-SAMPLE = REPO / "bags" / "sample_3robots.mcap"
+SAMPLE = REPO / "bags" / "sample_3robots"
+SAMPLE_FILE = mcap_file(SAMPLE)
 SAMPLE_PARAMS = load_params(REPO / "bags" / "sample_3robots.params.yaml")
 ROBOTS = range(SAMPLE_PARAMS.world.num_robots)
 #: Topics the sample must hold (with messages) and their types.
@@ -43,6 +50,8 @@ EXPECTED_TOPICS = {
     "/clock": "rosgraph_msgs/msg/Clock",
     "/mission/anchor_pose": "geometry_msgs/msg/PoseStamped",
     "/world/landmarks": "em_exploration_msgs/msg/LandmarkArray",
+    "/tf": "tf2_msgs/msg/TFMessage",
+    "/tf_static": "tf2_msgs/msg/TFMessage",
     **{f"/world/ground_truth/robot_{i}": "nav_msgs/msg/Odometry" for i in ROBOTS},
     **{f"/robot_{i}/{name}": type_name for i in ROBOTS for name, type_name in (
         ("sonar", "em_exploration_msgs/msg/SonarScan"), ("odom", "nav_msgs/msg/Odometry"),
@@ -57,13 +66,13 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 # ----- the sample file itself -------------------------------------------------------------
 def test_sample_is_small_and_reads_back_with_independent_readers() -> None:
-    assert SAMPLE.stat().st_size < 2 * 1024 * 1024
+    assert SAMPLE_FILE.stat().st_size < 2 * 1024 * 1024
     # Every record parses; every chunk and the data section match their CRCs.
-    with SAMPLE.open("rb") as stream:
+    with SAMPLE_FILE.open("rb") as stream:
         chunks = [r for r in StreamReader(stream, emit_chunks=True).records
                   if isinstance(r, Chunk)]
     assert chunks and all(chunk.uncompressed_crc != 0 for chunk in chunks)
-    with SAMPLE.open("rb") as stream:
+    with SAMPLE_FILE.open("rb") as stream:
         records = list(StreamReader(stream, validate_crcs=True).records)
     assert isinstance(records[0], Header) and isinstance(records[-1], Footer)
     messages = [r for r in records if isinstance(r, Message)]
@@ -75,6 +84,10 @@ def test_sample_is_small_and_reads_back_with_independent_readers() -> None:
     assert info.complete and info.problem is None
     assert info.crc_checked_chunks == info.chunk_count == len(chunks)
     assert [m.data for _c, m in walked] == [m.data for m in messages]
+    # rosbags reads the bag directory whole; its metadata.yaml is the embedded metadata.
+    with RosbagsReader(SAMPLE) as reader:
+        assert reader.message_count == info.message_count == len(messages)
+    assert read_metadata_yaml(SAMPLE) == info.rosbag2_metadata()
 
     # Every message deserializes into its installed ROS type, and the schema text alone
     # (mcap_ros2) decodes it to the same values.
@@ -100,6 +113,28 @@ def same_values(ros_value: Any, decoded: Any) -> bool:
     if isinstance(ros_value, float) and math.isnan(ros_value):
         return math.isnan(decoded)
     return ros_value == decoded
+
+
+def test_sample_stamps_are_simulation_times() -> None:
+    """Markers (the clearing entry included), the mission anchor and the odometry carry the
+    simulation time of their content; the odometry carries its noise's covariance."""
+    clock_ns = 10**9 * SAMPLE_PARAMS.motion.time_step_s
+    last_odom, marker_stamps = None, []
+    for channel, message in BagScanner(SAMPLE).messages():
+        if channel.topic == "/mission/anchor_pose":
+            anchor = deserialize_message(message.data, PoseStamped)
+            assert (anchor.header.stamp.sec, anchor.header.stamp.nanosec) == (0, 0)  # step 0
+        elif channel.topic == "/robot_0/markers":
+            markers = deserialize_message(message.data, MarkerArray).markers
+            stamps = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in markers}
+            assert len(stamps) == 1, stamps  # one decision, one time
+            [stamp] = stamps
+            assert round(stamp / clock_ns) * clock_ns == stamp  # the time of a step
+            marker_stamps.append(stamp)
+        elif channel.topic == "/robot_0/odom":
+            last_odom = deserialize_message(message.data, Odometry)
+    assert marker_stamps == sorted(marker_stamps) and marker_stamps[-1] > 0
+    assert last_odom is not None and last_odom.pose.covariance[0] > 0.0
 
 
 # ----- em-bag info ------------------------------------------------------------------------
@@ -178,7 +213,7 @@ def _one_message_bag(path: Path, topic: str, message: Any) -> Path:
 def test_render_gives_one_line_errors(tmp_path: Path,
                                       capsys: pytest.CaptureFixture[str]) -> None:
     truncated = tmp_path / "truncated.mcap"
-    truncated.write_bytes(SAMPLE.read_bytes()[: SAMPLE.stat().st_size // 2])
+    truncated.write_bytes(SAMPLE_FILE.read_bytes()[: SAMPLE_FILE.stat().st_size // 2])
     not_mcap = tmp_path / "notes.mcap"
     not_mcap.write_text("not a recording")
     no_robots = _one_message_bag(tmp_path / "clock_only.mcap", "/clock", Clock())

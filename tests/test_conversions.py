@@ -54,6 +54,12 @@ def test_sensor_frame_over_the_wire_equals_em_sim_input(running_team):
         assert scan.header.frame_id == f"robot_{robot}/base_link"
         assert (odom.header.frame_id, odom.child_frame_id) == (f"robot_{robot}/odom",
                                                                f"robot_{robot}/base_link")
+        # The pose covariance is the dead reckoning's accumulated noise: grown by the motion.
+        pose_covariance = np.asarray(odom.pose.covariance).reshape(6, 6)
+        planar = pose_covariance[np.ix_([0, 1, 5], [0, 1, 5])]
+        np.testing.assert_array_equal(planar, frame.odom_pose_covariance)
+        assert np.all(np.linalg.eigvalsh(planar) > 0.0)
+        assert np.count_nonzero(pose_covariance) == np.count_nonzero(planar)
 
 
 def _assert_same_update(a, b):

@@ -1,5 +1,8 @@
 """Process-level tests of em-record, em-replay and em-bag repair over real DDS.
 
+em-record writes bag directories (metadata.yaml + one .mcap); ``rosbags``, a reader of
+rosbag2 bag directories independent of this project and of rosbag2, reads them too.
+
 A publisher process sends a known sequence on several topics (one of the project's own
 types, one transient-local topic published before the recorder exists, and /clock, which
 the recorder follows as sim time); em-record runs as a separate process; the files are read
@@ -30,10 +33,13 @@ from msg_samples import make_sample
 from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
+from rosbags.rosbag2 import Reader as RosbagsReader
 from ros_process import REPO_ROOT, NodeProcess, wait_until
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
+from em_exploration_ros.bag_format.bag_directory import (METADATA_FILE, mcap_file,
+                                                        read_metadata_yaml)
 from em_exploration_ros.bag_format.bag_reader import BagScanner, scan_bag
 from em_exploration_ros.bag_format.bag_writer import BagWriter
 from em_exploration_ros.bag_format.interface_index import read_type_hash
@@ -198,7 +204,7 @@ def wait_until_flushed(bag: Path, timeout_s: float = 20.0) -> None:
 
 def record_session(tmp: Path, name: str, finish: Callable[[NodeProcess], None]) -> Path:
     """Publisher + recorder (sim time); ``finish`` ends the recorder after the streams."""
-    bag, go = tmp / f"{name}.mcap", tmp / f"{name}.go"
+    bag, go = tmp / name, tmp / f"{name}.go"
     with helper("publish", ["--go", str(go)], tmp / f"{name}_publish.log") as publisher:
         publisher.wait_for_output("ready", 20.0)
         with tool("record", ["-o", str(bag), *RECORD_FILTER, "--poll-interval", "0.2",
@@ -248,7 +254,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_recording_holds_exactly_what_was_published(recording: Path) -> None:
-    with recording.open("rb") as stream:
+    with mcap_file(recording).open("rb") as stream:
         records = list(StreamReader(stream, validate_crcs=True).records)
     assert type(records[0]).__name__ == "Header" and records[0].profile == "ros2"
     info = scan_bag(recording)
@@ -279,8 +285,19 @@ def test_recording_holds_exactly_what_was_published(recording: Path) -> None:
     assert {t.name: t.message_count for t in metadata.topics} == info.topic_counts()
     assert metadata.ros_distro == "jazzy" and metadata.storage_identifier == "mcap"
 
+    # The bag directory's metadata.yaml holds the same bag metadata as the MCAP file.
+    assert read_metadata_yaml(recording) == metadata
+
+    # rosbags reads the bag directory and counts every message.
+    with RosbagsReader(recording) as reader:
+        assert reader.message_count == info.message_count
+        counted: dict[str, int] = {}
+        for connection, _stamp, _data in reader.messages():
+            counted[connection.topic] = counted.get(connection.topic, 0) + 1
+    assert counted == info.topic_counts()
+
     # The schema text alone decodes every message, the project's own type included.
-    with recording.open("rb") as stream:
+    with mcap_file(recording).open("rb") as stream:
         decoded = list(make_reader(stream, decoder_factories=[DecoderFactory()])
                        .iter_decoded_messages())
     assert len(decoded) == info.message_count
@@ -290,7 +307,7 @@ def test_recording_holds_exactly_what_was_published(recording: Path) -> None:
 
 
 def test_sigterm_closes_the_recording(tmp_path: Path) -> None:
-    bag = tmp_path / "term.mcap"
+    bag = tmp_path / "term"
     with tool("record", ["-o", str(bag), "--topics", "/em_test/nobody"],
               tmp_path / "term.log") as recorder:
         recorder.wait_for_output("recording to ", 20.0)
@@ -300,6 +317,7 @@ def test_sigterm_closes_the_recording(tmp_path: Path) -> None:
     info = scan_bag(bag)
     assert info.complete and info.message_count == 0
     assert info.rosbag2_metadata().message_count == 0
+    assert read_metadata_yaml(bag).message_count == 0
 
 
 def test_killed_recording_is_repaired(tmp_path: Path) -> None:
@@ -308,18 +326,19 @@ def test_killed_recording_is_repaired(tmp_path: Path) -> None:
         recorder.wait(10.0)
 
     bag = record_session(tmp_path, "killed", kill)
+    assert not (bag / METADATA_FILE).exists()  # written only when a recording is closed
     info = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.bag", "info",
                            str(bag)], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
     assert info.returncode == 2 and "truncated" in info.stderr
     assert "Traceback" not in info.stderr
 
-    fixed = tmp_path / "fixed.mcap"
+    fixed = tmp_path / "fixed"
     result = subprocess.run(
         [sys.executable, "-m", "em_exploration_ros.tools.bag", "repair", str(bag), str(fixed)],
         cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     repaired = scan_bag(fixed)
-    assert repaired.complete
+    assert repaired.complete and read_metadata_yaml(fixed).message_count == repaired.message_count
     assert repaired.topic_counts() == {t: expected_count(t) for t in RECORDED}
     _assert_holds_the_sequence(fixed)
     latched = next(c for c in repaired.channels.values() if c.topic == LATCHED)

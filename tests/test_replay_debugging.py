@@ -1,8 +1,8 @@
 """Replay for debugging: the world's topics of a lockstep recording drive fresh robots, which
 then choose exactly the targets the recorded robots chose.
 
-bags/sample_3robots.mcap is a 3-robot lockstep run; bags/sample_3robots.params.yaml holds
-the parameters its nodes ran with. Fresh em-robot processes with those parameters receive
+bags/sample_3robots/ (a bag directory) is a 3-robot lockstep run;
+bags/sample_3robots.params.yaml holds the parameters its nodes ran with. Fresh em-robot processes with those parameters receive
 only what the world published (/clock, /mission/anchor_pose, /robot_i/sonar,
 /robot_i/odom) through em-replay; they exchange their own team updates, which reproduce the
 recorded sequence numbers that the recorded scans name in their lockstep barrier
@@ -23,7 +23,7 @@ from em_exploration_ros.bag_format.bag_reader import BagScanner
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.tools.bag_ros import import_message_class
 
-SAMPLE = REPO_ROOT / "bags" / "sample_3robots.mcap"
+SAMPLE = REPO_ROOT / "bags" / "sample_3robots"
 PARAMS_FILE = REPO_ROOT / "bags" / "sample_3robots.params.yaml"
 NUM_ROBOTS = load_params(PARAMS_FILE).world.num_robots
 WORLD_TOPICS = ["/clock", "/mission/anchor_pose",
@@ -68,7 +68,7 @@ def test_world_topics_replayed_into_fresh_robots_reproduce_the_targets(tmp_path:
     for robot, updates in recorded.items():  # the recording holds every update
         assert sorted(updates) == list(range(1, last_sequence[robot] + 1)), robot
 
-    fresh_bag = tmp_path / "fresh_team_updates.mcap"
+    fresh_bag = tmp_path / "fresh_team_updates"
     with ProcessSet() as processes:
         recorder = processes.start_module(
             "em_exploration_ros.tools.record",

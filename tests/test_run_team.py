@@ -1,15 +1,17 @@
 """launch_scripts/run_team.sh: refuses bad arguments at once; runs a whole team end to end.
 
-The end-to-end run starts the real processes (em-world, three em-robot, em-evaluator) in
-this test run's ROS domain, on a small map with the cheap NEAREST planner, and checks what the
-user gets: the summary JSON in em-sim's schema, the map picture, exit code 0, no process of
-the run left behind, and the same decisions as em-sim for the same seed.
+The end-to-end run starts the real processes (em-world, three em-robot, em-evaluator,
+em-record) in this test run's ROS domain, on a small map with the cheap NEAREST planner, and
+checks what the user gets: the summary JSON in em-sim's schema, the map picture, exit code 0,
+no process of the run left behind, the same decisions as em-sim for the same seed, and a bag
+directory that rosbags reads whole, whose /tf holds every robot's frame chain.
 """
 from __future__ import annotations
 
 import json
 import math
 import signal
+import socket
 import subprocess
 
 import pytest
@@ -19,6 +21,12 @@ from em_exploration_ros.core.evaluation.summary import check_summary
 from em_exploration_ros.core.sim.team_runner import TeamRunner
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, processes_in_domain,
                          start_team_run)
+from rosbags.rosbag2 import Reader as RosbagsReader
+from websockets.sync.client import connect
+
+from em_exploration_ros.bag_format.bag_directory import read_metadata_yaml
+from em_exploration_ros.bag_format.bag_reader import scan_bag
+from tf_chains import assert_frame_chains
 
 #: Bound of the end-to-end run (set-up check, start-up, exploration, shutdown) [s].
 RUN_TIMEOUT_S = 150.0
@@ -43,6 +51,7 @@ def run_team(*args: str, timeout_s: float = 20.0) -> subprocess.CompletedProcess
     (["--realtime", "0"], "--realtime must be in [0.01, 1000]"),
     (["--domain-id", "500"], "--domain-id must be in [0, 232]"),
     (["--robots"], "--robots needs a value"),
+    (["--foxglove", "70000"], "--foxglove must be in [1, 65535]"),
 ])
 def test_refuses_bad_arguments(args, message):
     result = run_team(*args)
@@ -74,17 +83,18 @@ def test_help_lists_the_options():
     assert result.returncode == 0
     for flag in ("--robots", "--seed", "--planner", "--map-size", "--landmarks",
                  "--until-explored", "--max-sim-time", "--params", "--realtime", "--summary",
-                 "--domain-id", "--record"):
+                 "--domain-id", "--record", "--foxglove"):
         assert flag in result.stdout
 
 
 def test_three_robots_explore_end_to_end(tmp_path):
     summary_path = tmp_path / "run" / "summary.json"
+    bag = tmp_path / "run_bag"
     until = 0.85
     run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
                             "--map-size", "40", "--landmarks", "4", "--seed", "2",
                             "--until-explored", str(until), "--max-sim-time", "600",
-                            "--summary", str(summary_path))
+                            "--summary", str(summary_path), "--record", str(bag))
     with run:
         try:
             code = run.wait(RUN_TIMEOUT_S)
@@ -126,14 +136,32 @@ def test_three_robots_explore_end_to_end(tmp_path):
     # Nothing of the run is left: run_team.sh stopped every process it started.
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
 
+    # The recording is a bag directory that rosbags reads whole.
+    assert f"bag:     {bag}" in output
+    info = scan_bag(bag)
+    with RosbagsReader(bag) as reader:
+        assert reader.message_count == info.message_count == read_metadata_yaml(bag).message_count
+    assert_frame_chains(bag, num_robots=3, max_error_m=2.0)
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
 
 def test_ctrl_c_stops_every_process_and_keeps_the_summary(tmp_path):
     summary_path = tmp_path / "summary.json"
+    port = _free_port()
     run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
                             "--map-size", "100", "--until-explored", "0.95",
-                            "--summary", str(summary_path))
+                            "--summary", str(summary_path), "--foxglove", str(port))
     with run:
         run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+        # --foxglove: the live view answers on its port (it is one of the run's processes).
+        with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],
+                     open_timeout=20) as viewer:
+            assert json.loads(viewer.recv(timeout=20))["op"] == "serverInfo"
         run.signal_group(signal.SIGINT)  # what a terminal's Ctrl-C does
         code = run.wait(30.0)
     assert code == 130, run.output()[-3000:]

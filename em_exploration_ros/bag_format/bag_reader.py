@@ -1,11 +1,14 @@
-"""Read and validate MCAP recordings, independently of the writer.
+"""Read and validate MCAP recordings with the ``mcap`` library's own reader.
 
-``BagScanner`` walks a file record by record: it checks the magic at both ends, that every
-record fits in the file and parses, that every chunk decompresses to its stated size and
-matches its CRC, that every message refers to a known channel and every channel to a known
-schema, and, at the end, the summary section against what the data section held (schemas,
-channels, statistics, chunk indexes, summary CRC, data section CRC). Messages stream out in
-file order. A chunk's records are released only after the whole chunk has been validated.
+``BagScanner`` walks a recording (an ``.mcap`` file or a bag directory) once with mcap's
+``StreamReader``, which checks the magic bytes, decompresses every chunk and validates the
+chunk and data-section CRCs. On top of it this module checks what that reader leaves to its
+user: every record is read whole (the file is fed to the reader through exact reads, so a
+record cut short by the end of the file is an error, not a short record), the file starts
+with a Header, every message refers to a known channel and every channel to a known schema,
+nothing follows the closing magic, and the Statistics record agrees with what the data
+section held. Messages stream out in file order; a chunk's messages are released only after
+the whole chunk was decompressed and its CRC checked.
 
 In strict mode any problem raises ``BagError`` (one-line message). In tolerant mode the walk
 stops at the first problem and ``BagInfo.problem`` says what and where: this is how the
@@ -13,32 +16,26 @@ readable part of a recording that was killed while writing is recovered.
 """
 from __future__ import annotations
 
-import io
 import os
 import struct
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import BinaryIO, Iterator, Mapping
 
-import lz4.frame
 import zstandard
-from mcap.data_stream import ReadDataStream
-from mcap.exceptions import EndOfFile, McapError
-from mcap.opcode import Opcode
-from mcap.records import (
-    Channel, Chunk, ChunkIndex, DataEnd, Footer, Header, Metadata, Schema, Statistics)
+from mcap.exceptions import InvalidMagic, McapError
+from mcap.records import (Channel, Chunk, DataEnd, Footer, Header, McapRecord, Message,
+                          Metadata, Schema, Statistics)
+from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 
+from em_exploration_ros.bag_format.bag_directory import BagPathError, mcap_file
 from em_exploration_ros.bag_format.qos_yaml import QosProfile, qos_profiles_from_yaml
 from em_exploration_ros.bag_format.rosbag2_metadata import (
     METADATA_RECORD_NAME, SERIALIZED_METADATA_KEY, BagMetadata, parse_bag_metadata)
 
-MAGIC = b"\x89MCAP0\r\n"
-_RECORD_PREFIX = struct.Struct("<BQ")
-_MESSAGE_PREFIX = struct.Struct("<HIQQ")
-_FOOTER_CRC_PREFIX = struct.Struct("<BQQQ")
+#: What mcap's reader raises on a malformed record (besides CRC and truncation errors).
 _PARSE_ERRORS = (McapError, struct.error, ValueError, RuntimeError, zstandard.ZstdError,
-                 KeyError, OverflowError)
+                 KeyError, OverflowError, UnicodeDecodeError)
 
 
 class BagError(Exception):
@@ -47,16 +44,6 @@ class BagError(Exception):
 
 class NotMcapError(BagError):
     """The file is not an MCAP file at all (raised even by a tolerant scan)."""
-
-
-class _StrictStream(ReadDataStream):
-    """A record field reader that fails on a short read instead of returning less."""
-
-    def read(self, length: int) -> bytes:
-        data = super().read(length)
-        if len(data) != length:
-            raise EndOfFile()
-        return data
 
 
 @dataclass(frozen=True)
@@ -139,44 +126,48 @@ class BagInfo:
         return parse_bag_metadata(record[SERIALIZED_METADATA_KEY])
 
 
-def _parse(reader: Callable[[ReadDataStream], Any], body: bytes) -> Any:
-    return reader(_StrictStream(io.BytesIO(body)))
+class _TruncatedError(Exception):
+    """The file ended inside a record."""
 
 
-def _decompress(chunk: Chunk) -> bytes:
-    if chunk.compression == "zstd":
-        return zstandard.ZstdDecompressor().decompress(
-            chunk.data, max_output_size=chunk.uncompressed_size)
-    if chunk.compression == "lz4":
-        return lz4.frame.decompress(chunk.data)
-    if chunk.compression == "":
-        return chunk.data
-    raise BagError(f"unsupported chunk compression {chunk.compression!r}")
+class _ExactReads:
+    """The file as mcap's reader sees it: each read returns exactly the bytes asked for or
+    raises _TruncatedError (a plain file returns fewer at its end, and mcap's reader would
+    then parse a record from the short data). ``position`` counts the bytes read."""
+
+    def __init__(self, stream: BinaryIO) -> None:
+        self._stream = stream
+        self.position = 0
+
+    def read(self, size: int = -1) -> bytes:
+        data = self._stream.read(size)
+        if size >= 0 and len(data) < size:
+            raise _TruncatedError()
+        self.position += len(data)
+        return data
 
 
 class BagScanner:
-    """One validating pass over a recording; iterate ``messages()`` once, then read ``info``."""
+    """One validating pass over a recording; iterate ``messages()`` once, then read ``info``.
+
+    ``path`` is an ``.mcap`` file or a bag directory (see bag_directory.mcap_file).
+    """
 
     def __init__(self, path: str | os.PathLike[str], *, tolerant: bool = False) -> None:
-        self.path = Path(path)
-        self.tolerant = tolerant
         try:
-            size = self.path.stat().st_size
-        except FileNotFoundError:
-            raise BagError(f"{self.path}: no such file") from None
-        except OSError as error:
-            raise BagError(f"{self.path}: cannot read: {error.strerror}") from None
+            self.path = mcap_file(path)
+        except BagPathError as error:
+            raise BagError(str(error)) from None
+        self.tolerant = tolerant
         if self.path.is_dir():
             raise BagError(f"{self.path}: is a directory, not an MCAP file")
+        try:
+            size = self.path.stat().st_size
+        except OSError as error:
+            raise BagError(f"{self.path}: cannot read: {error.strerror}") from None
         self.info = BagInfo(path=self.path, file_size=size)
-        self._chunk_offsets: set[int] = set()
-        self._chunk_indexes: list[ChunkIndex] = []
         self._statistics: Statistics | None = None
-        self._summary_started = False
-        self._footer = Footer(summary_start=0, summary_offset_start=0, summary_crc=0)
-        self._footer_offset = 0
 
-    # ----- the walk ---------------------------------------------------------------------
     def messages(self) -> Iterator[tuple[ChannelInfo, BagMessage]]:
         """Messages in file order with their channels; validates everything on the way."""
         try:
@@ -191,134 +182,89 @@ class BagScanner:
         except OSError as error:
             raise BagError(f"{self.path}: cannot read: {error.strerror}") from None
 
-    def _fail(self, offset: int, what: str) -> BagError:
-        return BagError(f"{self.path}: {what} (at byte {offset} of {self.info.file_size})")
+    def _fail(self, what: str) -> BagError:
+        return BagError(f"{self.path}: {what} (after byte {self.info.readable_bytes} of "
+                        f"{self.info.file_size})")
 
-    def _walk(self, stream: io.BufferedReader) -> Iterator[tuple[ChannelInfo, BagMessage]]:
-        magic = stream.read(len(MAGIC))
-        if magic != MAGIC:
-            kind = "an empty file" if not magic else "not an MCAP file (bad magic bytes)"
-            raise NotMcapError(f"{self.path}: {kind}")
-        data_crc = zlib.crc32(magic)
-        offset = len(MAGIC)
-        self.info.readable_bytes = offset
+    def _walk(self, stream: BinaryIO) -> Iterator[tuple[ChannelInfo, BagMessage]]:
+        exact = _ExactReads(stream)
+        records = StreamReader(exact, emit_chunks=True, validate_crcs=True).records
         first = True
-        while True:
-            prefix = stream.read(_RECORD_PREFIX.size)
-            if len(prefix) < _RECORD_PREFIX.size:
-                raise self._fail(offset, "file is truncated: it ends without a footer "
-                                 "(the recording was not closed)")
-            opcode, length = _RECORD_PREFIX.unpack(prefix)
-            if offset + _RECORD_PREFIX.size + length > self.info.file_size:
-                raise self._fail(offset, f"file is truncated: {self._opcode_name(opcode)} "
-                                 f"record of {length} bytes extends past the end")
-            body = stream.read(length)
-            if first and opcode != Opcode.HEADER:
-                raise NotMcapError(f"{self.path}: not an MCAP file (no Header record)")
-            first = False
-            try:
-                released = self._record(opcode, body, offset, data_crc)
-            except _PARSE_ERRORS as error:
-                raise self._fail(offset, f"corrupt {self._opcode_name(opcode)} record: "
-                                 f"{type(error).__name__} {error}") from None
-            if opcode != Opcode.DATA_END and not self._summary_started:
-                data_crc = zlib.crc32(prefix, data_crc)
-                data_crc = zlib.crc32(body, data_crc)
-            offset += _RECORD_PREFIX.size + length
-            yield from released
-            self.info.readable_bytes = offset
-            if opcode == Opcode.FOOTER:
-                self._finish(stream, offset)
-                return
-
-    @staticmethod
-    def _opcode_name(opcode: int) -> str:
         try:
-            return Opcode(opcode).name.replace("_", " ").title().replace(" ", "")
-        except ValueError:
-            return f"unknown (opcode {opcode:#x})"
+            for record in records:
+                if first and not isinstance(record, Header):
+                    raise NotMcapError(f"{self.path}: not an MCAP file (no Header record)")
+                first = False
+                released = self._record(record)
+                self.info.readable_bytes = exact.position
+                yield from released
+        except InvalidMagic:
+            if first:
+                raise NotMcapError(f"{self.path}: not an MCAP file (bad magic bytes)") from None
+            raise self._fail("footer is not followed by the closing magic bytes") from None
+        except _TruncatedError:
+            if self.info.file_size == 0:
+                raise NotMcapError(f"{self.path}: an empty file") from None
+            if first and exact.position == 0:
+                raise NotMcapError(f"{self.path}: not an MCAP file (shorter than the magic "
+                                   "bytes)") from None
+            raise self._fail("file is truncated: it ends without a footer (the recording "
+                             "was not closed)") from None
+        except CRCValidationError as error:
+            what = "data section" if isinstance(error.record, DataEnd) else "chunk"
+            raise self._fail(f"{what} CRC mismatch") from None
+        except _PARSE_ERRORS as error:
+            raise self._fail(f"corrupt record: {type(error).__name__} {error}") from None
+        self.info.readable_bytes = exact.position
+        if stream.read(1):
+            raise self._fail("data after the closing magic")
+        self._check_statistics()
+        self.info.complete = True
 
-    def _record(self, opcode: int, body: bytes, offset: int,
-                data_crc: int) -> list[tuple[ChannelInfo, BagMessage]]:
-        """Parse one top-level record; returns the messages it releases."""
-        if opcode == Opcode.HEADER:
-            header = _parse(Header.read, body)
-            self.info.profile, self.info.library = header.profile, header.library
-        elif opcode == Opcode.CHUNK:
-            return self._chunk(_parse(Chunk.read, body), offset)
-        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
-            return self._apply([(opcode, body)], offset)
-        elif opcode == Opcode.METADATA:
-            record = _parse(Metadata.read, body)
+    def _record(self, record: McapRecord) -> list[tuple[ChannelInfo, BagMessage]]:
+        """Take one top-level record; returns the messages it releases."""
+        if isinstance(record, Header):
+            self.info.profile, self.info.library = record.profile, record.library
+        elif isinstance(record, Chunk):
+            contents = breakup_chunk(record, validate_crc=True)
+            self.info.chunk_count += 1
+            self.info.crc_checked_chunks += record.uncompressed_crc != 0
+            self.info.compressions.add(record.compression or "none")
+            return self._apply(contents)
+        elif isinstance(record, (Schema, Channel, Message)):
+            return self._apply([record])
+        elif isinstance(record, Metadata):
             self.info.metadata[record.name] = dict(record.metadata)
-        elif opcode == Opcode.DATA_END:
-            end = _parse(DataEnd.read, body)
-            if end.data_section_crc not in (0, data_crc):
-                raise self._fail(offset, "data section CRC mismatch")
-            self._summary_started = True
-        elif opcode == Opcode.STATISTICS:
-            self._statistics = _parse(Statistics.read, body)
-        elif opcode == Opcode.CHUNK_INDEX:
-            self._chunk_indexes.append(_parse(ChunkIndex.read, body))
-        elif opcode == Opcode.FOOTER:
-            self._footer = _parse(Footer.read, body)
-            self._footer_offset = offset
+        elif isinstance(record, Statistics):
+            self._statistics = record
+        elif isinstance(record, Footer):
+            pass
         return []
 
-    def _chunk(self, chunk: Chunk, offset: int) -> list[tuple[ChannelInfo, BagMessage]]:
-        data = _decompress(chunk)
-        if len(data) != chunk.uncompressed_size:
-            raise self._fail(offset, f"chunk decompresses to {len(data)} bytes, "
-                             f"not {chunk.uncompressed_size}")
-        if chunk.uncompressed_crc != 0:
-            if zlib.crc32(data) != chunk.uncompressed_crc:
-                raise self._fail(offset, "chunk CRC mismatch")
-            self.info.crc_checked_chunks += 1
-        records = []
-        position = 0
-        while position < len(data):
-            opcode, length = _RECORD_PREFIX.unpack_from(data, position)
-            start = position + _RECORD_PREFIX.size
-            if start + length > len(data):
-                raise self._fail(offset, "chunk holds a record that extends past its end")
-            records.append((opcode, data[start:start + length]))
-            position = start + length
-        released = self._apply(records, offset)
-        self.info.chunk_count += 1
-        self.info.compressions.add(chunk.compression or "none")
-        self._chunk_offsets.add(offset)
-        return released
-
-    def _apply(self, records: list[tuple[int, bytes]],
-               offset: int) -> list[tuple[ChannelInfo, BagMessage]]:
+    def _apply(self, records: list[McapRecord]) -> list[tuple[ChannelInfo, BagMessage]]:
         """Validate a group of records, then register schemas/channels and count messages."""
         schemas = dict(self.info.schemas)
         channels = dict(self.info.channels)
         messages = []
-        for opcode, body in records:
-            if opcode == Opcode.SCHEMA:
-                record = _parse(Schema.read, body)
+        for record in records:
+            if isinstance(record, Schema):
                 schema = SchemaInfo(record.id, record.name, record.encoding, bytes(record.data))
                 if schemas.setdefault(schema.id, schema) != schema:
-                    raise self._fail(offset, f"schema id {schema.id} is defined twice, "
-                                     "differently")
-            elif opcode == Opcode.CHANNEL:
-                record = _parse(Channel.read, body)
+                    raise self._fail(f"schema id {schema.id} is defined twice, differently")
+            elif isinstance(record, Channel):
                 channel = ChannelInfo(record.id, record.topic, record.message_encoding,
                                       record.schema_id, dict(record.metadata))
                 if channel.schema_id != 0 and channel.schema_id not in schemas:
-                    raise self._fail(offset, f"channel {channel.topic} refers to unknown "
-                                     f"schema id {channel.schema_id}")
+                    raise self._fail(f"channel {channel.topic} refers to unknown schema id "
+                                     f"{channel.schema_id}")
                 if channels.setdefault(channel.id, channel) != channel:
-                    raise self._fail(offset, f"channel id {channel.id} is defined twice, "
-                                     "differently")
-            elif opcode == Opcode.MESSAGE:
-                channel_id, sequence, log_time, publish_time = _MESSAGE_PREFIX.unpack_from(body)
-                if channel_id not in channels:
-                    raise self._fail(offset, f"message on unknown channel id {channel_id}")
-                messages.append((channels[channel_id], BagMessage(
-                    channel_id, sequence, log_time, publish_time,
-                    body[_MESSAGE_PREFIX.size:])))
+                    raise self._fail(f"channel id {channel.id} is defined twice, differently")
+            elif isinstance(record, Message):
+                if record.channel_id not in channels:
+                    raise self._fail(f"message on unknown channel id {record.channel_id}")
+                messages.append((channels[record.channel_id], BagMessage(
+                    record.channel_id, record.sequence, record.log_time, record.publish_time,
+                    bytes(record.data))))
         self.info.schemas, self.info.channels = schemas, channels
         counts = self.info.channel_message_counts
         for channel, message in messages:
@@ -330,34 +276,8 @@ class BagScanner:
         self.info.message_count += len(messages)
         return messages
 
-    # ----- end of file checks -------------------------------------------------------------
-    def _finish(self, stream: io.BufferedReader, offset: int) -> None:
-        tail = stream.read(len(MAGIC) + 1)
-        if tail != MAGIC:
-            raise self._fail(offset, "footer is not followed by the closing magic bytes"
-                             if tail[:len(MAGIC)] != MAGIC else "data after the closing magic")
-        self._check_summary_crc(stream)
-        self._check_statistics()
-        indexed = {index.chunk_start_offset for index in self._chunk_indexes}
-        if self._chunk_indexes and indexed != self._chunk_offsets:
-            raise self._fail(offset, f"chunk indexes list {len(indexed)} chunks, "
-                             f"the file holds {len(self._chunk_offsets)}")
-        self.info.readable_bytes = offset + len(MAGIC)
-        self.info.complete = True
-
-    def _check_summary_crc(self, stream: io.BufferedReader) -> None:
-        footer = self._footer
-        if footer.summary_crc == 0 or footer.summary_start == 0:
-            return
-        stream.seek(footer.summary_start)
-        summary = stream.read(self._footer_offset - footer.summary_start)
-        crc = zlib.crc32(summary)
-        crc = zlib.crc32(_FOOTER_CRC_PREFIX.pack(Opcode.FOOTER, 20, footer.summary_start,
-                                                 footer.summary_offset_start), crc)
-        if crc != footer.summary_crc:
-            raise self._fail(self._footer_offset, "summary section CRC mismatch")
-
     def _check_statistics(self) -> None:
+        """The Statistics record (if any) must describe what the data section held."""
         stats = self._statistics
         if stats is None:
             return
@@ -374,12 +294,11 @@ class BagScanner:
                        ("message end time", stats.message_end_time, info.last_log_ns)]
         for what, stated, actual in checks:
             if stated != actual:
-                raise self._fail(self._footer_offset,
-                                 f"statistics {what} is {stated}, the file holds {actual}")
+                raise self._fail(f"statistics {what} is {stated}, the file holds {actual}")
 
 
 def scan_bag(path: str | os.PathLike[str], *, tolerant: bool = False) -> BagInfo:
-    """Walk and validate a whole recording; returns what it holds."""
+    """Walk and validate a whole recording (file or bag directory); returns what it holds."""
     scanner = BagScanner(path, tolerant=tolerant)
     for _ in scanner.messages():
         pass

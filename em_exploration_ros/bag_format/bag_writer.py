@@ -94,6 +94,11 @@ class BagWriter:
         self._closed = False
 
     @property
+    def closed(self) -> bool:
+        """True once ``close()`` was called."""
+        return self._closed
+
+    @property
     def message_count(self) -> int:
         """Messages written so far."""
         return sum(topic.count for topic in self._topics.values())

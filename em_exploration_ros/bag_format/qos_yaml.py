@@ -15,8 +15,6 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import yaml
 
-from em_exploration_ros.bag_format.yaml_emit import dump_block
-
 SYSTEM_DEFAULT = "system_default"
 UNKNOWN = "unknown"
 BEST_AVAILABLE = "best_available"
@@ -84,8 +82,9 @@ def qos_profile_node(profile: QosProfile) -> dict[str, Any]:
 
 
 def qos_profiles_to_yaml(profiles: Iterable[QosProfile]) -> str:
-    """The ``offered_qos_profiles`` channel metadata string (as ``YAML::Dump`` writes it)."""
-    return dump_block([qos_profile_node(p) for p in profiles])
+    """The ``offered_qos_profiles`` channel metadata string: a YAML sequence of profiles in
+    block style (rosbag2 parses it with yaml-cpp, which reads any YAML layout)."""
+    return yaml.safe_dump([qos_profile_node(p) for p in profiles], sort_keys=False)
 
 
 def _policy(value: Any, names: Mapping[str, int], field: str) -> str:

@@ -8,7 +8,8 @@ custom_data, ros_distro. Times are nanoseconds (``{nanoseconds: N}`` and
 ``{nanoseconds_since_epoch: N}``); each topic carries name, type, serialization_format,
 offered_qos_profiles (since version 9 a nested sequence, not a string) and
 type_description_hash. MCAP chunk compression is a storage option, so compression_format
-and compression_mode stay empty as rosbag2 leaves them.
+and compression_mode stay empty as rosbag2 leaves them. An empty custom_data is written as
+YAML null, as rosbag2 writes it (``custom_data: ~``).
 """
 from __future__ import annotations
 
@@ -19,7 +20,6 @@ import yaml
 
 from em_exploration_ros.bag_format.qos_yaml import (
     QosFormatError, QosProfile, qos_profile_from_node, qos_profile_node, qos_profiles_from_yaml)
-from em_exploration_ros.bag_format.yaml_emit import dump_block
 
 METADATA_RECORD_NAME = "rosbag2"
 SERIALIZED_METADATA_KEY = "serialized_metadata"
@@ -98,8 +98,9 @@ def bag_metadata_node(metadata: BagMetadata) -> dict[str, Any]:
 
 
 def serialize_bag_metadata(metadata: BagMetadata) -> str:
-    """The ``serialized_metadata`` value of the ``rosbag2`` Metadata record."""
-    return dump_block(bag_metadata_node(metadata))
+    """The ``serialized_metadata`` value of the ``rosbag2`` Metadata record (YAML, keys in
+    rosbag2's order, block style; rosbag2 reads it with yaml-cpp)."""
+    return yaml.safe_dump(bag_metadata_node(metadata), sort_keys=False)
 
 
 def _topic_from_node(node: Mapping[str, Any], version: int) -> TopicInformation:

@@ -17,7 +17,8 @@ from em_exploration_ros.core.sim.sensors import LandmarkReading, TeammateReading
 from em_exploration_ros.core.sim.simulation import SensorFrame
 from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
 from em_exploration_ros.core.sim.wire_model import (NANOSECONDS_PER_SECOND,
-                                                nanoseconds_to_seconds, planar_quaternion,
+                                                nanoseconds_to_seconds,
+                                                planar_covariance_to_6x6, planar_quaternion,
                                                 planar_yaw, seconds_to_nanoseconds)
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
                                                      RendezvousEvent, RendezvousState,
@@ -103,8 +104,9 @@ def sonar_scan_to_msg(frame: SensorFrame, max_range_m: float,
 
 
 def odometry_to_msg(robot_id: int, stamp_s: float, pose: np.ndarray, frame_id: str,
-                    child_frame_id: str, twist_covariance: np.ndarray | None = None) -> Odometry:
-    """A planar pose (x [m], y [m], theta [rad]) as nav_msgs/Odometry."""
+                    child_frame_id: str, twist_covariance: np.ndarray | None = None,
+                    pose_covariance: np.ndarray | None = None) -> Odometry:
+    """A planar pose (x [m], y [m], theta [rad]) as nav_msgs/Odometry; covariances are 6x6."""
     message = Odometry()
     message.header.stamp = seconds_to_time(stamp_s)
     message.header.frame_id = frame_id
@@ -114,14 +116,18 @@ def odometry_to_msg(robot_id: int, stamp_s: float, pose: np.ndarray, frame_id: s
     message.pose.pose.orientation = yaw_to_quaternion(float(pose[2]))
     if twist_covariance is not None:
         message.twist.covariance = _flat(twist_covariance)
+    if pose_covariance is not None:
+        message.pose.covariance = _flat(pose_covariance)
     return message
 
 
 def dead_reckoning_to_msg(frame: SensorFrame) -> Odometry:
-    """The dead-reckoning part of a sensor frame, REP-105 odom -> base_link."""
+    """The dead-reckoning part of a sensor frame, REP-105 odom -> base_link, with the
+    covariance of its accumulated noise (pose) and of the last step's velocity (twist)."""
     namespace = robot_namespace(frame.robot_id)
     return odometry_to_msg(frame.robot_id, frame.stamp_s, frame.odom_pose, f"{namespace}/odom",
-                           f"{namespace}/base_link", frame.twist_covariance)
+                           f"{namespace}/base_link", frame.twist_covariance,
+                           planar_covariance_to_6x6(frame.odom_pose_covariance))
 
 
 def odometry_pose(message: Odometry) -> np.ndarray:

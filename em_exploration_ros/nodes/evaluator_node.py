@@ -73,7 +73,8 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, landma
                                                   time_to_seconds)
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
-from em_exploration_ros.nodes.qos import (ESTIMATE_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS,
+from em_exploration_ros.nodes.qos import (ESTIMATE_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
+                                          SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   content_problem, header_problem,
@@ -185,7 +186,7 @@ class EvaluatorNode(Node):
         for robot in range(self.num_robots):
             ns = robot_namespace(robot)
             self.create_subscription(Odometry, f"/world/ground_truth/{ns}",
-                                     lambda m, r=robot: self._on_truth(r, m), STREAM_QOS)
+                                     lambda m, r=robot: self._on_truth(r, m), GROUND_TRUTH_QOS)
             self.create_subscription(PathMsg, f"/{ns}/estimated_path",
                                      lambda m, r=robot: self._on_path(r, m),
                                      ESTIMATE_QOS)

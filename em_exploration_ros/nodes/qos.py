@@ -7,8 +7,10 @@
 | ``LATCHED_QOS`` (reliable, keep last 1, transient local) | /world/landmarks, /robot_<i>/virtual_map, /robot_<i>/markers, /robot_<i>/target | state whose last value a late subscriber (RViz, Foxglove) needs at once |
 | ``ESTIMATE_QOS`` (reliable, keep last ``ESTIMATE_DEPTH`` = 20, transient local) | /robot_<i>/estimated_path, /robot_<i>/landmarks | as latched, and a reader that matched late (the evaluator, when discovery packets were lost) still gets the estimates of the last 20 keyframes, so its evaluations as of each keyframe are the same whatever the network did |
 | ``CLOCK_QOS`` (best effort, keep last 1) | /clock | the ROS 2 convention for /clock; only the newest time matters |
+| ``TF_QOS``, ``TF_STATIC_QOS`` | /tf, /tf_static | tf2's own profiles (below), which every tf2 listener, RViz and Foxglove expect |
 | ``LIVELINESS_QOS`` (reliable, keep last 1, volatile, automatic liveliness with a ``LIVELINESS_LEASE_S`` lease) | /robot_<i>/alive (no data) | the middleware asserts each robot process's liveliness; a process that dies, is stopped or wedges (its participant no longer asserts) is reported lost to the world, the teammates and the evaluator within the lease |
-| ``STREAM_QOS`` (reliable, keep all, volatile) | /world/ground_truth/robot_<i>, /evaluation/metrics | evaluation streams: the evaluator needs every true pose even when it lags behind a fast lockstep world (a keep-last-100 queue lost 100 steps at a real-time factor of 7) |
+| ``GROUND_TRUTH_QOS`` (reliable, keep last ``GROUND_TRUTH_DEPTH`` = 3000, transient local) | /world/ground_truth/robot_<i> | the evaluator needs every true pose: from the first step even when its reader matched late (the world waits until the evaluator's subscriptions show in the graph, but under load the middleware matched them seconds later and the first steps were lost), and while it lags behind a fast lockstep world (a keep-last-100 queue lost 100 steps at a real-time factor of 7); 3000 steps are 600 s of simulation, about 2 MB per robot in the world |
+| ``STREAM_QOS`` (reliable, keep all, volatile) | /evaluation/metrics | the evaluator's output stream: every sample for a live subscriber |
 """
 from rclpy.duration import Duration
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
@@ -36,6 +38,19 @@ CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                        durability=DurabilityPolicy.VOLATILE)
 STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
+#: Steps of ground truth the world keeps for a late or lagging reader.
+GROUND_TRUTH_DEPTH = 3000
+GROUND_TRUTH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=GROUND_TRUTH_DEPTH,
+                              reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: /tf as tf2's TransformBroadcaster offers it (reliable, keep last 100, volatile): transforms
+#: that change are re-sent all the time, so a late subscriber only waits for the next ones.
+TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                    reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.VOLATILE)
+#: /tf_static as tf2's StaticTransformBroadcaster offers it (reliable, transient local, keep
+#: last 1): published once, kept for every late subscriber. The same profile as LATCHED_QOS.
+TF_STATIC_QOS = LATCHED_QOS
 LIVELINESS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                             reliability=ReliabilityPolicy.RELIABLE,
                             durability=DurabilityPolicy.VOLATILE,

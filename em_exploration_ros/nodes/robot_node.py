@@ -2,7 +2,9 @@
 
 A thin shell around ``core.agent.robot_agent.RobotAgent``. Inputs: its own sonar and dead
 reckoning from the world simulator, robot 0's launch pose (the mission's map anchor), and
-its teammates' team updates. It never subscribes to ground truth.
+its teammates' team updates. It never subscribes to ground truth. Besides its team
+updates and what users see, it publishes its TF ``map`` -> ``robot_i/odom`` ->
+``robot_i/base_link`` every step (nodes/tf_publishing.py).
 
 Lockstep: each SonarScan carries the world's barrier (``team_sequences``). The node
 processes a step only when it holds every teammate's updates up to the barrier, asking
@@ -62,7 +64,7 @@ from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.node_settings import RobotNodeSettings
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, sim_time_s,
                                                 twist_to_increment_covariance)
-from em_exploration_ros.nodes import visualization
+from em_exploration_ros.nodes import tf_publishing, visualization
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_msg,
                                                   landmark_reading_from_msg,
                                                   odometry_pose, odometry_twist_covariance,
@@ -141,6 +143,7 @@ class RobotNode(Node):
         self.grid_pub = self.create_publisher(OccupancyGrid, f"/{ns}/virtual_map", LATCHED_QOS)
         self.markers_pub = self.create_publisher(MarkerArray, f"/{ns}/markers", LATCHED_QOS)
         self.target_pub = self.create_publisher(PointStamped, f"/{ns}/target", LATCHED_QOS)
+        self.tf_pub = tf_publishing.create_tf_publisher(self)
         self.create_subscription(PoseStamped, "/mission/anchor_pose", self._on_anchor,
                                  LATCHED_QOS)
         self.create_subscription(SonarScan, f"/{ns}/sonar", self._on_scan, SENSOR_QOS)
@@ -456,6 +459,7 @@ class RobotNode(Node):
         if update is not None:
             publish_or_log(self.update_pub, team_update_to_msg(update), self,
                            f"team update {update.sequence} (teammates will ask for it again)")
+        self._publish_transforms(stamp_s, odometry)
         linear_x, angular_z = command_to_twist(command.turn_rad, command.forward_m,
                                                self.time_step_s)
         reply = MotionCommand(robot_id=self.robot_id, step=step,
@@ -470,6 +474,15 @@ class RobotNode(Node):
             self._publish_decision(stamp_s)
 
     # -- what users see --------------------------------------------------------------------
+
+    def _publish_transforms(self, stamp_s: float, odometry: Odometry) -> None:
+        """/tf ``map`` -> ``odom`` -> ``base_link`` of this step, once the robot is anchored."""
+        pose = self.agent.current_pose()
+        if pose is not None:
+            transforms = tf_publishing.robot_transforms(self.robot_id, pose,
+                                                        odometry_pose(odometry))
+            publish_or_log(self.tf_pub, tf_publishing.tf_message(stamp_s, transforms), self,
+                           "the robot's transforms")
 
     def _publish_estimates(self, stamp_s: float) -> None:
         agent = self.agent
@@ -502,6 +515,7 @@ class RobotNode(Node):
             geometry, poses, pose_covariances, self.params.sensors, self.params.map)
         centres = geometry.cell_centers().reshape(-1, 2)[observed.ravel()]
         self.markers_pub.publish(visualization.marker_array(
+            stamp_s,
             visualization.ellipse_markers(centres, covariances.reshape(-1, 2, 2)[observed.ravel()],
                                           stamp_s),
             visualization.frontier_markers(agent.last_candidates, target, stamp_s),

@@ -101,8 +101,10 @@ def landmark_markers(landmarks: dict[int, np.ndarray], radius_m: float,
     return markers
 
 
-def marker_array(*groups: list[Marker]) -> MarkerArray:
-    """A MarkerArray that first clears the previous one."""
+def marker_array(stamp_s: float, *groups: list[Marker]) -> MarkerArray:
+    """A MarkerArray that first clears the previous one (the clearing marker stamped with the
+    simulation time ``stamp_s`` [s] of the markers that replace it)."""
     clear = Marker(action=Marker.DELETEALL)
+    clear.header.stamp = seconds_to_time(stamp_s)
     clear.header.frame_id = MAP_FRAME
     return MarkerArray(markers=[clear] + [m for group in groups for m in group])

@@ -4,6 +4,8 @@ It is the system's clock and its only source of ground truth. Topics (QoS from n
 
 - ``/clock`` (rosgraph_msgs/Clock): the simulation time of the current step;
 - ``/mission/anchor_pose`` (PoseStamped, latched, frame ``map``): robot 0's launch pose;
+- ``/tf_static`` ``world`` -> ``map`` (from the anchor) and ``/tf`` ``world`` ->
+  ``robot_i/base_link_truth`` every step (nodes/tf_publishing.py);
 - per robot i: ``/robot_i/sonar`` (SonarScan), ``/robot_i/odom`` (Odometry, REP-105
   ``robot_i/odom`` -> ``robot_i/base_link``), subscribes ``/robot_i/motion_command``;
 - ground truth, under ``/world`` only: ``/world/ground_truth/robot_i`` (Odometry, frame
@@ -60,9 +62,10 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
                                                   odometry_to_msg, robot_namespace,
                                                   seconds_to_time, sonar_scan_to_msg,
                                                   yaw_to_quaternion)
+from em_exploration_ros.nodes import tf_publishing
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
-from em_exploration_ros.nodes.qos import CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS
+from em_exploration_ros.nodes.qos import CLOCK_QOS, GROUND_TRUTH_QOS, LATCHED_QOS, SENSOR_QOS
 from em_exploration_ros.nodes.input_guard import InputGuard, content_problem, header_problem
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
@@ -150,33 +153,39 @@ class WorldNode(Node):
         self.landmarks_pub = self.create_publisher(LandmarkArray, "/world/landmarks",
                                                    LATCHED_QOS)
         self.markers_pub = self.create_publisher(MarkerArray, "/world/markers", LATCHED_QOS)
+        self.tf_pub = tf_publishing.create_tf_publisher(self)
+        self.tf_static_pub = tf_publishing.create_tf_static_publisher(self)
         self.sonar_pubs, self.odom_pubs, self.truth_pubs, self.command_subs = [], [], [], []
         for robot in range(self.num_robots):
             ns = robot_namespace(robot)
             self.sonar_pubs.append(self.create_publisher(SonarScan, f"/{ns}/sonar", SENSOR_QOS))
             self.odom_pubs.append(self.create_publisher(Odometry, f"/{ns}/odom", SENSOR_QOS))
             self.truth_pubs.append(self.create_publisher(
-                Odometry, f"/world/ground_truth/{ns}", STREAM_QOS))
+                Odometry, f"/world/ground_truth/{ns}", GROUND_TRUTH_QOS))
             self.command_subs.append(self.create_subscription(
                 MotionCommand, f"/{ns}/motion_command",
                 lambda message, robot=robot: self._on_command(robot, message), SENSOR_QOS))
         watch_liveliness(self, list(range(self.num_robots)), self._on_liveliness)
 
     def _publish_mission(self) -> None:
-        """The latched mission set-up: robot 0's launch pose, the landmarks, the markers."""
+        """The latched mission set-up at the first step's time: robot 0's launch pose, the
+        landmarks, the markers, and the static ``world`` -> ``map`` transform it defines."""
         world = self.sim.world
+        stamp_s = self.sim.stamp_s
         anchor = PoseStamped()
-        anchor.header.stamp = seconds_to_time(0.0)
+        anchor.header.stamp = seconds_to_time(stamp_s)
         anchor.header.frame_id = MAP_FRAME
         start = world.start_poses[0]
         anchor.pose.position.x, anchor.pose.position.y = float(start[0]), float(start[1])
         anchor.pose.orientation = yaw_to_quaternion(float(start[2]))
         self.anchor_pub.publish(anchor)
+        self.tf_static_pub.publish(tf_publishing.tf_message(
+            stamp_s, [tf_publishing.anchor_transform(start, start)]))
         landmarks = [LandmarkEstimate(int(i), p, np.zeros((2, 2)))
                      for i, p in zip(world.landmark_ids, world.landmarks)]
-        self.landmarks_pub.publish(landmark_array_to_msg(0.0, WORLD_FRAME, landmarks,
+        self.landmarks_pub.publish(landmark_array_to_msg(stamp_s, WORLD_FRAME, landmarks,
                                                          world.landmark_radius_m))
-        self.markers_pub.publish(world_markers(world, 0.0))
+        self.markers_pub.publish(world_markers(world, stamp_s))
 
     # -- start-up ---------------------------------------------------------------------------
 
@@ -362,6 +371,8 @@ class WorldNode(Node):
             self.truth_pubs[robot].publish(odometry_to_msg(
                 robot, sim.stamp_s, sim.true_pose(robot), WORLD_FRAME,
                 f"{robot_namespace(robot)}/base_link"))
+        self.tf_pub.publish(tf_publishing.tf_message(sim.stamp_s, tf_publishing.truth_transforms(
+            [sim.true_pose(robot) for robot in range(self.num_robots)])))
         if sim.step % _LOG_EVERY_STEPS == 0:
             self.get_logger().info(f"step {sim.step} (t = {sim.stamp_s:g} s)")
         if sim.step >= self.final_step:

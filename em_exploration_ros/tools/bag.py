@@ -1,23 +1,29 @@
-"""em-bag: inspect and repair MCAP recordings (no ROS needed).
+"""em-bag: inspect and repair recordings (no ROS needed).
 
-    em-bag info FILE        topics, types, counts, duration, size, compression, start/end
+A recording BAG is a bag directory (metadata.yaml and one .mcap file, as em-record and
+``ros2 bag record -s mcap`` write it) or a single .mcap file.
+
+    em-bag info BAG         topics, types, counts, duration, size, compression, start/end
     em-bag repair IN OUT    rewrite the readable chunks of a damaged recording (e.g. one whose
-                            recorder was killed) as a complete, valid file
-    em-bag render FILE --out PNG
+                            recorder was killed) as a complete, valid one: a bag directory
+                            OUT for a directory IN, an .mcap file OUT for a file IN
+    em-bag render BAG --out PNG
                             draw the final team map of a recorded run (tools/bag_render.py;
                             needs the ROS message packages, not a ROS graph)
 
-A file that cannot be read gives a one-line error and exit status 2.
+A recording that cannot be read gives a one-line error and exit status 2.
 """
 from __future__ import annotations
 
 import argparse
 import math
+import shutil
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from em_exploration_ros.bag_format.bag_directory import BagDirectoryWriter
 from em_exploration_ros.bag_format.bag_reader import BagError, BagInfo, BagScanner, scan_bag
 from em_exploration_ros.bag_format.bag_writer import BagWriter
 from em_exploration_ros.bag_format.mcap_ros2_schema import MessageDefinition
@@ -88,17 +94,18 @@ class RepairResult:
 
 
 def repair(source: Path, target: Path) -> RepairResult:
-    """Rewrite the readable records of ``source`` as a complete recording at ``target``.
+    """Rewrite the readable records of ``source`` as a complete recording at ``target`` (a
+    new bag directory if ``source`` is one, else a new .mcap file).
 
     Keeps every message of every chunk that is whole and passes its CRC, with the schemas
     and channels (QoS, type hash) they use; the first damaged record ends the recovery.
     The output gets a fresh summary and rosbag2 metadata record. Raises BagError if
-    ``source`` is not an MCAP file and FileExistsError if ``target`` exists.
+    ``source`` is not a recording and FileExistsError if ``target`` exists.
     """
     if source.resolve() == target.resolve():
         raise BagError(f"{target}: repair must write to a different file than it reads")
     scanner = BagScanner(source, tolerant=True)
-    writer = BagWriter(target)
+    writer = BagDirectoryWriter(target) if source.is_dir() else BagWriter(target)
     channel_map: dict[int, int] = {}
 
     def register(channel_id: int) -> int | None:
@@ -126,7 +133,10 @@ def repair(source: Path, target: Path) -> RepairResult:
             register(channel_id)
     except BaseException:
         writer.close()
-        target.unlink(missing_ok=True)
+        if target.is_dir():
+            shutil.rmtree(target)
+        else:
+            target.unlink(missing_ok=True)
         raise
     writer.close()
     info = scanner.info
@@ -162,17 +172,18 @@ def _render_command(args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """Entry point of em-bag."""
-    parser = argparse.ArgumentParser(prog="em-bag", description="Inspect MCAP recordings.")
+    parser = argparse.ArgumentParser(
+        prog="em-bag", description="Inspect recordings (bag directories or .mcap files).")
     commands = parser.add_subparsers(dest="command", required=True)
     info = commands.add_parser("info", help="summarize a recording")
-    info.add_argument("file", type=Path)
+    info.add_argument("file", type=Path, metavar="BAG")
     info.set_defaults(run=_info_command)
     fix = commands.add_parser("repair", help="recover the readable part of a damaged recording")
     fix.add_argument("input", type=Path)
     fix.add_argument("output", type=Path)
     fix.set_defaults(run=_repair_command)
     draw = commands.add_parser("render", help="draw the final team map of a recorded run")
-    draw.add_argument("file", type=Path)
+    draw.add_argument("file", type=Path, metavar="BAG")
     draw.add_argument("--out", type=Path, required=True, metavar="PNG",
                       help="the picture to write (PNG)")
     draw.set_defaults(run=_render_command)

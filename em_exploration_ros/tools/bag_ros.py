@@ -1,17 +1,24 @@
-"""rclpy glue shared by em-record and em-replay: message classes, QoS conversion, CLI args."""
+"""rclpy glue shared by em-record, em-replay and em-foxglove: message classes and schemas,
+topic discovery, QoS conversion, CLI args."""
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
+from collections.abc import Container, Iterator
 from typing import Any, Callable
 
 from rclpy.duration import Duration
+from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from em_exploration_ros.bag_format.interface_index import split_type_name
+from em_exploration_ros.bag_format.mcap_ros2_schema import (
+    DefinitionNotFoundError, MessageDefinition, build_message_definition)
 from em_exploration_ros.bag_format.qos_yaml import DURATION_INFINITE_NS, QosProfile
+from em_exploration_ros.bag_format.topic_selection import TopicSelection
 
 _POLICY_ENUMS: dict[str, Any] = {
     "history": HistoryPolicy, "reliability": ReliabilityPolicy,
@@ -32,6 +39,27 @@ def import_message_class(type_name: str) -> type:
         return getattr(importlib.import_module(f"{package}.{namespace}"), name)
     except (ImportError, AttributeError) as error:
         raise MessageTypeError(f"message type {type_name} is not installed ({error})") from None
+
+
+def message_type_support(type_name: str) -> tuple[type, MessageDefinition]:
+    """The Python class and the complete definition (schema text) of ``pkg/msg/Type``;
+    raises MessageTypeError if either is not installed."""
+    try:
+        return import_message_class(type_name), build_message_definition(type_name)
+    except DefinitionNotFoundError as error:
+        raise MessageTypeError(str(error)) from None
+
+
+def new_selected_topics(node: Node, selection: TopicSelection, known: Container[str]
+                        ) -> Iterator[tuple[str, list[str], list[TopicEndpointInfo]]]:
+    """``(topic, types, publishers)`` of every topic of the ROS graph that ``selection``
+    takes, that is not in ``known`` and that has publishers now."""
+    for topic, types in node.get_topic_names_and_types():
+        if topic in known or not selection.matches(topic):
+            continue
+        publishers = node.get_publishers_info_by_topic(topic)
+        if publishers:
+            yield topic, types, publishers
 
 
 def _policy_name(value: Any) -> str:

@@ -1,4 +1,7 @@
-"""em-record: record ROS 2 topics into a rosbag2-compatible MCAP file.
+"""em-record: record ROS 2 topics into a bag directory as ``ros2 bag record -s mcap`` does.
+
+The output ``-o NAME`` is a new directory holding ``NAME_0.mcap`` and, once the recording is
+closed, ``metadata.yaml`` (bag_format/bag_directory.py).
 
 The recorder polls the ROS graph and subscribes to every selected topic as soon as it has a
 publisher (topics that appear later are picked up at the next poll). Subscriptions are raw:
@@ -8,9 +11,9 @@ publisher can serve (reliable only if all publishers are, transient-local only i
 with a deep keep-last queue. Chunks close at ``--chunk-size`` bytes or every
 ``--chunk-interval`` seconds, whichever comes first, and go to the OS at once, so a killed
 recorder leaves a file whose chunks ``em-bag repair`` recovers. Ctrl-C or SIGTERM writes the
-summary, the rosbag2 metadata record and the footer.
+summary, the rosbag2 metadata record and the footer, then metadata.yaml.
 
-    em-record [-o FILE] [--topics T ...] [--regex RE] [--exclude RE]
+    em-record [-o DIR] [--topics T ...] [--regex RE] [--exclude RE]
               [--compression zstd|lz4|none] [--chunk-size BYTES] [--chunk-interval S]
               [--ros-args ...]
 """
@@ -28,15 +31,14 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.topic_endpoint_info import TopicEndpointInfo
 
-from em_exploration_ros.bag_format.bag_writer import (
-    COMPRESSIONS, DEFAULT_CHUNK_SIZE, BagWriter)
+from em_exploration_ros.bag_format.bag_directory import BagDirectoryWriter
+from em_exploration_ros.bag_format.bag_writer import COMPRESSIONS, DEFAULT_CHUNK_SIZE
 from em_exploration_ros.bag_format.interface_index import read_type_hash
-from em_exploration_ros.bag_format.mcap_ros2_schema import (
-    DefinitionNotFoundError, build_message_definition)
 from em_exploration_ros.bag_format.qos_yaml import request_for_offers
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.tools.bag_ros import (
-    MessageTypeError, cli_args, import_message_class, number_type, qos_from_rclpy, qos_to_rclpy)
+    MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
+    qos_from_rclpy, qos_to_rclpy)
 
 EXIT_USAGE = 2
 
@@ -57,9 +59,11 @@ class RecordOptions:
 def parse_options(args: list[str]) -> RecordOptions:
     """Parse em-record arguments (ROS arguments removed); exits with status 2 on bad ones."""
     parser = argparse.ArgumentParser(
-        prog="em-record", description="Record ROS 2 topics into an MCAP file (rosbag2 format).")
+        prog="em-record",
+        description="Record ROS 2 topics into a bag directory (rosbag2 format, MCAP storage).")
     parser.add_argument("-o", "--output", default=None,
-                        help="output file (default: em_run_<date>_<time>.mcap); must not exist")
+                        help="output bag directory (default: em_run_<date>_<time>); must not "
+                        "exist")
     parser.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
                         help="record these topics (default: all)")
     parser.add_argument("--regex", default=None, metavar="RE",
@@ -88,7 +92,7 @@ def parse_options(args: list[str]) -> RecordOptions:
     for topic in options.topics:
         if not topic.startswith("/"):
             parser.error(f"--topics: {topic!r} is not an absolute topic name (starts with /)")
-    output = options.output or time.strftime("em_run_%Y%m%d_%H%M%S.mcap")
+    output = options.output or time.strftime("em_run_%Y%m%d_%H%M%S")
     return RecordOptions(
         output=output,
         selection=TopicSelection.from_strings(options.topics, options.regex, options.exclude),
@@ -100,7 +104,7 @@ def parse_options(args: list[str]) -> RecordOptions:
 class Recorder(Node):
     """Subscribes to the selected topics as they appear and writes what arrives."""
 
-    def __init__(self, writer: BagWriter, options: RecordOptions) -> None:
+    def __init__(self, writer: BagDirectoryWriter, options: RecordOptions) -> None:
         # No /rosout: the recorder would record its own log, and its last line is written
         # after a signal has already shut the context down.
         super().__init__("em_record", enable_rosout=False)
@@ -112,20 +116,16 @@ class Recorder(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(options.poll_interval_s, self._discover, clock=steady)
         self.create_timer(options.chunk_interval_s, self._writer.flush, clock=steady)
-        self.get_logger().info(f"recording to {writer.path} ({options.compression}, chunks of "
-                               f"{options.chunk_size} B or {options.chunk_interval_s:g} s)")
+        self.get_logger().info(f"recording to {writer.directory} ({options.compression}, "
+                               f"chunks of {options.chunk_size} B or "
+                               f"{options.chunk_interval_s:g} s)")
         self._discover()
 
     def _discover(self) -> None:
         """Subscribe to every selected topic that has publishers and is not recorded yet."""
-        for topic, types in self.get_topic_names_and_types():
-            if topic in self._recorded or topic in self._skipped:
-                continue
-            if not self._options.selection.matches(topic):
-                continue
-            publishers = self.get_publishers_info_by_topic(topic)
-            if publishers:
-                self._subscribe(topic, types, publishers)
+        known = self._recorded.keys() | self._skipped
+        for topic, types, publishers in new_selected_topics(self, self._options.selection, known):
+            self._subscribe(topic, types, publishers)
 
     def _skip(self, topic: str, reason: str) -> None:
         self._skipped.add(topic)
@@ -137,9 +137,8 @@ class Recorder(Node):
         if len(types) > 1:
             self.get_logger().warning(f"{topic} has several types {types}; recording {type_name}")
         try:
-            message_class = import_message_class(type_name)
-            definition = build_message_definition(type_name)
-        except (MessageTypeError, DefinitionNotFoundError) as error:
+            message_class, definition = message_type_support(type_name)
+        except MessageTypeError as error:
             self._skip(topic, str(error))
             return
         offers = tuple(qos_from_rclpy(p.qos_profile) for p in publishers)
@@ -166,7 +165,7 @@ class Recorder(Node):
         self._writer.close()
         counts = self._writer.topic_counts()
         self.get_logger().info(f"wrote {sum(counts.values())} messages on {len(counts)} topics "
-                               f"to {self._writer.path}")
+                               f"to {self._writer.directory}")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -174,8 +173,8 @@ def main(argv: list[str] | None = None) -> None:
     full_args, tool_args = cli_args(argv)
     options = parse_options(tool_args)
     try:
-        writer = BagWriter(options.output, compression=options.compression,
-                           chunk_size=options.chunk_size)
+        writer = BagDirectoryWriter(options.output, compression=options.compression,
+                                    chunk_size=options.chunk_size)
     except OSError as error:
         sys.stderr.write(f"em-record: cannot create {options.output}: {error.strerror}\n")
         sys.exit(EXIT_USAGE)

@@ -1,4 +1,4 @@
-"""em-replay: publish a recording with its original timing and QoS.
+"""em-replay: publish a recording (bag directory or .mcap file) with its timing and QoS.
 
 Messages go out in file order (the recorder writes them in order of receipt) as the raw CDR
 bytes that were recorded, each when its log time comes due: wall time since the start times
@@ -9,7 +9,7 @@ played topics include ``/clock``, the replay publishes ``/clock`` from the log t
 each message and at ``--clock-hz`` while waiting), so ``use_sim_time`` nodes follow the
 recording. Ctrl-C stops cleanly.
 
-    em-replay FILE [--rate F] [--start-offset S] [--loop] [--topics T ...] [--regex RE]
+    em-replay BAG [--rate F] [--start-offset S] [--loop] [--topics T ...] [--regex RE]
               [--exclude RE] [--remap OLD:=NEW ...] [--delay S] [--wait-for-subscribers S]
               [--clock-hz HZ] [--no-clock] [--queue-depth N]
               [--ros-args ...]
@@ -86,7 +86,8 @@ def parse_options(args: list[str]) -> ReplayOptions:
     """Parse em-replay arguments (ROS arguments removed); exits with status 2 on bad ones."""
     parser = argparse.ArgumentParser(
         prog="em-replay", description="Publish an MCAP recording with its original timing.")
-    parser.add_argument("file", type=Path, help="the recording (.mcap)")
+    parser.add_argument("file", type=Path,
+                        help="the recording: a bag directory or an .mcap file")
     parser.add_argument("--rate", type=number_type(float, allow_zero=True), default=1.0,
                         help="playback speed factor; 0 = as fast as possible (default: 1)")
     parser.add_argument("--start-offset", type=number_type(float, allow_zero=True), default=0.0,

@@ -24,6 +24,7 @@ class SensorFrame:
     """One robot's sensor output at one step, as published.
 
     ``odom_pose``: dead-reckoning pose in ``robot_<i>/odom`` (x [m], y [m], theta [rad]);
+    ``odom_pose_covariance``: 3x3 covariance of its accumulated noise (odom frame);
     ``twist_covariance``: 6x6 covariance of the last step's velocity (nav_msgs/Odometry
     convention), from which the robot recovers the per-step increment covariance.
     """
@@ -32,6 +33,7 @@ class SensorFrame:
     step: int
     stamp_s: float
     odom_pose: np.ndarray
+    odom_pose_covariance: np.ndarray
     twist_covariance: np.ndarray
     landmarks: tuple[LandmarkReading, ...]
     teammates: tuple[TeammateReading, ...]
@@ -67,6 +69,7 @@ class WorldSimulation:
         return SensorFrame(
             robot_id=robot_id, step=self.step, stamp_s=self.stamp_s,
             odom_pose=self._dead_reckoning[robot_id].pose,
+            odom_pose_covariance=self._dead_reckoning[robot_id].covariance,
             twist_covariance=self._twist_covariance[robot_id].copy(),
             landmarks=tuple(self._sensors.sonar(robot_id, pose)),
             teammates=tuple(self._sensors.teammates(robot_id, self._true_poses, self.active)))
@@ -79,7 +82,7 @@ class WorldSimulation:
         current, _ = advance_robot(self.world, previous, turn, forward, self.params.motion)
         self._true_poses[robot_id] = current
         reading = self._sensors.odometry(robot_id, previous, current)
-        self._dead_reckoning[robot_id].add(reading.delta)
+        self._dead_reckoning[robot_id].add(reading.delta, reading.covariance)
         self._twist_covariance[robot_id] = increment_covariance_to_twist(reading.covariance,
                                                                          time_step)
 

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from em_exploration_ros.core.geometry import between, compose
+from em_exploration_ros.core.geometry import between, compose, compose_jacobians
 
 NANOSECONDS_PER_SECOND = 1_000_000_000
 
@@ -61,38 +61,62 @@ def twist_to_command(linear_x: float, angular_z: float, time_step_s: float) -> t
     return angular_z * time_step_s, linear_x * time_step_s
 
 
+#: Rows/columns of (x, y, theta) in the 6x6 covariances of ROS messages, which are over
+#: (x, y, z, rotation about x, about y, about z).
+_PLANAR_INDEX = [0, 1, 5]
+
+
+def planar_covariance_to_6x6(covariance: np.ndarray) -> np.ndarray:
+    """A 3x3 covariance over (x, y, theta) as the 6x6 covariance of a ROS pose or twist; z, roll
+    and pitch are exactly zero for a planar robot, so their rows and columns are zero."""
+    full = np.zeros((6, 6))
+    full[np.ix_(_PLANAR_INDEX, _PLANAR_INDEX)] = np.asarray(covariance)
+    return full
+
+
 def increment_covariance_to_twist(covariance: np.ndarray, time_step_s: float) -> np.ndarray:
     """Covariance of a per-step increment (3x3, x/y/theta) as a 6x6 twist covariance.
 
     nav_msgs/Odometry.twist.covariance is over (vx, vy, vz, wx, wy, wz) in the child frame;
     the increment over one step is velocity times the step, so variances scale by 1/dt^2.
     """
-    twist = np.zeros((6, 6))
-    index = [0, 1, 5]
-    twist[np.ix_(index, index)] = np.asarray(covariance) / time_step_s**2
-    return twist
+    return planar_covariance_to_6x6(np.asarray(covariance) / time_step_s**2)
 
 
 def twist_to_increment_covariance(twist_covariance: np.ndarray, time_step_s: float) -> np.ndarray:
     """Inverse of ``increment_covariance_to_twist``: the 3x3 per-step increment covariance."""
-    index = [0, 1, 5]
-    return np.asarray(twist_covariance).reshape(6, 6)[np.ix_(index, index)] * time_step_s**2
+    return (np.asarray(twist_covariance).reshape(6, 6)[np.ix_(_PLANAR_INDEX, _PLANAR_INDEX)]
+            * time_step_s**2)
 
 
 class DeadReckoningIntegrator:
-    """World side: integrates noisy per-step increments into the published odometry pose."""
+    """World side: integrates noisy per-step increments into the published odometry pose,
+    and the covariance of that pose's accumulated noise (first order)."""
 
     def __init__(self) -> None:
         self._pose = np.zeros(3)
+        self._covariance = np.zeros((3, 3))
 
     @property
     def pose(self) -> np.ndarray:
         """Current dead-reckoning pose in the robot's odom frame (x [m], y [m], theta [rad])."""
         return self._pose.copy()
 
-    def add(self, increment: np.ndarray) -> np.ndarray:
-        """Apply one measured increment (body frame of the previous pose); returns the pose."""
-        self._pose = compose(self._pose, np.asarray(increment, dtype=float))
+    @property
+    def covariance(self) -> np.ndarray:
+        """Covariance (3x3, x/y/theta in the odom frame) of the noise accumulated in ``pose``
+        since the start (where the odom frame is exact)."""
+        return self._covariance.copy()
+
+    def add(self, increment: np.ndarray, covariance: np.ndarray | None = None) -> np.ndarray:
+        """Apply one measured increment (body frame of the previous pose) whose noise has
+        ``covariance`` (3x3, that body frame; None: exact); returns the pose."""
+        increment = np.asarray(increment, dtype=float)
+        if covariance is not None:
+            j_pose, j_increment = compose_jacobians(self._pose, increment)
+            self._covariance = (j_pose @ self._covariance @ j_pose.T
+                                + j_increment @ np.asarray(covariance) @ j_increment.T)
+        self._pose = compose(self._pose, increment)
         return self.pose
 
 

@@ -1,0 +1,104 @@
+"""Bag directories as ``ros2 bag record -s mcap`` writes them, and finding a bag's MCAP file.
+
+A rosbag2 bag is a directory ``NAME/`` holding its storage files, ``NAME_0.mcap`` (then
+``NAME_1.mcap`` ... when rosbag2 splits), and ``metadata.yaml``: the bag metadata under the
+key ``rosbag2_bagfile_information``, written when the recording is closed. A recording that
+was killed has no ``metadata.yaml``; its MCAP file alone is what is left (``em-bag repair``).
+
+The tools accept a bag directory or a single ``.mcap`` file wherever they read a recording.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from em_exploration_ros.bag_format.bag_writer import BagWriter
+from em_exploration_ros.bag_format.rosbag2_metadata import (
+    BagMetadata, MetadataFormatError, bag_metadata_node, parse_bag_metadata)
+
+METADATA_FILE = "metadata.yaml"
+METADATA_ROOT_KEY = "rosbag2_bagfile_information"
+STORAGE_SUFFIX = ".mcap"
+
+
+class BagPathError(ValueError):
+    """A path is neither a readable single-file bag directory nor an MCAP file."""
+
+
+def storage_file_name(directory: Path) -> str:
+    """Name of a bag directory's first storage file, as rosbag2 names it (``NAME_0.mcap``)."""
+    return f"{directory.name}_0{STORAGE_SUFFIX}"
+
+
+def metadata_yaml(metadata: BagMetadata) -> str:
+    """The text of ``metadata.yaml`` for a bag's metadata."""
+    return yaml.safe_dump({METADATA_ROOT_KEY: bag_metadata_node(metadata)}, sort_keys=False)
+
+
+def _metadata_document(directory: Path) -> dict[str, Any]:
+    """The ``rosbag2_bagfile_information`` mapping of a directory's metadata.yaml."""
+    path = directory / METADATA_FILE
+    try:
+        document: Any = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as error:
+        raise MetadataFormatError(f"{path}: {error}") from None
+    node = document.get(METADATA_ROOT_KEY) if isinstance(document, dict) else None
+    if not isinstance(node, dict):
+        raise MetadataFormatError(f"{path}: no {METADATA_ROOT_KEY} mapping")
+    return node
+
+
+def read_metadata_yaml(directory: Path) -> BagMetadata:
+    """The metadata of a bag directory; raises MetadataFormatError."""
+    return parse_bag_metadata(yaml.safe_dump(_metadata_document(directory)))
+
+
+def mcap_file(path: str | os.PathLike[str]) -> Path:
+    """The MCAP file of a recording given as a ``.mcap`` file or a bag directory.
+
+    For a directory: the file ``metadata.yaml`` names, or (no ``metadata.yaml``: a killed
+    recording) its only ``.mcap`` file. Raises BagPathError for a missing path, a directory
+    without exactly one storage file, or a bag of another storage format.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise BagPathError(f"{path}: no such file or directory")
+    if not path.is_dir():
+        return path
+    if (path / METADATA_FILE).is_file():
+        try:
+            node = _metadata_document(path)
+        except MetadataFormatError as error:
+            raise BagPathError(f"unreadable bag metadata: {error}") from None
+        if node.get("storage_identifier") != "mcap":
+            raise BagPathError(f"{path}: storage {node.get('storage_identifier')!r}, not mcap")
+        files = [str(name) for name in node.get("relative_file_paths") or []]
+    else:
+        files = sorted(p.name for p in path.glob(f"*{STORAGE_SUFFIX}"))
+    if len(files) != 1:
+        raise BagPathError(f"{path}: a bag directory with {len(files)} storage files; "
+                           "only single-file bags are read")
+    return path / files[0]
+
+
+class BagDirectoryWriter(BagWriter):
+    """A BagWriter that records into a new bag directory: ``DIR/DIR_0.mcap`` while recording,
+    plus ``DIR/metadata.yaml`` when closed. Fails with FileExistsError if ``DIR`` exists."""
+
+    def __init__(self, directory: str | os.PathLike[str], **options: Any) -> None:
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True)
+        super().__init__(self.directory / storage_file_name(self.directory), **options)
+
+    def close(self) -> None:
+        """Close the MCAP file, then write ``metadata.yaml`` (atomically). Idempotent."""
+        if self.closed:
+            return
+        super().close()
+        target = self.directory / METADATA_FILE
+        partial = target.with_name(f".{METADATA_FILE}.partial")
+        partial.write_text(metadata_yaml(self.metadata()), encoding="utf-8")
+        partial.replace(target)
