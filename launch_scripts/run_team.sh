@@ -284,7 +284,15 @@ stop_all() {
 }
 
 report_results() {
-    [[ -f $SUMMARY ]] && echo "$PROG: summary: $SUMMARY"
+    [[ -f $SUMMARY ]] && echo "$PROG: summary: $SUMMARY" && "$PYTHON" - "$SUMMARY" <<'PY' \
+        | sed "s/^/$PROG: /"
+import json, sys
+from em_exploration_ros.core.evaluation.summary import activity_line
+try:
+    print(activity_line(json.loads(open(sys.argv[1], encoding="utf-8").read())))
+except (OSError, ValueError) as error:
+    print(f"summary unreadable: {error}")
+PY
     [[ -f $MAP_PNG ]] && echo "$PROG: map:     $MAP_PNG"
     echo "$PROG: logs:    $LOG_DIR"
     [[ -n $RECORD && -d $RECORD_PATH ]] && echo "$PROG: bag:     $RECORD_PATH"

@@ -94,11 +94,16 @@ def canonical_cdr(msg: Any) -> bytes:
     The padding is located by walking the message in the layout of plain little-endian CDR
     (XCDR1, as ROS 2 serializes): each basic value aligned to its size relative to the end of
     the encapsulation header, strings and sequences prefixed by a 4-byte-aligned uint32 length,
-    strings with a terminating NUL. Fails if the walk does not end exactly at the end of the
-    data, i.e. if the serializer's layout differs from this one.
+    strings with a terminating NUL; the data end is padded to a multiple of 4 bytes (a
+    message ending in a bool or uint8). Fails if the walk does not end exactly at the end of
+    the data, i.e. if the serializer's layout differs from this one.
     """
     data = bytearray(serialize_message(msg))
     end = _zero_padding(msg, data, _CDR_HEADER_SIZE)
+    padded_end = end + (-(end - _CDR_HEADER_SIZE)) % 4
+    if padded_end == len(data):
+        data[end:padded_end] = bytes(padded_end - end)
+        end = padded_end
     if end != len(data):
         raise AssertionError(f"CDR layout walk of {type(msg).__name__} ended at byte {end}, "
                              f"the serialized data has {len(data)}")

@@ -82,6 +82,9 @@ def test_summary_json_has_counts_finals_and_paired_differences(bench_out):
         assert explored["n"] == 2 and 0.0 < explored["mean"] <= 1.0 and explored["ci95"] >= 0
         assert entry["final"]["loc_rmse_m"]["mean"] > 0.0
         assert entry["wall_s_total"] > 0.0
+        activity = entry["activity"]
+        assert sum(activity["decisions_by_type"].values()) > 0
+        assert set(activity["rendezvous"]) == {"requested", "met", "timed_out", "open"}
         assert len(entry["code_versions"]) == 1
         assert (bad["planners"][planner]["trials_done"],
                 bad["planners"][planner]["trials_failed"]) == (0, 2)

@@ -116,8 +116,11 @@ def test_rendezvous_frontiers() -> None:
     assert [f.partner_id for f in found] == [3, 4]
     assert all(f.kind == FrontierType.RENDEZVOUS for f in found)
     np.testing.assert_allclose(found[0].position, [20.0, 0.0])
-    assert found[0].waiting_penalty_m == pytest.approx(10.0)
-    assert found[1].waiting_penalty_m == pytest.approx(10.0)
+    # The paper's U_D is the distance alone; the reference code's waiting penalty is an option.
+    assert [f.waiting_penalty_m for f in found] == [0.0, 0.0]
+    with_penalty = rendezvous_frontiers(0, np.array([0.0, 0.0]), teammates,
+                                        FrontierParams(rendezvous_waiting_penalty=True))
+    assert [f.waiting_penalty_m for f in with_penalty] == pytest.approx([10.0, 10.0])
 
 
 def test_candidate_targets_dedup_cap_and_rendezvous_kept() -> None:

@@ -5,7 +5,10 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
+import dataclasses
+
 from em_exploration_ros.core.evaluation.map_render import EXPLORED_RGBA, TeamMapLayers, render_team_map
+from em_exploration_ros.core.evaluation.rendezvous_stats import RendezvousOutcome
 from em_exploration_ros.core.evaluation.summary import TargetEntry
 
 
@@ -42,3 +45,15 @@ def test_png_written_and_explored_area_drawn(tmp_path):
 def test_rejects_a_mask_that_is_not_2d(tmp_path):
     with pytest.raises(ValueError, match="2-D"):
         render_team_map(layers(np.zeros(400, dtype=bool)), tmp_path / "x.png")
+
+
+def test_rendezvous_rings_are_drawn(tmp_path):
+    explored = np.zeros((20, 20), dtype=bool)
+    plain = imread(render_team_map(layers(explored), tmp_path / "plain.png"))
+    met = RendezvousOutcome(0, 1, 2, 10.0, 20.0, 12.0, "met")
+    missed = RendezvousOutcome(1, 0, 5, 30.0, 8.0, 30.0, "timed_out")
+    marked = imread(render_team_map(dataclasses.replace(layers(explored), rendezvous=(met, missed)),
+                                    tmp_path / "marked.png"))
+    black = colour_fraction(marked, (0.0, 0.0, 0.0)) - colour_fraction(plain, (0.0, 0.0, 0.0))
+    grey = colour_fraction(marked, (0.5, 0.5, 0.5)) - colour_fraction(plain, (0.5, 0.5, 0.5))
+    assert black > 0.0002 and grey > 0.0002  # two rings of ~18 pt, one each

@@ -47,8 +47,7 @@ def context(odometry_sigmas: tuple[float, float, float], landmarks: dict[int, np
 
 
 def rendezvous_with_robot_1(target: np.ndarray) -> Frontier:
-    waiting = abs(np.hypot(*(target - [22.0, 70.0])) - np.hypot(*(target - [10.0, 53.0])))
-    return Frontier(target, FrontierType.RENDEZVOUS, partner_id=1, waiting_penalty_m=waiting)
+    return Frontier(target, FrontierType.RENDEZVOUS, partner_id=1)
 
 
 def test_distance_utility_adds_the_waiting_penalty() -> None:
@@ -64,13 +63,36 @@ def test_allocation_utility_hand_values() -> None:
                                                   targets, 30.0), [1.5, 0.0])
 
 
-def test_allocation_uses_only_teammates_recent_targets() -> None:
+def test_allocation_uses_every_teammate_target_or_the_recent_ones() -> None:
     ctx = context(LOW_NOISE, {}, [EXPLORE], {})
     near, far = EXPLORE.position, EXPLORE.position + 100.0
     history = {0: [near] * 3, 1: [near] * 2 + [far] * 5, 2: [near]}
     ctx = dataclasses.replace(ctx, target_history=history)
-    decision = make_planner(PARAMS, "CE").choose(ctx)
-    assert decision.utilities[0].u_t == pytest.approx(1.0)  # robot 2 only: own and old ignored
+    # Paper (set A of all historical targets): robot 1's two old targets count, own do not.
+    assert make_planner(PARAMS, "CE").choose(ctx).utilities[0].u_t == pytest.approx(3.0)
+    reference = PARAMS.replace(planner={"allocation_history": 5})
+    assert make_planner(reference, "CE").choose(ctx).utilities[0].u_t == pytest.approx(1.0)
+
+
+def test_task_allocation_changes_the_choice_between_two_candidates() -> None:
+    # Two exploration frontiers 7 m and 8 m from robot 0; the teammates' earlier targets lie
+    # 2-3 m from the nearer one. EM_2 (no U_T) takes the nearer, EM_3 the other.
+    nearer = Frontier(np.array([22.0, 77.0]), FrontierType.EXPLORATION)
+    other = Frontier(np.array([14.0, 70.0]), FrontierType.EXPLORATION)
+    ctx = context(LOW_NOISE, {}, [nearer, other], {})
+    teammate_targets = {1: [np.array([24.0, 79.0]), np.array([25.0, 78.0])],
+                        2: [np.array([23.0, 80.0])]}
+    ctx = dataclasses.replace(ctx, target_history=teammate_targets)
+    em2 = make_planner(PARAMS, "EM_2").choose(ctx)
+    em3 = make_planner(PARAMS, "EM_3").choose(ctx)
+    assert em2.target is nearer and em3.target is other
+    expected = [sum(max(0.0, 1.0 - np.hypot(*(c.position - t)) / 30.0)
+                    for ts in teammate_targets.values() for t in ts) for c in (nearer, other)]
+    np.testing.assert_allclose([u.u_t for u in em3.utilities], expected)
+    u_nearer, u_other = em3.utilities
+    weight_t = EmPlanner(PARAMS, "EM_3").weights(ctx.explored_ratio)[1]
+    assert weight_t * (u_nearer.u_t - u_other.u_t) > (
+        u_other.u_m - u_nearer.u_m + 10.0 * (u_other.u_d - u_nearer.u_d)) > 0.0
 
 
 def test_trace_sqrt_sum_is_rotation_invariant() -> None:
@@ -129,7 +151,11 @@ def test_high_uncertainty_without_landmarks_makes_em_rendezvous() -> None:
     decision = make_planner(PARAMS, "EM_3").choose(ctx)
     assert decision.target is meet
     assert decision.utilities[1].u_m < 0.5 * decision.utilities[0].u_m
-    assert decision.utilities[1].u_t == pytest.approx(1.0)   # robot 1 targets it
+    # The meeting point is robot 1's current target: not duplicated work for a rendezvous
+    # unless the literal reading of Eq. (11) is asked for.
+    assert decision.utilities[1].u_t == pytest.approx(0.0)
+    literal = PARAMS.replace(planner={"allocation_counts_meeting_point": True})
+    assert make_planner(literal, "EM_3").choose(ctx).utilities[1].u_t == pytest.approx(1.0)
     assert make_planner(PARAMS, "CE").choose(ctx).target is EXPLORE
 
 

@@ -199,9 +199,18 @@ class FrontierParams:
     rendezvous_min_distance_m: float = _param(
         10.0, "A teammate's target is a rendezvous candidate only farther than this [m].",
         0.0, 500.0)
-    rendezvous_timeout_s: float = _param(
-        120.0, "A robot waits for a rendezvous partner at most this long [s sim time].",
-        0.0, 1e5)
+    rendezvous_waiting_penalty: bool = _param(
+        False, "Add |d_self - d_teammate| (expected waiting as distance) to a rendezvous "
+        "candidate's U_D, as the reference code does; the paper's U_D is the distance alone.")
+    rendezvous_timeout_factor: float = _param(
+        2.0, "A rendezvous partner waits at most this factor times the requester's travel "
+        "time to the meeting point (straight line at cruise speed), plus "
+        "rendezvous_timeout_margin_s.", 0.0, 100.0)
+    rendezvous_timeout_margin_s: float = _param(
+        20.0, "Fixed part of the rendezvous wait limit [s sim time].", 0.0, 1e5)
+    teammate_silent_after_s: float = _param(
+        60.0, "A teammate whose latest team update is older than this is treated as lost: "
+        "its meetings end and it is no rendezvous candidate [s sim time].", 0.0, 1e6)
     max_candidates: int = _param(
         40, "At most this many candidates are evaluated per decision (nearest first).", 1, 1000)
 
@@ -244,7 +253,12 @@ class PlannerParams:
     allocation_d_max_m: float = _param(
         30.0, "Task allocation h(d) = 1 - d / d_max below d_max [m].", 0.1, 1000.0)
     allocation_history: int = _param(
-        5, "Number of each teammate's latest targets used by task allocation.", 0, 1000)
+        0, "Number of each teammate's latest targets used by task allocation; 0: all of them "
+        "(the paper's set A of all historical targets; the reference code uses 5).", 0, 100000)
+    allocation_counts_meeting_point: bool = _param(
+        False, "Count a rendezvous candidate's meeting point (the partner's current target) "
+        "in its own U_T, as a literal reading of Eq. (11) does; by default a rendezvous is "
+        "not duplicated exploration of the partner's target.")
     q_min: float = _param(
         0.55, "Algorithm 2: minimum probability of being observed for a cell to count "
         "(the explored threshold as a probability of observation).", 0.0, 1.0)
@@ -290,7 +304,9 @@ RENAMED_PLANNERS: Mapping[str, str] = MappingProxyType({"NF": "NEAREST"})
 #: Parameters that were removed, ``'group.field'`` -> why. A file that still sets one loads
 #: with a deprecation warning; the value is ignored.
 REMOVED_PARAMETERS: Mapping[str, str] = MappingProxyType({
-    "planner.allocation_waypoint_spacing_m": "task allocation uses the targets themselves"})
+    "planner.allocation_waypoint_spacing_m": "task allocation uses the targets themselves",
+    "frontiers.rendezvous_timeout_s": "the wait scales with the requester's travel "
+                                      "(frontiers.rendezvous_timeout_factor, _margin_s)"})
 
 
 class ParameterDeprecationWarning(FutureWarning):

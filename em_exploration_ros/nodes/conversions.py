@@ -183,7 +183,8 @@ def target_to_msg(target: TargetRecord) -> em_msg.TargetRecord:
         robot_id=target.robot_id, decision_index=target.decision_index,
         x=float(target.position[0]), y=float(target.position[1]),
         frontier_type=int(target.kind), partner_id=int(partner),
-        utility=float(target.utility), planning_time=float(target.planning_time_s))
+        utility=float(target.utility), planning_time=float(target.planning_time_s),
+        planner_failed=bool(target.planner_failed))
     message.stamp = seconds_to_time(target.stamp_s)
     return message
 
@@ -201,7 +202,8 @@ def target_from_msg(message: em_msg.TargetRecord) -> TargetRecord:
         partner = None
     return TargetRecord(int(message.robot_id), int(message.decision_index),
                         time_to_seconds(message.stamp), np.array([message.x, message.y]), kind,
-                        partner, float(message.utility), float(message.planning_time))
+                        partner, float(message.utility), float(message.planning_time),
+                        bool(message.planner_failed))
 
 
 def _rendezvous_to_msg(event: RendezvousEvent) -> em_msg.Rendezvous:
@@ -232,7 +234,8 @@ def team_update_to_msg(update: TeamUpdate) -> em_msg.TeamUpdate:
         keyframes=[_keyframe_to_msg(k) for k in update.keyframes],
         landmarks=[landmark_estimate_to_msg(lm) for lm in update.landmarks],
         targets=[target_to_msg(t) for t in update.targets],
-        rendezvous=[_rendezvous_to_msg(r) for r in update.rendezvous])
+        rendezvous=[_rendezvous_to_msg(r) for r in update.rendezvous],
+        finished=bool(update.finished))
     message.header.stamp = seconds_to_time(update.stamp_s)
     message.header.frame_id = MAP_FRAME
     return message
@@ -251,7 +254,8 @@ def team_update_from_msg(message: em_msg.TeamUpdate) -> TeamUpdate:
             keyframes=tuple(_keyframe_from_msg(k) for k in message.keyframes),
             landmarks=tuple(landmark_estimate_from_msg(lm) for lm in message.landmarks),
             targets=tuple(target_from_msg(t) for t in message.targets),
-            rendezvous=tuple(_rendezvous_from_msg(r) for r in message.rendezvous))
+            rendezvous=tuple(_rendezvous_from_msg(r) for r in message.rendezvous),
+            finished=bool(message.finished))
     except (ValueError, TypeError) as error:  # e.g. wrong covariance length
         raise InvalidTeamUpdate(f"malformed TeamUpdate: {error}") from None
 

@@ -54,19 +54,21 @@ from rclpy.task import Future
 
 from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
-                                                     MissingRange, TargetRecord, TeamUpdateInbox)
+                                                     MissingRange, RendezvousEvent, TargetRecord,
+                                                     TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
                                                           stamp_key)
-from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, render_team_map
+from em_exploration_ros.core.evaluation.map_render import (TeamMapLayers, evaluation_layers,
+                                                            render_team_map)
+from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
 from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, first_problem,
                                                         frame_problem, id_problem,
                                                         sequence_entry_problem, size_problem,
                                                         stamp_step_problem, step_problem)
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness
-from em_exploration_ros.core.evaluation.run_monitor import (EXIT_STALLED, DecisionEntry,
-                                                            RunMonitor, frontier_type_name)
-from em_exploration_ros.core.evaluation.summary import RunSummary, TargetEntry
+from em_exploration_ros.core.evaluation.run_monitor import EXIT_STALLED, DecisionEntry, RunMonitor
+from em_exploration_ros.core.evaluation.summary import RunSummary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.sim.wire_model import sim_time_s
@@ -154,6 +156,7 @@ class EvaluatorNode(Node):
         self.paths = StampedEstimates()
         self.landmark_estimates = StampedEstimates()
         self.targets: list[dict[int, TargetRecord]] = [{} for _ in range(self.num_robots)]
+        self.rendezvous_events: list[RendezvousEvent] = []
         self.team_updates = TeamUpdateInbox(None, self.num_robots)
         self.exit_code: int | None = None
         self.done = Future()
@@ -322,6 +325,7 @@ class EvaluatorNode(Node):
         for update in self.team_updates.pop_ready():
             for record in update.targets:
                 self.targets[update.robot_id][record.decision_index] = record
+            self.rendezvous_events.extend(update.rendezvous)
         if self.monitor.stopped:
             self._process()
 
@@ -573,7 +577,8 @@ class EvaluatorNode(Node):
     def _decisions(self) -> list[list[DecisionEntry]]:
         """Each robot's decisions received so far, in order."""
         return [[DecisionEntry(t.stamp_s, (float(t.position[0]), float(t.position[1])), t.kind,
-                               t.planning_time_s) for _, t in sorted(records.items())]
+                               t.planning_time_s, t.planner_failed)
+                 for _, t in sorted(records.items())]
                 for records in self.targets]
 
     def summary(self) -> RunSummary:
@@ -581,7 +586,7 @@ class EvaluatorNode(Node):
         status changes and downtime."""
         wall_s = (0.0 if self._first_step_wall_s is None
                   else time.monotonic() - self._first_step_wall_s)
-        summary = self.monitor.summary(self._decisions(), wall_s)
+        summary = self.monitor.summary(self._decisions(), wall_s, self.rendezvous_events)
         until_s = self._status_times()
         for entry in summary.robots:
             entry.status = self.liveness.status(entry.id)
@@ -591,27 +596,17 @@ class EvaluatorNode(Node):
 
     def map_layers(self, title: str) -> TeamMapLayers:
         """The final map's layers: the truth and the estimates of the last evaluation."""
-        evaluator = self.evaluator
-        world = evaluator.world
         paths, landmarks = self._evaluated
-        return TeamMapLayers(
-            width_m=world.width_m, height_m=world.height_m,
-            cell_size_m=evaluator.grid.geometry.cell_size_m,
-            explored=evaluator.grid.explored_mask(), true_landmarks=world.landmarks,
-            landmark_radius_m=world.landmark_radius_m,
-            true_paths={r: evaluator.true_trajectory(r) for r in range(self.num_robots)},
-            estimated_paths={r: poses for r, (_, poses) in paths.items()},
-            estimated_landmarks={r: np.array(list(e.values())).reshape(-1, 2)
-                                 for r, e in landmarks.items()},
-            targets={r: [_target_entry(d) for d in self.monitor.decisions_counted(chosen)]
-                     for r, chosen in enumerate(self._decisions())},
-            title=f"{self.params.planner.name}, {self.num_robots} robots, seed "
-                  f"{self.params.run.seed}: {title}")
-
-
-def _target_entry(decision: DecisionEntry) -> TargetEntry:
-    return TargetEntry(decision.position[0], decision.position[1],
-                       frontier_type_name(decision.kind))
+        final = self.monitor.final_metrics
+        end_s = math.inf if final is None else final.stamp_s
+        return evaluation_layers(
+            self.evaluator, {r: poses for r, (_, poses) in paths.items()},
+            {r: np.array(list(e.values())).reshape(-1, 2) for r, e in landmarks.items()},
+            {r: [d.target_entry() for d in self.monitor.decisions_counted(chosen)]
+             for r, chosen in enumerate(self._decisions())},
+            rendezvous_outcomes(self.rendezvous_events, end_s),
+            f"{self.params.planner.name}, {self.num_robots} robots, seed "
+            f"{self.params.run.seed}: {title}")
 
 
 def _progress_line(metrics: TeamMetrics, decisions: int) -> str:

@@ -42,6 +42,7 @@ from typing import Any, Callable, Iterable, Sequence, TextIO
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import ParamsFileError
 from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.core.evaluation.rendezvous_stats import activity_totals
 from em_exploration_ros.core.evaluation.trial_stats import mean_ci, paired_difference
 from em_exploration_ros.tools import bench_plots
 from em_exploration_ros.tools.latency_bench import LATENCY_HELP, add_latency_arguments
@@ -406,8 +407,9 @@ def _csv_value(value: float | None) -> str:
 
 def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The summary.json data: per setting, its parameters and per planner the trial counts,
-    final values (mean, 95% CI, n), wall times and failures; paired differences between
-    planners over common seeds."""
+    final values (mean, 95% CI, n), decisions per frontier type, planner failures and
+    rendezvous counts summed over the finished trials (``activity``), wall times and
+    failures; paired differences between planners over common seeds."""
     by_setting: dict[str, list[dict[str, Any]]] = defaultdict(list)
     for record in records:
         by_setting[record["setting"]].append(record)
@@ -461,6 +463,7 @@ def _planner_summary(records: Sequence[dict[str, Any]], finals: dict[int, dict[s
                                        for s in finals.values()),
         "final": {metric: mean_ci(list(_metric_by_seed(finals, metric).values())).to_dict()
                   for metric in FINAL_METRICS},
+        "activity": activity_totals(finals.values()),
         "wall_s_total": sum(walls),
         "wall_s_mean": sum(walls) / len(walls) if walls else None,
         "code_versions": sorted({r.get("code_version", "unknown") for r in records

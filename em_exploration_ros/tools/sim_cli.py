@@ -24,6 +24,8 @@ from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.params import (ExplorationParams, PlannerParams,
                                             current_planner_name)
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
+from em_exploration_ros.core.evaluation.map_render import render_team_map
+from em_exploration_ros.core.evaluation.summary import activity_line
 from em_exploration_ros.core.sim.team_runner import Progress, TeamRunner
 
 #: A progress line every this many simulation steps.
@@ -83,6 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_run_arguments(parser)
     parser.add_argument("--seed", type=int, default=None, help="seed of world and noise")
     parser.add_argument("--summary", type=Path, help="write the JSON summary here")
+    parser.add_argument("--map", type=Path, metavar="PNG",
+                        help="draw the final team map (targets, rendezvous) into this PNG")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
 
@@ -127,9 +131,13 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"distance {summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, "
           f"landmark RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, "
           f"wall {summary.wall_s:.1f} s, sim {summary.sim_time_s:.1f} s")
+    print(activity_line(summary.to_dict()))
     if args.summary:
         summary.write(args.summary)
         print(f"summary: {args.summary}")
+    if args.map:
+        render_team_map(runner.map_layers(), args.map)
+        print(f"map: {args.map}")
     return EXIT_STALLED if summary.stop_reason.startswith(STALLED_PREFIX) else 0
 
 

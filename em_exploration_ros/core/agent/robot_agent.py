@@ -15,6 +15,16 @@ odometry shows it blocked, when its estimated distance to the target stops shrin
 at the target's deadline. The robot then excludes candidates near that target for a
 while (its own blacklist; teammates are not told, see ``_give_up``) and, if blocked,
 first turns on the spot away from the blocked direction.
+
+Rendezvous: a robot that chooses a RENDEZVOUS target sends REQUEST with a wait limit that
+scales with its travel to the meeting point; the partner goes to the meeting point and
+waits until both arrived or the limit passed. The requester sends RELEASE when it gives the
+meeting up (new target, its wait limit passed, finished, partner lost); a finished robot
+answers a request with RELEASE and tells the team it finished (``TeamUpdate.finished``); a
+teammate silent for ``teammate_silent_after_s`` is lost: its meetings end. Finished and
+lost teammates are no rendezvous candidates. For each meeting it requested, the robot
+records the trace of its own latest pose covariance just before and after the SLAM update
+that added the first inter-robot factor with the partner (``meeting_effects``).
 """
 from __future__ import annotations
 
@@ -29,10 +39,10 @@ from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType,
                                                         exploration_frontiers, frontier_cells)
 from em_exploration_ros.core.geometry import compose
 from em_exploration_ros.core.planning.motion import ApfController
-from em_exploration_ros.core.planning.rendezvous import RendezvousBook
+from em_exploration_ros.core.planning.rendezvous import Meeting, RendezvousBook, meeting_timeout_s
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.planners import PlanningContext, make_planner
+from em_exploration_ros.core.planning.planners import Decision, PlanningContext, make_planner
 from em_exploration_ros.core.planning.progress import (GivenUpTarget, GiveUpReason,
                                                        ProgressMonitor, RecoveryTurn,
                                                        TargetBlacklist, blocked_step)
@@ -88,6 +98,25 @@ class DecisionRecord:
     planning_time_s: float
     num_candidates: int
     explored_ratio: float
+    planner_failed: bool = False
+
+
+@dataclass(frozen=True)
+class MeetingEffect:
+    """What a rendezvous requested by this robot did to its own uncertainty.
+
+    ``trace_before_m2`` / ``trace_after_m2``: trace of the marginal covariance of this
+    robot's latest keyframe pose (x, y, theta; m^2 and rad^2 summed) just before and just
+    after the SLAM update that added the first inter-robot factor with ``partner_id``
+    between the request and this robot's next decision, at simulation time ``stamp_s`` [s].
+    """
+
+    rendezvous_id: int
+    partner_id: int
+    requested_at_s: float
+    stamp_s: float
+    trace_before_m2: float
+    trace_after_m2: float
 
 
 @dataclass
@@ -97,6 +126,7 @@ class _Pending:
     keyframes: list[KeyframeMeasurements] = field(default_factory=list)
     targets: list[TargetRecord] = field(default_factory=list)
     rendezvous: list[RendezvousEvent] = field(default_factory=list)
+    finished: bool = False
 
 
 class RobotAgent:
@@ -114,13 +144,15 @@ class RobotAgent:
         self._fallback_planner = make_planner(params, "NEAREST")
         self.controller = ApfController(params.motion, params.world.landmark_radius_m,
                                         params.world.robot_radius_m)
-        self.rendezvous = RendezvousBook(params.frontiers.rendezvous_timeout_s)
+        self.rendezvous = RendezvousBook()
         self.outbox = TeamUpdateOutbox(robot_id)
         self.decisions: list[DecisionRecord] = []
         self.target: Frontier | None = None
         self.finished = False
         self.explored_ratio = 0.0
         self.last_candidates: list[Frontier] = []
+        #: The planner's latest decision with every candidate's utility terms (diagnostics).
+        self.last_decision: Decision | None = None
         self.team_targets: dict[int, list[TargetRecord]] = {r: [] for r in range(self.num_robots)}
         self._keyframes = KeyframeBuilder(robot_id, params.slam)
         self._dead_reckoning = DeadReckoningDifferencer()
@@ -129,6 +161,10 @@ class RobotAgent:
         self._target_deadline_s = np.inf
         self._stamp_s = 0.0
         self._arrivals_sent: set[tuple[int, int]] = set()
+        self.finished_teammates: set[int] = set()
+        self._last_heard_s: dict[int, float] = {}
+        self.meeting_effects: list[MeetingEffect] = []
+        self._watched_meeting: Meeting | None = None
         self._gap_covariance: np.ndarray | None = None
         self.given_up: list[GivenUpTarget] = []
         self.blocked_s = 0.0
@@ -142,6 +178,12 @@ class RobotAgent:
     def apply_team_updates(self, updates: list[TeamUpdate]) -> None:
         """Apply teammates' updates (already validated and in sequence order)."""
         for update in updates:
+            self._last_heard_s[update.robot_id] = max(update.stamp_s,
+                                                      self._last_heard_s.get(update.robot_id,
+                                                                             -np.inf))
+            if update.finished and update.robot_id not in self.finished_teammates:
+                self.finished_teammates.add(update.robot_id)
+                self._end_meetings_with(update.robot_id, "finished")
             for keyframe in update.keyframes:
                 self.slam.add_keyframe(keyframe)
             for target in update.targets:
@@ -149,7 +191,7 @@ class RobotAgent:
             for event in update.rendezvous:
                 self._apply_rendezvous_event(event)
         if updates:
-            self.slam.update()
+            self._update_slam()
 
     def resume(self, history: list[TeamUpdate]) -> None:
         """Take back this robot's own earlier stream after its process restarted.
@@ -177,7 +219,7 @@ class RobotAgent:
                 self.decisions.append(DecisionRecord(
                     target.decision_index, target.stamp_s,
                     Frontier(target.position.copy(), target.kind, partner),
-                    target.planning_time_s, 0, float("nan")))
+                    target.planning_time_s, 0, float("nan"), target.planner_failed))
             for event in update.rendezvous:
                 self._apply_rendezvous_event(event)
         if last_keyframe is None:
@@ -208,7 +250,7 @@ class RobotAgent:
         if keyframe is not None:
             self._since_keyframe = np.zeros(3)
             self.slam.add_keyframe(keyframe)
-            self.slam.update()
+            self._update_slam()
             self._pending.keyframes.append(keyframe)
         pose = self.current_pose()
         if pose is None or self.finished:
@@ -241,7 +283,7 @@ class RobotAgent:
     def take_outgoing(self) -> TeamUpdate | None:
         """The update to send to the teammates now, or None when nothing is new."""
         pending, self._pending = self._pending, _Pending()
-        if not (pending.keyframes or pending.targets or pending.rendezvous):
+        if not (pending.keyframes or pending.targets or pending.rendezvous or pending.finished):
             return None
         seen = sorted({reading.landmark_id for kf in pending.keyframes
                        for reading in kf.landmarks})
@@ -249,7 +291,8 @@ class RobotAgent:
         landmarks = tuple(LandmarkEstimate(lid, known[lid], self.slam.landmark_covariance(lid))
                           for lid in seen if lid in known)
         return self.outbox.publish(self._stamp_s, tuple(pending.keyframes), landmarks,
-                                   tuple(pending.targets), tuple(pending.rendezvous))
+                                   tuple(pending.targets), tuple(pending.rendezvous),
+                                   self.finished)
 
     def current_pose(self) -> np.ndarray | None:
         """Estimated current pose in the map frame, None until this robot is anchored."""
@@ -269,6 +312,18 @@ class RobotAgent:
             target = history[-1].position if history else None
             states[robot] = (self.slam.pose(robot, latest)[:2], target)
         return states
+
+    def is_lost(self, teammate: int) -> bool:
+        """True when the teammate's latest update is older than
+        ``frontiers.teammate_silent_after_s`` (never heard: not lost, it has no pose)."""
+        heard = self._last_heard_s.get(teammate)
+        return (heard is not None
+                and self._stamp_s - heard > self.params.frontiers.teammate_silent_after_s)
+
+    def rendezvous_partners(self) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
+        """``teammate_states`` of the teammates that can still meet: not finished, not lost."""
+        return {robot: state for robot, state in self.teammate_states().items()
+                if robot not in self.finished_teammates and not self.is_lost(robot)}
 
     # -- decisions -----------------------------------------------------------------------
 
@@ -329,7 +384,8 @@ class RobotAgent:
             return
         cells = frontier_cells(self.grid, self.params.frontiers)
         candidates = candidate_targets(cells, self.robot_id, pose[:2], self.explored_ratio,
-                                       landmarks, self.teammate_states(), self.params.frontiers)
+                                       landmarks, self.rendezvous_partners(),
+                                       self.params.frontiers)
         if not candidates:
             self.last_candidates = []
             self._finish("no frontier left")
@@ -345,15 +401,19 @@ class RobotAgent:
             target_history={robot: [t.position for t in records]
                             for robot, records in self.team_targets.items()},
             explored_ratio=self.explored_ratio)
+        planner_failed = False
         try:
             decision = self.planner.choose(context)
         except (RuntimeError, np.linalg.LinAlgError) as error:  # numerical failure in GTSAM
             _LOG.error("robot %d: planner %s failed (%s); nearest frontier this time",
                        self.robot_id, self.planner.name, str(error).splitlines()[0][:120])
             decision = self._fallback_planner.choose(context)
+            planner_failed = True
+        self.last_decision = decision
         planning_time_s = time.perf_counter() - started
         chosen = next(u.total for u in decision.utilities if u.frontier is decision.target)
-        self._set_target(decision.target, pose, planning_time_s, len(candidates), chosen)
+        self._set_target(decision.target, pose, planning_time_s, len(candidates), chosen,
+                         planner_failed)
 
     def _fall_back(self, cells: np.ndarray, pose: np.ndarray, started: float) -> None:
         """Every candidate lies near a given-up target: the nearest frontier cell that does
@@ -370,62 +430,136 @@ class RobotAgent:
         self._set_target(target, pose, time.perf_counter() - started, 1, distance)
 
     def _set_target(self, target: Frontier, pose: np.ndarray, planning_time_s: float,
-                    num_candidates: int, utility: float) -> None:
+                    num_candidates: int, utility: float, planner_failed: bool) -> None:
+        self._give_up_own_meeting("new target chosen")
         index = len(self.decisions)
         self.target = target
         self._progress.restart()
         self.decisions.append(DecisionRecord(index, self._stamp_s, target, planning_time_s,
-                                             num_candidates, self.explored_ratio))
+                                             num_candidates, self.explored_ratio,
+                                             planner_failed))
         distance = float(np.linalg.norm(target.position - pose[:2]))
         motion = self.params.motion
         self._target_deadline_s = (self._stamp_s + motion.target_timeout_factor * distance
                                    / motion.speed_mps + motion.target_timeout_margin_s)
         partner = target.partner_id if target.kind == FrontierType.RENDEZVOUS else None
         record = TargetRecord(self.robot_id, index, self._stamp_s, target.position.copy(),
-                              target.kind, partner, utility, planning_time_s)
+                              target.kind, partner, utility, planning_time_s, planner_failed)
         self.team_targets[self.robot_id].append(record)
         self._pending.targets.append(record)
         if partner is not None:
-            self._send_rendezvous(RendezvousState.REQUEST, index, self.robot_id, partner,
-                                  target.position)
-            self.rendezvous.request(self.robot_id, partner, target.position, self._stamp_s, index)
+            frontiers = self.params.frontiers
+            timeout_s = meeting_timeout_s(distance, motion.speed_mps,
+                                          frontiers.rendezvous_timeout_factor,
+                                          frontiers.rendezvous_timeout_margin_s)
+            meeting = self.rendezvous.request(self.robot_id, partner, target.position,
+                                              self._stamp_s, timeout_s, index)
+            self._send_rendezvous(RendezvousState.REQUEST, meeting)
+            self._watched_meeting = meeting
 
     def _finish(self, reason: str) -> None:
         if not self.finished:
             _LOG.info("robot %d finished: %s", self.robot_id, reason)
+            self._pending.finished = True
         self.finished = True
         self.target = None
         for meeting in self.rendezvous.release(self.robot_id):
-            self._send_rendezvous(RendezvousState.RELEASE, meeting.rendezvous_id,
-                                  meeting.requester_id, meeting.partner_id,
-                                  meeting.meeting_point)
+            self._send_rendezvous(RendezvousState.RELEASE, meeting)
 
     # -- rendezvous ----------------------------------------------------------------------
 
     def _handle_rendezvous(self, pose: np.ndarray) -> None:
-        """Report own arrivals at meeting points; drop meetings past their deadline."""
-        self.rendezvous.expire(self._stamp_s)
+        """Report own arrivals at meeting points; end meetings past their deadline (the
+        requester sends RELEASE) or with a lost teammate."""
+        for meeting in self.rendezvous.expire(self._stamp_s):
+            if meeting.requester_id == self.robot_id:
+                _LOG.info("robot %d: rendezvous %d with robot %d timed out", self.robot_id,
+                          meeting.rendezvous_id, meeting.partner_id)
+                self._send_rendezvous(RendezvousState.RELEASE, meeting)
+                self._drop_meeting_target(meeting)
+        for teammate in range(self.num_robots):
+            if teammate != self.robot_id and self.is_lost(teammate):
+                self._end_meetings_with(teammate, "lost (silent)")
         for meeting in self.rendezvous.open_meetings():
             involved = self.robot_id in (meeting.requester_id, meeting.partner_id)
             announced = (meeting.requester_id, meeting.rendezvous_id) in self._arrivals_sent
             if involved and not announced and self.controller.reached(pose, meeting.meeting_point):
                 self._arrivals_sent.add((meeting.requester_id, meeting.rendezvous_id))
-                self._send_rendezvous(RendezvousState.ARRIVED, meeting.rendezvous_id,
-                                      meeting.requester_id, meeting.partner_id,
-                                      meeting.meeting_point)
+                self._send_rendezvous(RendezvousState.ARRIVED, meeting)
                 self.rendezvous.arrived(self.robot_id, self._stamp_s, meeting.requester_id)
+
+    def _end_meetings_with(self, teammate: int, why: str) -> None:
+        """End this robot's meetings with a finished or lost teammate: RELEASE each, and
+        give up a rendezvous target with it (a new target is chosen at the next step)."""
+        for meeting in self.rendezvous.release(teammate):
+            if self.robot_id not in (meeting.requester_id, meeting.partner_id):
+                continue
+            _LOG.info("robot %d: rendezvous %d of robot %d ended, robot %d %s", self.robot_id,
+                      meeting.rendezvous_id, meeting.requester_id, teammate, why)
+            self._send_rendezvous(RendezvousState.RELEASE, meeting)
+            self._drop_meeting_target(meeting)
+
+    def _give_up_own_meeting(self, why: str) -> None:
+        """RELEASE the open meeting this robot requested, if any (plans changed)."""
+        meeting = self.rendezvous.meeting_of(self.robot_id)
+        self._watched_meeting = None
+        if meeting is None:
+            return
+        _LOG.info("robot %d: gives up rendezvous %d with robot %d (%s)", self.robot_id,
+                  meeting.rendezvous_id, meeting.partner_id, why)
+        self.rendezvous.release_meeting(self.robot_id, meeting.rendezvous_id)
+        self._send_rendezvous(RendezvousState.RELEASE, meeting)
+
+    def _drop_meeting_target(self, meeting: Meeting) -> None:
+        """Forget the current target when it is this ended meeting's point (requester)."""
+        if (meeting.requester_id == self.robot_id and self.target is not None
+                and self.target.kind == FrontierType.RENDEZVOUS
+                and self.target.partner_id == meeting.partner_id):
+            self.target = None
+            self._watched_meeting = None
 
     def _apply_rendezvous_event(self, event: RendezvousEvent) -> None:
         if event.state == RendezvousState.REQUEST:
-            self.rendezvous.request(event.requester_id, event.partner_id, event.meeting_point,
-                                    event.stamp_s, event.rendezvous_id)
+            meeting = self.rendezvous.request(event.requester_id, event.partner_id,
+                                              event.meeting_point, event.stamp_s,
+                                              event.timeout_s, event.rendezvous_id)
+            if self.finished and event.partner_id == self.robot_id:
+                self.rendezvous.release_meeting(event.requester_id, event.rendezvous_id)
+                self._send_rendezvous(RendezvousState.RELEASE, meeting)
         elif event.state == RendezvousState.ARRIVED:
             self.rendezvous.arrived(event.sender_id, event.stamp_s, event.requester_id)
         else:
-            self.rendezvous.release(event.sender_id)
+            for meeting in self.rendezvous.release_meeting(event.requester_id,
+                                                           event.rendezvous_id):
+                self._drop_meeting_target(meeting)
 
-    def _send_rendezvous(self, state: RendezvousState, rendezvous_id: int, requester: int,
-                         partner: int, point: np.ndarray) -> None:
+    def _send_rendezvous(self, state: RendezvousState, meeting: Meeting) -> None:
         self._pending.rendezvous.append(RendezvousEvent(
-            rendezvous_id, requester, partner, self.robot_id, state, self._stamp_s,
-            np.asarray(point, dtype=float).copy(), self.params.frontiers.rendezvous_timeout_s))
+            meeting.rendezvous_id, meeting.requester_id, meeting.partner_id, self.robot_id,
+            state, self._stamp_s, np.asarray(meeting.meeting_point, dtype=float).copy(),
+            meeting.deadline_s - meeting.requested_at_s))
+
+    # -- SLAM ----------------------------------------------------------------------------
+
+    def _update_slam(self) -> None:
+        """Update SLAM; while a meeting this robot requested is watched, record the first
+        inter-robot factor with the partner (``MeetingEffect``)."""
+        meeting = self._watched_meeting
+        if meeting is None:
+            self.slam.update()
+            return
+        factors_before = self.slam.inter_robot_factors(self.robot_id, meeting.partner_id)
+        trace_before = self._latest_pose_trace()
+        self.slam.update()
+        if self.slam.inter_robot_factors(self.robot_id, meeting.partner_id) > factors_before:
+            self.meeting_effects.append(MeetingEffect(
+                meeting.rendezvous_id, meeting.partner_id, meeting.requested_at_s,
+                self._stamp_s, trace_before, self._latest_pose_trace()))
+            self._watched_meeting = None
+
+    def _latest_pose_trace(self) -> float:
+        """Trace of the marginal covariance of this robot's latest keyframe pose."""
+        latest = self.slam.latest_index(self.robot_id)
+        if latest is None:
+            return float("nan")
+        return float(np.trace(self.slam.pose_covariance(self.robot_id, latest)))

@@ -67,6 +67,7 @@ class TargetRecord:
     partner_id: int | None
     utility: float
     planning_time_s: float
+    planner_failed: bool = False
 
 
 @dataclass(frozen=True)
@@ -94,6 +95,7 @@ class TeamUpdate:
     landmarks: tuple[LandmarkEstimate, ...] = ()
     targets: tuple[TargetRecord, ...] = ()
     rendezvous: tuple[RendezvousEvent, ...] = ()
+    finished: bool = False
 
 
 class InvalidTeamUpdate(ValueError):
@@ -157,6 +159,8 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
             raise InvalidTeamUpdate("rendezvous event sent on behalf of another robot")
         _check_vector(event.meeting_point, 2, "meeting point")
         _check_finite(event.timeout_s, "rendezvous timeout")
+        if event.timeout_s < 0.0:
+            raise InvalidTeamUpdate(f"negative rendezvous timeout {event.timeout_s}")
 
 
 def check_record_sizes(keyframes: int, landmarks: int, targets: int, rendezvous: int) -> None:
@@ -348,10 +352,11 @@ class TeamUpdateOutbox:
     def publish(self, stamp_s: float, keyframes: tuple[KeyframeMeasurements, ...] = (),
                 landmarks: tuple[LandmarkEstimate, ...] = (),
                 targets: tuple[TargetRecord, ...] = (),
-                rendezvous: tuple[RendezvousEvent, ...] = ()) -> TeamUpdate:
+                rendezvous: tuple[RendezvousEvent, ...] = (),
+                finished: bool = False) -> TeamUpdate:
         """Create, number and remember the next update."""
         update = TeamUpdate(self._robot_id, self.last_sequence + 1, stamp_s, keyframes,
-                            landmarks, targets, rendezvous)
+                            landmarks, targets, rendezvous, finished)
         self._sent.append(update)
         return update
 

@@ -10,7 +10,9 @@ the world frame in simulation), metres:
 - the targets each robot chose, marker shape by frontier type (exploration, revisiting,
   rendezvous) and colour by robot;
 - each robot's virtual-map uncertainty ellipses (outlines) and its last frontier candidates
-  (hollow markers, shape by type), colour by robot.
+  (hollow markers, shape by type), colour by robot;
+- requested rendezvous: a ring at the meeting point, solid black when the robots met,
+  grey otherwise, labelled ``requester→partner``.
 """
 from __future__ import annotations
 
@@ -27,6 +29,8 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle
 
+from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator
+from em_exploration_ros.core.evaluation.rendezvous_stats import RendezvousOutcome
 from em_exploration_ros.core.evaluation.summary import TARGET_TYPES, TargetEntry
 
 #: Marker of each target type.
@@ -72,7 +76,26 @@ class TeamMapLayers:
     targets: Mapping[int, Sequence[TargetEntry]] = field(default_factory=dict)
     uncertainty_ellipses: Mapping[int, UncertaintyEllipses] = field(default_factory=dict)
     frontiers: Mapping[int, Sequence[TargetEntry]] = field(default_factory=dict)
+    rendezvous: Sequence[RendezvousOutcome] = ()
     title: str = ""
+
+
+def evaluation_layers(evaluator: TeamEvaluator, estimated_paths: Mapping[int, np.ndarray],
+                      estimated_landmarks: Mapping[int, np.ndarray],
+                      targets: Mapping[int, Sequence[TargetEntry]],
+                      rendezvous: Sequence[RendezvousOutcome], title: str) -> TeamMapLayers:
+    """The final map of a run watched by ``evaluator``: its world's truth and explored
+    area, with the robots' estimated paths (K, 3) and landmarks (M, 2), chosen targets and
+    requested rendezvous."""
+    world = evaluator.world
+    return TeamMapLayers(
+        width_m=world.width_m, height_m=world.height_m,
+        cell_size_m=evaluator.grid.geometry.cell_size_m,
+        explored=evaluator.grid.explored_mask(), true_landmarks=world.landmarks,
+        landmark_radius_m=world.landmark_radius_m,
+        true_paths={r: evaluator.true_trajectory(r) for r in range(len(world.start_poses))},
+        estimated_paths=dict(estimated_paths), estimated_landmarks=dict(estimated_landmarks),
+        targets=dict(targets), rendezvous=tuple(rendezvous), title=title)
 
 
 def _robot_colour(robot: int) -> tuple[float, float, float, float]:
@@ -136,7 +159,18 @@ def _draw_uncertainty(axes, layers: TeamMapLayers) -> None:
                       zorder=6)
 
 
-def _legend(axes, robots: list[int]) -> None:
+def _draw_rendezvous(axes, layers: TeamMapLayers) -> None:
+    for meeting in layers.rendezvous:
+        met = meeting.outcome == "met"
+        axes.plot(meeting.x, meeting.y, "o", markersize=18, markerfacecolor="none",
+                  markeredgecolor="black" if met else "0.5", markeredgewidth=2.0,
+                  linestyle="none", zorder=8)
+        axes.annotate(f"{meeting.requester_id}\u2192{meeting.partner_id}", (meeting.x, meeting.y),
+                      xytext=(9, 9), textcoords="offset points", fontsize=8,
+                      color="black" if met else "0.4", zorder=8)
+
+
+def _legend(axes, robots: list[int], with_rendezvous: bool) -> None:
     handles = [Line2D([], [], color=_robot_colour(r), label=f"robot {r}") for r in robots]
     handles += [Line2D([], [], color="black", linestyle="-", label="true path"),
                 Line2D([], [], color="black", linestyle="--", label="estimated path"),
@@ -149,6 +183,12 @@ def _legend(axes, robots: list[int]) -> None:
                        linestyle="none", label="uncertainty ellipse (3 sigma)"),
                 Line2D([], [], marker="^", markerfacecolor="none", markeredgecolor="black",
                        markersize=5, linestyle="none", label="last frontiers (shape: type)")]
+    if with_rendezvous:
+        handles += [Line2D([], [], marker="o", markersize=10, markerfacecolor="none",
+                           markeredgecolor=colour, markeredgewidth=2.0, linestyle="none",
+                           label=label)
+                    for colour, label in (("black", "rendezvous met"),
+                                          ("0.5", "rendezvous not met"))]
     axes.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8,
                 frameon=False)
 
@@ -166,6 +206,7 @@ def render_team_map(layers: TeamMapLayers, path: str | Path, dpi: int = 110) -> 
     _draw_paths(axes, layers)
     _draw_targets(axes, layers)
     _draw_uncertainty(axes, layers)
+    _draw_rendezvous(axes, layers)
     axes.plot([0, layers.width_m, layers.width_m, 0, 0], [0, 0, layers.height_m,
               layers.height_m, 0], color="black", linewidth=1.0, zorder=1)
     margin = 0.02 * max(layers.width_m, layers.height_m)
@@ -177,7 +218,7 @@ def render_team_map(layers: TeamMapLayers, path: str | Path, dpi: int = 110) -> 
     if layers.title:
         axes.set_title(layers.title, fontsize=10)
     robots = sorted(set(layers.true_paths) | set(layers.estimated_paths) | set(layers.targets))
-    _legend(axes, robots)
+    _legend(axes, robots, bool(layers.rendezvous))
     figure.tight_layout()
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)

@@ -28,8 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from em_exploration_ros.core.agent.team_data import RendezvousEvent
 from em_exploration_ros.core.evaluation.evaluator import TeamMetrics, stamp_key
-from em_exploration_ros.core.evaluation.summary import (GivenUpEntry, HistorySample,
+from em_exploration_ros.core.evaluation.rendezvous_stats import count_rendezvous
+from em_exploration_ros.core.evaluation.summary import (GivenUpEntry, HistorySample, MeetingEntry,
                                                         RobotSummary, RunSummary, TargetEntry)
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.frontiers import FrontierType
@@ -62,14 +64,21 @@ class DecisionEntry:
     """One decision of a robot as the monitor sees it.
 
     ``stamp_s`` [s] is the simulation time at which it was made, ``position`` the target
-    (x, y) [m] in the map frame, ``kind`` its frontier type and ``planning_time_s`` the
-    wall time [s] the robot spent deciding.
+    (x, y) [m] in the map frame, ``kind`` its frontier type, ``planning_time_s`` the
+    wall time [s] the robot spent deciding and ``planner_failed`` whether the planner
+    failed and the nearest frontier rule chose.
     """
 
     stamp_s: float
     position: tuple[float, float]
     kind: FrontierType
     planning_time_s: float
+    planner_failed: bool = False
+
+    def target_entry(self) -> TargetEntry:
+        """The summary's entry of this decision's target."""
+        return TargetEntry(float(self.position[0]), float(self.position[1]),
+                           frontier_type_name(self.kind))
 
 
 @dataclass(frozen=True)
@@ -179,11 +188,15 @@ class RunMonitor:
         return [d for d in decisions if stamp_key(d.stamp_s) < limit]
 
     def summary(self, decisions: Sequence[Sequence[DecisionEntry]], wall_s: float,
-                progress: Sequence[RobotProgressRecord] | None = None) -> RunSummary:
-        """The run's summary from each robot's decisions (in order, indexed by robot id)
-        and the wall time [s]; values at the final metrics (NaN where nothing was measured).
-        ``progress`` (indexed by robot id), when the watcher knows it, fills each robot's
-        ``given_up`` and ``blocked_s`` (else they stay null)."""
+                progress: Sequence[RobotProgressRecord] | None = None,
+                rendezvous_events: Sequence[RendezvousEvent] = (),
+                meetings: Sequence[MeetingEntry] = ()) -> RunSummary:
+        """The run's summary from each robot's decisions (in order, indexed by robot id),
+        the wall time [s], the rendezvous events the robots sent and the meetings' effects
+        on the requesters' uncertainty (when known); values at the final metrics (NaN where
+        nothing was measured). Events and meetings count when stamped before the final
+        evaluation, as decisions do. ``progress`` (indexed by robot id), when the watcher
+        knows it, fills each robot's ``given_up`` and ``blocked_s`` (else they stay null)."""
         world = self.params.world
         summary = RunSummary(seed=self.params.run.seed, planner=self.params.planner.name,
                              num_robots=world.num_robots,
@@ -196,14 +209,20 @@ class RunMonitor:
                      else (0.0,) * len(counted))
         summary.robots = [RobotSummary(
             id=robot, distance_m=float(distances[robot]), decisions=len(chosen),
-            targets=[TargetEntry(float(d.position[0]), float(d.position[1]),
-                                 frontier_type_name(d.kind)) for d in chosen],
+            targets=[d.target_entry() for d in chosen],
             decision_times_s=[d.planning_time_s for d in chosen])
             for robot, chosen in enumerate(counted)]
         for robot, record in zip(summary.robots, progress or ()):
             robot.given_up, robot.blocked_s = list(record.given_up), record.blocked_s
         times = [d.planning_time_s for chosen in counted for d in chosen]
         summary.decisions = len(times)
+        for chosen in counted:
+            for decision in chosen:
+                summary.decisions_by_type[frontier_type_name(decision.kind)] += 1
+                summary.planner_failures += decision.planner_failed
+        end_s = math.inf if final is None else final.stamp_s
+        summary.rendezvous = count_rendezvous(rendezvous_events, end_s)
+        summary.meetings = [m for m in meetings if m.stamp_s < end_s]
         if times:
             summary.decision_time_median_s = float(np.median(times))
             summary.decision_time_max_s = float(np.max(times))

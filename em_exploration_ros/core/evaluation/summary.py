@@ -13,7 +13,11 @@ frame], ``stamp_s``, ``reason``: blocked / no progress / deadline) and ``blocked
 forward motion; ``given_up`` and ``blocked_s`` are null where the writer cannot know them)),
 plus ``seed``,
 ``planner``, ``num_robots``, ``map_size_m``, ``num_landmarks``, ``stop_reason`` and
-``history``: samples of the metrics against distance travelled.
+``history``: samples of the metrics against distance travelled; ``decisions_by_type``
+(decisions per frontier type), ``planner_failures`` (decisions where the planner failed and
+the nearest frontier rule chose), ``rendezvous`` (requested / met / timed_out / open, see
+``rendezvous_stats``) and ``meetings`` (em-sim only: per rendezvous with an inter-robot
+factor, the requester's pose-covariance trace just before and after it).
 """
 from __future__ import annotations
 
@@ -69,6 +73,32 @@ class RobotSummary:
 
 
 @dataclass
+class RendezvousCounts:
+    """How many rendezvous were requested, met, timed out (ended without meeting) and
+    still open at the end of the run (see ``rendezvous_stats``)."""
+
+    requested: int = 0
+    met: int = 0
+    timed_out: int = 0
+    open: int = 0
+
+
+@dataclass
+class MeetingEntry:
+    """A rendezvous that produced an inter-robot factor between requester and partner:
+    the requester's latest pose-covariance trace [m^2 + rad^2] just before and after the
+    SLAM update that added it at ``stamp_s`` [s]; requested at ``requested_at_s`` [s]."""
+
+    requester_id: int
+    partner_id: int
+    rendezvous_id: int
+    requested_at_s: float
+    stamp_s: float
+    trace_before_m2: float
+    trace_after_m2: float
+
+
+@dataclass
 class HistorySample:
     """Team metrics at one moment, for plots against distance travelled."""
 
@@ -98,6 +128,11 @@ class RunSummary:
     decision_time_median_s: float = math.nan
     decision_time_max_s: float = math.nan
     stop_reason: str = ""
+    decisions_by_type: dict[str, int] = field(
+        default_factory=lambda: {kind: 0 for kind in TARGET_TYPES})
+    planner_failures: int = 0
+    rendezvous: RendezvousCounts = field(default_factory=RendezvousCounts)
+    meetings: list[MeetingEntry] = field(default_factory=list)
     robots: list[RobotSummary] = field(default_factory=list)
     history: list[HistorySample] = field(default_factory=list)
 
@@ -110,6 +145,18 @@ class RunSummary:
         target = Path(path)
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
+
+
+def activity_line(data: dict[str, Any]) -> str:
+    """One line on a summary's decisions and rendezvous (``RunSummary.to_dict`` data), e.g.
+    ``decisions: 120 exploration, 7 revisiting, 1 rendezvous; planner failed 0;
+    rendezvous: 1 requested, 0 met, 1 timed out, 0 open``."""
+    kinds = data.get("decisions_by_type") or {}
+    meetings = data.get("rendezvous") or {}
+    return ("decisions: " + ", ".join(f"{kinds.get(k, 0)} {k}" for k in TARGET_TYPES)
+            + f"; planner failed {data.get('planner_failures', 0)}; rendezvous: "
+            + ", ".join(f"{meetings.get(k, 0)} {k.replace('_', ' ')}"
+                        for k in ("requested", "met", "timed_out", "open")))
 
 
 def check_summary(data: dict[str, Any]) -> list[str]:

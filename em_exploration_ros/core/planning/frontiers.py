@@ -39,8 +39,9 @@ class Frontier:
         position: (2,) map-frame position [m] (read-only).
         kind: frontier type.
         partner_id: the teammate to meet (RENDEZVOUS only), else None.
-        waiting_penalty_m: RENDEZVOUS only: expected waiting expressed as distance [m],
-            ``|d_self - d_teammate|`` at equal speeds; 0 for the other kinds.
+        waiting_penalty_m: RENDEZVOUS only, with ``rendezvous_waiting_penalty`` (the
+            reference code's option): expected waiting expressed as distance [m],
+            ``|d_self - d_teammate|`` at equal speeds; 0 otherwise.
     """
 
     position: np.ndarray
@@ -151,8 +152,10 @@ def rendezvous_frontiers(robot_id: int, robot_xy: np.ndarray,
         params: frontier parameters; a target counts only when the deciding robot is
             farther than ``rendezvous_min_distance_m`` from it.
 
-    The waiting penalty is the arrival-time difference at equal speeds, expressed as distance
-    travelled by the deciding robot: ``|d_self - d_teammate|``.
+    Callers leave out teammates that cannot meet (finished or lost). With
+    ``params.rendezvous_waiting_penalty`` (not in the paper), each candidate carries the
+    arrival-time difference at equal speeds, expressed as distance travelled by the
+    deciding robot: ``|d_self - d_teammate|``.
     """
     robot_xy = np.asarray(robot_xy, dtype=float)[:2]
     found = []
@@ -165,8 +168,9 @@ def rendezvous_frontiers(robot_id: int, robot_xy: np.ndarray,
         if d_self <= params.rendezvous_min_distance_m:
             continue
         d_teammate = float(np.linalg.norm(target - np.asarray(teammate_xy, dtype=float)[:2]))
+        penalty = abs(d_self - d_teammate) if params.rendezvous_waiting_penalty else 0.0
         found.append(Frontier(target, FrontierType.RENDEZVOUS, partner_id=teammate_id,
-                              waiting_penalty_m=abs(d_self - d_teammate)))
+                              waiting_penalty_m=penalty))
     return found
 
 

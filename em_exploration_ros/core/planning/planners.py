@@ -3,11 +3,14 @@
 All positions are in the team ``map`` frame [m]. For a candidate target ``a`` of the
 deciding robot alpha (every utility is a cost: lower is better):
 
-* ``U_D``: Euclidean distance from alpha's pose to ``a`` [m], plus the waiting penalty of
-  a rendezvous candidate.
-* ``U_T`` (task allocation): ``sum h(|a - a_beta|)`` over the last
-  ``allocation_history`` targets ``a_beta`` of every teammate, ``h(d) = 1 - d / d_max``
-  below ``d_max`` and 0 beyond (unitless).
+* ``U_D``: Euclidean distance from alpha's pose to ``a`` [m] (plus a rendezvous
+  candidate's waiting penalty when ``frontiers.rendezvous_waiting_penalty``, the reference
+  code's option).
+* ``U_T`` (task allocation, Eq. 11): ``sum h(|a - a_beta|)`` over the targets ``a_beta``
+  of every teammate (all of them, the paper's set A; the last ``allocation_history`` when
+  > 0, the reference code's 5), ``h(d) = 1 - d / d_max`` below ``d_max`` and 0 beyond
+  (unitless). A rendezvous candidate's meeting point is its partner's current target; that
+  target is left out of the candidate's own sum unless ``allocation_counts_meeting_point``.
 * ``U_M`` (Algorithm 2, EM): the sum of ``trace(Sigma_v)`` [m^2] over the cells of the
   predicted local virtual map of alpha, built from alpha's optimized historical and new
   poses ``X_new_alpha*`` (Algorithm 1, :mod:`uncertainty_propagation`), counting only the
@@ -108,7 +111,8 @@ class Planner(Protocol):
 
 
 def distance_utility(robot_xy: np.ndarray, candidates: Sequence[Frontier]) -> FloatArray:
-    """``U_D`` (C,) [m]: distance to each candidate plus its rendezvous waiting penalty."""
+    """``U_D`` (C,) [m]: distance to each candidate plus its rendezvous waiting penalty (0
+    unless ``frontiers.rendezvous_waiting_penalty``)."""
     positions = np.array([c.position for c in candidates]).reshape(-1, 2)
     penalty = np.array([c.waiting_penalty_m for c in candidates])
     return np.linalg.norm(positions - np.asarray(robot_xy, dtype=float)[:2], axis=1) + penalty
@@ -132,22 +136,34 @@ def trace_sqrt_sum(covariances: np.ndarray) -> float:
     return float(np.sum(np.sqrt(np.clip(np.linalg.eigvalsh(covariances), 0.0, None))))
 
 
-def _recent_teammate_targets(context: PlanningContext, count: int) -> np.ndarray:
-    """The last ``count`` targets (T, 2) of every teammate."""
-    targets = [np.asarray(t, dtype=float)[:2]
-               for robot, history in context.target_history.items()
-               if robot != context.robot_id and count > 0
-               for t in list(history)[-count:]]
-    return np.array(targets).reshape(-1, 2)
+def teammate_allocation_utility(context: PlanningContext, params: PlannerParams) -> FloatArray:
+    """``U_T`` (C,) of ``context.candidates`` over the teammates' target histories.
+
+    Every teammate's targets count (its last ``params.allocation_history`` when > 0). A
+    rendezvous candidate's own sum skips its partner's current (latest) target, the meeting
+    point itself, unless ``params.allocation_counts_meeting_point``.
+    """
+    positions = np.array([c.position for c in context.candidates]).reshape(-1, 2)
+    u_t = np.zeros(len(positions))
+    count = params.allocation_history
+    for robot, history in context.target_history.items():
+        targets = np.array(list(history)[-count:] if count > 0 else list(history),
+                           dtype=float).reshape(-1, 2)
+        if robot == context.robot_id or len(targets) == 0:
+            continue
+        u_t += allocation_utility(positions, targets, params.allocation_d_max_m)
+        if not params.allocation_counts_meeting_point:
+            meets = np.array([c.partner_id == robot for c in context.candidates], dtype=bool)
+            u_t[meets] -= allocation_utility(positions[meets], targets[-1:],
+                                             params.allocation_d_max_m)
+    return u_t
 
 
 def _utility_terms(context: PlanningContext,
                    params: PlannerParams) -> tuple[FloatArray, FloatArray]:
     """``U_T`` (C,) and ``U_D`` (C,) of the candidates."""
-    positions = np.array([c.position for c in context.candidates]).reshape(-1, 2)
-    teammate_targets = _recent_teammate_targets(context, params.allocation_history)
-    u_t = allocation_utility(positions, teammate_targets, params.allocation_d_max_m)
-    return u_t, distance_utility(context.robot_pose, context.candidates)
+    return (teammate_allocation_utility(context, params),
+            distance_utility(context.robot_pose, context.candidates))
 
 
 def _decide(context: PlanningContext, u_m: FloatArray, u_t: FloatArray, u_d: FloatArray,

@@ -3,6 +3,8 @@
 A robot that chooses a rendezvous candidate (``frontiers.rendezvous_frontiers``) requests a
 meeting at its partner's current target; ``RendezvousBook`` follows the ``Rendezvous``
 message events until both robots arrived, the deadline passed or either was released.
+The deadline is set by the requester (``meeting_timeout_s``: it scales with the
+requester's travel to the meeting point) and travels with the REQUEST.
 Meeting points are in the team ``map`` frame [m]; times are simulation time [s].
 """
 from __future__ import annotations
@@ -44,30 +46,43 @@ class _OpenMeeting:
         return robot_id in (self.meeting.requester_id, self.meeting.partner_id)
 
 
+def meeting_timeout_s(travel_m: float, speed_mps: float, factor: float,
+                      margin_s: float) -> float:
+    """How long a partner waits for the requester [s]: ``factor`` times the requester's
+    travel time to the meeting point (``travel_m`` [m] at ``speed_mps`` [m/s]) plus
+    ``margin_s`` [s]."""
+    return factor * max(float(travel_m), 0.0) / speed_mps + margin_s
+
+
 class RendezvousBook:
     """ROS-free bookkeeping of rendezvous between robots (simulation time in seconds).
 
     Mirrors the ``Rendezvous`` message events: ``request`` (REQUEST), ``arrived``
-    (ARRIVED), ``release`` (RELEASE, also used when a robot is declared dead), plus the
-    timeout (``expire``). A requester has at most one open meeting: a new request replaces
-    the previous one. A meeting closes when both robots have arrived, at its deadline
-    (``requested_at_s + timeout_s``), or when either robot is released.
+    (ARRIVED), ``release`` / ``release_meeting`` (RELEASE; ``release`` also when a robot
+    finished or is lost), plus the timeout (``expire``). A requester has at most one open
+    meeting: a new request replaces the previous one. A meeting closes when both robots
+    have arrived, at its deadline (``requested_at_s + timeout_s`` of its request), or when
+    it or either robot is released.
     """
 
-    def __init__(self, timeout_s: float) -> None:
-        """Args: longest wait after a request [s]."""
-        self.timeout_s = float(timeout_s)
+    def __init__(self) -> None:
         self._open: dict[int, _OpenMeeting] = {}
 
     def request(self, requester_id: int, partner_id: int, meeting_point: np.ndarray,
-                time_s: float, rendezvous_id: int = 0) -> Meeting:
-        """Record that ``requester_id`` wants to meet ``partner_id`` at ``meeting_point``."""
+                time_s: float, timeout_s: float, rendezvous_id: int = 0) -> Meeting:
+        """Record that ``requester_id`` wants to meet ``partner_id`` at ``meeting_point``
+        from ``time_s`` on, for at most ``timeout_s`` [s]."""
         if requester_id == partner_id:
             raise ValueError(f"robot {requester_id} cannot rendezvous with itself")
         meeting = Meeting(rendezvous_id, requester_id, partner_id, meeting_point,
-                          float(time_s), float(time_s) + self.timeout_s)
+                          float(time_s), float(time_s) + float(timeout_s))
         self._open[requester_id] = _OpenMeeting(meeting)
         return meeting
+
+    def meeting_of(self, requester_id: int) -> Meeting | None:
+        """The open meeting requested by ``requester_id``, or None."""
+        entry = self._open.get(requester_id)
+        return None if entry is None else entry.meeting
 
     def open_meetings(self) -> list[Meeting]:
         """Open meetings, in ascending requester id."""
@@ -88,8 +103,14 @@ class RendezvousBook:
         return self._close(lambda entry: entry.meeting.deadline_s <= time_s)
 
     def release(self, robot_id: int) -> list[Meeting]:
-        """Close and return every meeting the robot takes part in (plans changed or dead)."""
+        """Close and return every meeting the robot takes part in (finished or lost)."""
         return self._close(lambda entry: entry.involves(robot_id))
+
+    def release_meeting(self, requester_id: int, rendezvous_id: int) -> list[Meeting]:
+        """Close and return the meeting ``rendezvous_id`` of ``requester_id`` if it is open
+        (a RELEASE of one meeting; an older or unknown id closes nothing)."""
+        return self._close(lambda entry: (entry.meeting.requester_id == requester_id
+                                          and entry.meeting.rendezvous_id == rendezvous_id))
 
     def is_waiting(self, robot_id: int) -> np.ndarray | None:
         """Meeting point (2,) [m] where the robot must go and wait, or None.

@@ -10,16 +10,21 @@ the same targets as the ROS system in lockstep mode.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
+
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.agent.team_data import TeamUpdateInbox
+from em_exploration_ros.core.agent.team_data import RendezvousEvent, TeamUpdateInbox
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
+from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, evaluation_layers
+from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
 from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RobotProgressRecord,
                                                             RunMonitor)
-from em_exploration_ros.core.evaluation.summary import GivenUpEntry, RunSummary
+from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, RunSummary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
@@ -58,6 +63,7 @@ class TeamRunner:
         self._inboxes = [TeamUpdateInbox(i, n) for i in range(n)]
         self._barrier = {i: 0 for i in range(n)}
         self.monitor = RunMonitor(params)
+        self.rendezvous_events: list[RendezvousEvent] = []
 
     def run(self, progress: Callable[[Progress], None] | None = None) -> RunSummary:
         """Explore until the stop rule; report progress every metrics evaluation."""
@@ -91,6 +97,7 @@ class TeamRunner:
                 published.append(update)
             commands.append(command_to_twist(command.turn_rad, command.forward_m, time_step))
         for update in published:
+            self.rendezvous_events.extend(update.rendezvous)
             for inbox in self._inboxes:
                 if inbox is not self._inboxes[update.robot_id]:
                     inbox.receive(update)
@@ -118,14 +125,43 @@ class TeamRunner:
             landmarks[agent.robot_id] = agent.slam.landmark_estimates()
         return self.evaluator.evaluate(self.simulation.stamp_s, trajectories, landmarks)
 
+    def map_layers(self) -> TeamMapLayers:
+        """The picture of the run so far: truth, each robot's own estimate of its path and
+        of the landmarks, the targets counted in the summary and the rendezvous."""
+        final = self.monitor.final_metrics
+        end_s = math.inf if final is None else final.stamp_s
+        counted = {agent.robot_id: self.monitor.decisions_counted(entries)
+                   for agent, entries in zip(self.agents, self._decision_entries())}
+        targets = {robot: [d.target_entry() for d in chosen] for robot, chosen in counted.items()}
+        params = self.params
+        return evaluation_layers(
+            self.evaluator,
+            {agent.robot_id: agent.slam.trajectory(agent.robot_id)[1] for agent in self.agents},
+            {agent.robot_id: np.array(list(agent.slam.landmark_estimates().values())
+                                      ).reshape(-1, 2) for agent in self.agents},
+            targets, rendezvous_outcomes(self.rendezvous_events, end_s),
+            f"{params.planner.name}, {params.world.num_robots} robots, seed {params.run.seed}: "
+            f"{self.monitor.stop_reason or 'running'}")
+
+    def _decision_entries(self) -> list[list[DecisionEntry]]:
+        """Each robot's decisions as the run monitor counts them."""
+        return [[DecisionEntry(d.stamp_s, (float(d.target.position[0]),
+                                           float(d.target.position[1])),
+                               d.target.kind, d.planning_time_s, d.planner_failed)
+                 for d in agent.decisions]
+                for agent in self.agents]
+
     def summary(self, wall_s: float) -> RunSummary:
         """The run's summary in the shared JSON schema (the run monitor's)."""
-        decisions = [[DecisionEntry(d.stamp_s, (float(d.target.position[0]),
-                                                float(d.target.position[1])),
-                                    d.target.kind, d.planning_time_s) for d in agent.decisions]
-                     for agent in self.agents]
+        decisions = self._decision_entries()
         progress = [RobotProgressRecord(
             tuple(GivenUpEntry(float(g.position[0]), float(g.position[1]), g.stamp_s,
                                g.reason.value) for g in agent.given_up), agent.blocked_s)
             for agent in self.agents]
-        return self.monitor.summary(decisions, wall_s, progress)
+        meetings = sorted((MeetingEntry(agent.robot_id, e.partner_id, e.rendezvous_id,
+                                        e.requested_at_s, e.stamp_s, e.trace_before_m2,
+                                        e.trace_after_m2)
+                           for agent in self.agents for e in agent.meeting_effects),
+                          key=lambda m: (m.stamp_s, m.requester_id))
+        return self.monitor.summary(decisions, wall_s, progress=progress,
+                                    rendezvous_events=self.rendezvous_events, meetings=meetings)

@@ -249,6 +249,8 @@ class _TeamGraph:
         self._in_graph: set[KeyframeId] = set()
         # observed keyframe -> [(observer keyframe, reading)] waiting for the observed one
         self._waiting_observations: dict[KeyframeId, list[tuple[KeyframeId, TeammateReading]]] = {}
+        # unordered robot pair (low id, high id) -> inter-robot factors in the graph
+        self.observation_counts: dict[tuple[int, int], int] = {}
 
     def receive(self, keyframe: KeyframeMeasurements) -> None:
         """Store a keyframe unless it is a duplicate. Raises ValueError on bad robot ids."""
@@ -359,6 +361,8 @@ class _TeamGraph:
     def _add_observation(self, observer: KeyframeId, reading: TeammateReading,
                          batch: _Batch) -> None:
         """Between factor observer -> observed teammate keyframe (same index)."""
+        pair = (min(observer[0], reading.robot_id), max(observer[0], reading.robot_id))
+        self.observation_counts[pair] = self.observation_counts.get(pair, 0) + 1
         observation_noise = self.noise.robot_observation(reading)
         batch.factors.push_back(gtsam.BetweenFactorPose2(
             pose_key(*observer), pose_key(reading.robot_id, observer[1]),
@@ -495,6 +499,12 @@ class TeamSlam:
         """Number of variables (poses and landmarks) in the graph."""
         return self._estimate.size()
 
+    def inter_robot_factors(self, robot_a: int, robot_b: int) -> int:
+        """How many inter-robot observation factors between the two robots (either way)
+        the graph holds: counted when added, i.e. at the :meth:`update` that adds them."""
+        return self._graph.observation_counts.get((min(robot_a, robot_b),
+                                                   max(robot_a, robot_b)), 0)
+
     def num_pending(self) -> int:
         """Number of received keyframes still waiting to be connectable."""
         return self._graph.num_pending
@@ -529,6 +539,11 @@ class TeamSlam:
         if frame == "body":
             return covariances
         return body_to_map_covariance(poses, covariances)
+
+    def pose_covariance(self, robot_id: int, index: int) -> np.ndarray:
+        """Marginal covariance ``(3, 3)`` of one keyframe pose, body frame (x, y [m], theta
+        [rad]); its trace equals the map-frame one."""
+        return self._isam.marginalCovariance(pose_key(robot_id, index))
 
     def landmark_covariance(self, landmark_id: int) -> np.ndarray:
         """Marginal covariance ``(2, 2)`` [m^2] of a landmark, map frame."""
