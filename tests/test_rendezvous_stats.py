@@ -52,7 +52,7 @@ def test_summary_counts_types_failures_and_rendezvous_before_the_stop():
                   DecisionEntry(40.0, (3.0, 1.0), FrontierType.REVISITING, 0.1)],
                  [DecisionEntry(4.0, (1.0, 2.0), FrontierType.REVISITING, 0.1)]]
     meetings = [MeetingEntry(0, 1, 0, 1.0, 4.5, 0.9, 0.2), MeetingEntry(0, 2, 4, 20.0, 35.0, 1, 1)]
-    summary = monitor.summary(decisions, 1.0, EVENTS, meetings).to_dict()
+    summary = monitor.summary(decisions, 1.0, rendezvous_events=EVENTS, meetings=meetings).to_dict()
     assert summary["decisions_by_type"] == {"exploration": 2, "revisiting": 1, "rendezvous": 1}
     assert summary["planner_failures"] == 1
     assert summary["rendezvous"] == {"requested": 4, "met": 1, "timed_out": 2, "open": 1}

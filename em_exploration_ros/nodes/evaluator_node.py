@@ -586,7 +586,8 @@ class EvaluatorNode(Node):
         status changes and downtime."""
         wall_s = (0.0 if self._first_step_wall_s is None
                   else time.monotonic() - self._first_step_wall_s)
-        summary = self.monitor.summary(self._decisions(), wall_s, self.rendezvous_events)
+        summary = self.monitor.summary(self._decisions(), wall_s,
+                                       rendezvous_events=self.rendezvous_events)
         until_s = self._status_times()
         for entry in summary.robots:
             entry.status = self.liveness.status(entry.id)

@@ -427,7 +427,8 @@ class RobotAgent:
         _LOG.info("robot %d: every candidate is near a given-up target; nearest other "
                   "frontier %s", self.robot_id, target.position.tolist())
         distance = float(np.linalg.norm(target.position - pose[:2]))
-        self._set_target(target, pose, time.perf_counter() - started, 1, distance)
+        self._set_target(target, pose, time.perf_counter() - started, 1, distance,
+                         planner_failed=False)
 
     def _set_target(self, target: Frontier, pose: np.ndarray, planning_time_s: float,
                     num_candidates: int, utility: float, planner_failed: bool) -> None:
