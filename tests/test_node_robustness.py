@@ -97,6 +97,7 @@ def test_a_robot_whose_world_leaves_says_so_and_exits(tmp_path):
         world.wait_for_output("stepping", START_S)  # the robot is connected
         world.signal_group(signal.SIGINT)  # a clean exit leaves the graph at once
         assert world.wait(START_S) == 0
-        robot.wait_for_output("the world left the ROS graph", START_S)
+        # the graph forgets the world's endpoints a moment later; slower on a loaded machine
+        robot.wait_for_output("the world left the ROS graph", 2 * START_S)
         assert robot.wait(START_S) == 4
     assert "the world has been gone for 3 s; exiting (code 4)" in robot.output()
