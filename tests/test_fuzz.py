@@ -87,7 +87,9 @@ def run(tmp_path: Path, name: str, attack: bool) -> dict:
     report, alive_after_attack, after_mb = None, None, {}
     with team:
         if attack:  # mid-run, so that the team is running before and after the attack
+            started = time.monotonic()
             while "t=   20.0 s" not in team.output() and team.running():
+                assert time.monotonic() - started < RUN_TIMEOUT_S, team.output()[-3000:]
                 memory.sample()
                 time.sleep(0.2)
             before = dict(memory.pids)

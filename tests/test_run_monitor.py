@@ -35,6 +35,7 @@ def test_summary_holds_the_values_of_the_step_where_the_rule_fired():
     assert reason.startswith("explored ratio 0.803") and monitor.stopped
     # the world went on: later evaluations change nothing
     assert monitor.observe(30, metrics(30, 0.84, (9.0, 9.0))) == reason
+    monitor.record(metrics(40, 0.9, (9.0, 9.0)))
     summary = monitor.summary([[decision(5, 1.0), decision(19, 2.0), decision(20, 3.0),
                                 decision(25, 4.0)], [decision(12, 5.0)]], wall_s=1.5)
     assert summary.explored_ratio == 0.803 and summary.distance_m == 7.0
@@ -66,9 +67,10 @@ def test_a_run_ended_from_outside_is_summarized_at_its_last_evaluation():
     assert empty.decisions == 0 and math.isnan(empty.loc_rmse_m)
     monitor.observe(10, metrics(10, 0.2))
     monitor.observe(20, metrics(20, 0.4))
+    monitor.record(metrics(23, 0.45))  # the steps recorded before the interruption
     monitor.end("interrupted")
     summary = monitor.summary([[decision(3, 1.0)], []], wall_s=2.0)
-    assert summary.stop_reason == "interrupted" and summary.explored_ratio == 0.4
+    assert summary.stop_reason == "interrupted" and summary.explored_ratio == 0.45
     assert not monitor.stopped and summary.decisions == 1
 
 

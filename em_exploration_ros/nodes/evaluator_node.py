@@ -559,7 +559,7 @@ class EvaluatorNode(Node):
             last = self.monitor.final_metrics
             if self.recorded_step >= 0 and (
                     last is None or last.stamp_s != self._stamp_s(self.recorded_step)):
-                self.monitor.history.append(self.evaluate(self.recorded_step, publish))
+                self.monitor.record(self.evaluate(self.recorded_step, publish))
         summary = self.summary()
         summary.write(self.summary_path)
         log = self.get_logger()

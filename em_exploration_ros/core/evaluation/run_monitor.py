@@ -159,6 +159,12 @@ class RunMonitor:
             self._stop_metrics = metrics
         return reason
 
+    def record(self, metrics: TeamMetrics) -> None:
+        """Keep an evaluation made after the run ended without a stop rule (the last steps
+        recorded before Ctrl-C or silence); no rule is applied. Ignored after a rule fired."""
+        if not self.stopped:
+            self.history.append(metrics)
+
     def end(self, reason: str) -> None:
         """End the run without a stop rule (interrupted, world silent); keeps a fired rule."""
         if not self.stop_reason:
