@@ -78,7 +78,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, landma
                                                   time_to_seconds)
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
-from em_exploration_ros.nodes.qos import (ESTIMATE_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
+from em_exploration_ros.nodes.qos import (ESTIMATE_READER_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
                                           SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
@@ -195,10 +195,10 @@ class EvaluatorNode(Node):
                                      lambda m, r=robot: self._on_truth(r, m), GROUND_TRUTH_QOS)
             self.create_subscription(PathMsg, f"/{ns}/estimated_path",
                                      lambda m, r=robot: self._on_path(r, m),
-                                     ESTIMATE_QOS)
+                                     ESTIMATE_READER_QOS)
             self.create_subscription(LandmarkArray, f"/{ns}/landmarks",
                                      lambda m, r=robot: self._on_landmark_estimates(r, m),
-                                     ESTIMATE_QOS)
+                                     ESTIMATE_READER_QOS)
             self.create_subscription(TeamUpdate, f"/{ns}/team/updates",
                                      lambda m, r=robot: self._on_team_update(r, m), TEAM_QOS)
             self.create_subscription(MotionCommand, f"/{ns}/motion_command",
