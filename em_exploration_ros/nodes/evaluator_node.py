@@ -54,7 +54,7 @@ from rclpy.task import Future
 
 from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
-                                                     MissingRange, RendezvousEvent, TargetRecord,
+                                                     LandmarkEstimate, MissingRange, RendezvousEvent, TargetRecord,
                                                      TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
                                                           stamp_key)
@@ -72,8 +72,10 @@ from em_exploration_ros.core.evaluation.summary import RunSummary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.sim.wire_model import sim_time_s
-from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, landmark_positions_from_msg,
-                                                  odometry_pose, path_from_msg, robot_namespace,
+from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, landmark_array_to_msg,
+                                                  landmark_positions_from_msg,
+                                                  odometry_pose, path_from_msg, path_to_msg,
+                                                  robot_namespace,
                                                   seconds_to_time,
                                                   time_to_seconds)
 from em_exploration_ros.nodes.liveliness import watch_liveliness
@@ -83,7 +85,8 @@ from em_exploration_ros.nodes.qos import (ESTIMATE_READER_QOS, GROUND_TRUTH_QOS,
                                           TEAM_QOS)
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   content_problem, header_problem,
-                                                  publish_or_log)
+                                                  publish_or_log, serialized_size,
+                                                  size_limited)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
@@ -189,16 +192,26 @@ class EvaluatorNode(Node):
                                                  TEAM_QOS)
         self.create_subscription(LandmarkArray, "/world/landmarks", self._on_true_landmarks,
                                  LATCHED_QOS)
+        # The largest valid estimates: a path with a pose per keyframe of the run, a
+        # landmark set of the most landmarks an update may hold.
+        path_bytes = serialized_size(path_to_msg(
+            0.0, np.zeros(self._keyframes()), np.zeros((self._keyframes(), 3))))
+        landmarks_bytes = serialized_size(landmark_array_to_msg(0.0, MAP_FRAME, [
+            LandmarkEstimate(0, np.zeros(2), np.eye(2))] * MAX_LANDMARKS_PER_UPDATE))
         for robot in range(self.num_robots):
             ns = robot_namespace(robot)
             self.create_subscription(Odometry, f"/world/ground_truth/{ns}",
                                      lambda m, r=robot: self._on_truth(r, m), GROUND_TRUTH_QOS)
-            self.create_subscription(PathMsg, f"/{ns}/estimated_path",
-                                     lambda m, r=robot: self._on_path(r, m),
-                                     ESTIMATE_READER_QOS)
-            self.create_subscription(LandmarkArray, f"/{ns}/landmarks",
-                                     lambda m, r=robot: self._on_landmark_estimates(r, m),
-                                     ESTIMATE_READER_QOS)
+            path_topic, landmarks_topic = f"/{ns}/estimated_path", f"/{ns}/landmarks"
+            self.create_subscription(
+                PathMsg, path_topic, size_limited(
+                    self.inputs, path_topic, PathMsg, path_bytes,
+                    lambda m, r=robot: self._on_path(r, m)), ESTIMATE_READER_QOS, raw=True)
+            self.create_subscription(
+                LandmarkArray, landmarks_topic, size_limited(
+                    self.inputs, landmarks_topic, LandmarkArray, landmarks_bytes,
+                    lambda m, r=robot: self._on_landmark_estimates(r, m)),
+                ESTIMATE_READER_QOS, raw=True)
             self.create_subscription(TeamUpdate, f"/{ns}/team/updates",
                                      lambda m, r=robot: self._on_team_update(r, m), TEAM_QOS)
             self.create_subscription(MotionCommand, f"/{ns}/motion_command",
@@ -274,7 +287,7 @@ class EvaluatorNode(Node):
 
     def _on_path(self, robot: int, message: PathMsg) -> None:
         step, problem = self._stamp_problem(message.header.stamp, keyframes_only=True)
-        keyframes = self.monitor.final_step // self.params.slam.keyframe_interval_steps + 1
+        keyframes = self._keyframes()
         if not self.inputs.check(
                 f"/{robot_namespace(robot)}/estimated_path", problem,
                 header_problem(message.header, MAP_FRAME),
@@ -285,6 +298,10 @@ class EvaluatorNode(Node):
                 content_problem(message)):
             return
         self._on_estimate(self.paths, robot, message.header.stamp, path_from_msg(message))
+
+    def _keyframes(self) -> int:
+        """Keyframes of the whole run (a robot's path has at most as many poses)."""
+        return self.monitor.final_step // self.params.slam.keyframe_interval_steps + 1
 
     def _on_landmark_estimates(self, robot: int, message: LandmarkArray) -> None:
         _, problem = self._stamp_problem(message.header.stamp, keyframes_only=True)

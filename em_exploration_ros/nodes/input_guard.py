@@ -5,19 +5,22 @@
 ``core.agent.input_checks``. ``header_problem`` and ``content_problem`` apply them to any
 message: the header's stamp and frame; every floating-point number and every time it
 carries; ``checked_team_update`` adds a team update's array sizes.
-``publish_or_log`` publishes and logs, never raises, when the middleware refuses.
+``size_limited`` drops a serialized message longer than the topic's largest valid one
+before it is deserialized. ``publish_or_log`` publishes and logs, never raises, when the
+middleware refuses.
 """
 from __future__ import annotations
 
 import functools
 import time
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from rclpy.publisher import Publisher
+from rclpy.serialization import deserialize_message, serialize_message
 
 from em_exploration_ros.core.agent.input_checks import (RejectionLog, array_problem,
                                                         frame_problem, reason_kind,
@@ -57,6 +60,28 @@ class InputGuard:
                 self.drop(topic, problem)
                 return False
         return True
+
+
+def size_limited(guard: InputGuard, topic: str, message_class: type, max_bytes: int,
+                 callback: Callable[[Any], None]) -> Callable[[bytes], None]:
+    """The callback of a raw subscription (``create_subscription(..., raw=True)``) that
+    drops a serialized message longer than ``max_bytes`` (the largest valid message of the
+    topic) before it is deserialized, and hands the others, deserialized, to ``callback``.
+    rclpy takes 30-60 ms to turn a message with thousands of nested messages into Python
+    objects; under a flood of them a node fell behind while the middleware's queues held
+    what it had not taken yet (tens of MB)."""
+    def on_serialized(data: bytes) -> None:
+        if len(data) > max_bytes:
+            guard.drop(topic, f"{len(data)} bytes, more than the {max_bytes} of the largest "
+                              "valid message")
+            return
+        callback(deserialize_message(data, message_class))
+    return on_serialized
+
+
+def serialized_size(message: Any) -> int:
+    """Bytes of a message on the wire (CDR) [B]."""
+    return len(serialize_message(message))
 
 
 def header_problem(header: Any, frame_id: str) -> str | None:
