@@ -4,9 +4,11 @@ import pytest
 from em_exploration_msgs.msg import TeamUpdate as TeamUpdateMsg
 from rclpy.serialization import serialize_message
 
-from em_exploration_ros.core.agent.team_data import TargetRecord, TeamUpdate
-from em_exploration_ros.core.agent.team_wire import (TeamWireFormat, covariance_from_upper,
-                                                     covariance_upper, to_float32)
+from em_exploration_ros.core.agent.team_data import (RendezvousEvent, RendezvousState,
+                                                     TargetRecord, TeamUpdate)
+from em_exploration_ros.core.agent.team_wire import (TeamWireFormat, cdr_size,
+                                                     covariance_from_upper, covariance_upper,
+                                                     to_float32)
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.sim.sensors import (LandmarkReading, SensorSimulator,
@@ -131,3 +133,24 @@ def test_cdr_size_of_a_keyframe_update():
 
     assert size(bare) == 80
     assert size(kf) == 80 + 12 + 16
+
+
+def test_cdr_size_without_ros_equals_the_serialized_size():
+    """``cdr_size`` (no rclpy) against rclpy's serialization, for updates of every shape:
+    alignment padding differs with what precedes each float64."""
+    kf = WIRE.keyframe(raw_keyframe())
+    stamp = WIRE.step_time_s(70)
+    event = RendezvousEvent(3, 1, 2, 1, RendezvousState.REQUEST, 13.2, np.array([4.0, 5.0]),
+                            60.0)
+
+    def target(index: int) -> TargetRecord:
+        return TargetRecord(1, index, stamp, np.array([3.0, 7.0]), FrontierType.RENDEZVOUS, 2,
+                            0.25, index % 2 == 0)
+
+    shapes = [TeamUpdate(1, 1, stamp)]
+    for keyframes in ((), (kf,), (kf, kf)):
+        for targets in ((), (target(0),), (target(0), target(1), target(2))):
+            for events in ((), (event,), (event, event)):
+                shapes.append(TeamUpdate(1, 5, stamp, keyframes, targets, events, True))
+    for update in shapes:
+        assert cdr_size(update) == len(serialize_message(team_update_to_msg(update, WIRE)))

@@ -17,6 +17,9 @@ The sender must use exactly what its teammates receive, or the graphs drift apar
 robot passes each new keyframe and target through ``TeamWireFormat`` before using it
 itself (``RobotAgent``), em-sim does the same by running the same agent, and the ROS
 conversions (``nodes/conversions.py``) then carry these values without loss.
+
+``cdr_size`` gives the bytes one update takes on the wire (its serialized CDR payload)
+without ROS, for bandwidth budgets in process.
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from em_exploration_ros.core.agent.team_data import TargetRecord
+from em_exploration_ros.core.agent.team_data import TargetRecord, TeamUpdate
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.sensors import (LandmarkReading, TeammateReading,
                                                  sonar_variances, teammate_covariance)
@@ -125,3 +128,45 @@ class TeamWireFormat:
         """``target`` exactly as its receivers rebuild it from the wire (float32 planning
         time; its stamp is the update's, which the sender publishes at the same step)."""
         return replace(target, planning_time_s=to_float32(target.planning_time_s))
+
+
+#: The encapsulation header in front of every serialized ROS 2 message [bytes].
+CDR_ENCAPSULATION_BYTES = 4
+
+
+class _CdrLayout:
+    """Offset bookkeeping of classic CDR: every primitive is aligned to its own size,
+    counted from the start of the payload (after the encapsulation header)."""
+
+    def __init__(self) -> None:
+        self.offset = 0
+
+    def add(self, size: int, count: int = 1) -> None:
+        """``count`` primitives of ``size`` bytes each (an array of them)."""
+        self.offset += -self.offset % size + size * count
+
+
+def cdr_size(update: TeamUpdate) -> int:
+    """Bytes of ``update`` as a serialized em_exploration_msgs/TeamUpdate (CDR with its
+    encapsulation header): what DDS carries per update, without RTPS and UDP/IP headers.
+    Equal to ``len(rclpy.serialization.serialize_message(team_update_to_msg(update)))``."""
+    cdr = _CdrLayout()
+    cdr.add(4, 2)  # step, sequence
+    cdr.add(1, 2)  # robot_id, finished
+    cdr.add(4)  # keyframes length
+    for keyframe in update.keyframes:
+        cdr.add(4, 2 + 3 + 6)  # index, previous_index, odometry, covariance upper triangle
+        cdr.add(4, 1 + 3 * len(keyframe.landmarks))  # length; id, range, bearing each
+        cdr.add(4, 1 + 4 * len(keyframe.teammates))  # length; id, x, y, theta each
+    cdr.add(4)  # targets length
+    for _ in update.targets:
+        cdr.add(4, 2)  # decision_index, partner_id
+        cdr.add(8, 2)  # x, y
+        cdr.add(4)  # planning_time
+        cdr.add(1, 2)  # frontier_type, planner_failed
+    cdr.add(4)  # rendezvous length
+    for _ in update.rendezvous:
+        cdr.add(4, 2 + 4)  # stamp (sec, nanosec); rendezvous, requester, partner, sender ids
+        cdr.add(1)  # state
+        cdr.add(8, 3)  # x, y, timeout
+    return CDR_ENCAPSULATION_BYTES + cdr.offset
