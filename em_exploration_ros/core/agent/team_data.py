@@ -28,10 +28,11 @@ MAX_SEQUENCE_LEAD = 10_000
 #: Most entries of each array in one record (a robot sends about one keyframe per update;
 #: these bounds leave room for bulk re-sends and large teams and maps).
 MAX_KEYFRAMES_PER_UPDATE = 1000
-MAX_LANDMARKS_PER_UPDATE = 1000
 MAX_TARGETS_PER_UPDATE = 1000
 MAX_RENDEZVOUS_PER_UPDATE = 1000
 MAX_READINGS_PER_KEYFRAME = 1000
+#: Most landmark estimates in one robot's /robot_<i>/landmarks message.
+MAX_LANDMARKS_PER_UPDATE = 1000
 
 
 class RendezvousState(IntEnum):
