@@ -29,6 +29,8 @@ from em_exploration_ros.core.evaluation.trial_stats import paired_difference
 #: A meeting counts as reducing the requester's uncertainty when its trace falls by more
 #: than this fraction at the inter-robot factor.
 _MEETING_DROP = 0.1
+#: A factor this soon after the request [s sim time] means the partner was already in sight.
+_IN_SIGHT_S = 2.0
 
 
 def load_trials(out_dir: Path) -> dict[tuple[str, str, int], dict]:
@@ -120,13 +122,15 @@ def rendezvous(out_dir: Path, planner: str) -> None:
         if not group:
             continue
         entries = [m for m, _ in group]
-        print(f"{label}: {len(group)} meetings, median trace "
-              f"{statistics.median(m['trace_before_m2'] for m in entries):.1f} -> "
-              f"{statistics.median(m['trace_after_m2'] for m in entries):.1f}, median ratio "
-              f"{statistics.median(m['trace_after_m2'] / m['trace_before_m2'] for m in entries):.2f}"
-              f", median {statistics.median(m['stamp_s'] - m['requested_at_s'] for m in entries):.1f}"
-              f" s from request to factor, {sum(f < 1 / 3 for _, f in group)} requested in the "
-              f"first third of the run")
+        before = statistics.median(m["trace_before_m2"] for m in entries)
+        after = statistics.median(m["trace_after_m2"] for m in entries)
+        ratio = statistics.median(m["trace_after_m2"] / m["trace_before_m2"] for m in entries)
+        waited = statistics.median(m["stamp_s"] - m["requested_at_s"] for m in entries)
+        print(f"{label}: {len(group)} meetings, median trace {before:.1f} -> {after:.1f}, "
+              f"median ratio {ratio:.2f}, median {waited:.1f} s from request to factor, "
+              f"{sum(f < 1 / 3 for _, f in group)} requested in the first third of the run")
+    quick = sum(m["stamp_s"] - m["requested_at_s"] <= _IN_SIGHT_S for m, _ in meetings)
+    print(f"factor within {_IN_SIGHT_S:g} s of the request: {quick} of {len(meetings)}")
     largest = sorted(fell, key=lambda mf: -mf[0]["trace_before_m2"])[:3]
     print("largest: " + ", ".join(f"{m['trace_before_m2']:.1f} -> {m['trace_after_m2']:.1f}"
                                   for m, _ in largest))

@@ -3,8 +3,9 @@
 Subscribes to the ground truth (``/world/ground_truth/robot_i``, ``/world/landmarks``) and to
 what each robot publishes (``/robot_i/estimated_path``, ``/robot_i/landmarks``,
 ``/robot_i/team/updates`` for the chosen targets, ``/robot_i/motion_command`` for the
-finished flags and the robots' own progress bookkeeping). It never publishes anything a robot uses for its estimates or decisions;
-it only asks robots to re-send team updates it missed, as robots do.
+finished flags and the robots' own progress bookkeeping). It never publishes anything a
+robot uses for its estimates or decisions; it only asks robots to re-send team updates it
+missed, as robots do.
 
 A simulation step is complete when the true poses of every robot at that step arrived; steps
 are recorded in order. Every ``metrics_interval_s`` of simulation time (default 2 s = em-sim's
