@@ -529,15 +529,14 @@ class EvaluatorNode(Node):
                     EXIT_STALLED if self.monitor.stalled else EXIT_OK)
 
     def _missing_commands(self) -> list[int]:
-        """Robots, neither lost nor gone, whose motion command answering the step before the
-        stop step has not arrived."""
+        """Robots waited for (``_waited_for``) whose motion command answering the step
+        before the stop step has not arrived."""
         final = self.monitor.final_metrics
         if final is None:
             return []
         step = round(final.stamp_s / self.time_step_s)
         return [robot for robot, last in enumerate(self._last_command)
-                if self.liveness.status(robot) != LOST and not self._gone(robot, step)
-                and (last is None or int(last.step) < step - 1)]
+                if self._waited_for(robot) and (last is None or int(last.step) < step - 1)]
 
     def _finished_by(self, step: int) -> bool:
         return self._all_finished_step is not None and step >= self._all_finished_step
