@@ -76,17 +76,20 @@ class FieldType:
     base: str
     sequence: bool = False
     length: int | None = None  # fixed array length
+    bound: int | None = None  # upper bound of a bounded sequence or string
 
     @classmethod
     def parse(cls, spelling: str) -> "FieldType":
         """``double``, ``sequence<uint64>``, ``sequence<pkg/Msg, 5>``, ``double[36]``,
         ``string<=10`` as a FieldType."""
         if spelling.startswith("sequence<"):
-            return cls(spelling[len("sequence<"):-1].split(",")[0].strip(), sequence=True)
+            base, _, bound = spelling[len("sequence<"):-1].partition(",")
+            return cls(base.strip(), sequence=True, bound=int(bound) if bound else None)
         if spelling.endswith("]"):
             base, _, length = spelling[:-1].partition("[")
             return cls(base, length=int(length))
-        return cls(spelling.split("<=")[0])
+        base, _, bound = spelling.partition("<=")
+        return cls(base, bound=int(bound) if bound else None)
 
     @property
     def is_message(self) -> bool:
@@ -122,6 +125,8 @@ class ExtremeMessages:
                 count = HUGE_MESSAGE_ARRAY if kind.is_message else HUGE_NUMBER_ARRAY
             else:
                 count = kind.length if kind.length is not None else rng.randrange(4)
+            if kind.bound is not None:  # a bounded sequence at most at its bound
+                count = min(count, kind.bound)
             if count == 0:
                 return []
             element = FieldType(kind.base)
@@ -132,7 +137,8 @@ class ExtremeMessages:
         if kind.is_message:
             nested = import_message_class(kind.base.replace("/", "/msg/", 1))
             return self.make(nested, allow_huge) if extreme else self._plausible(nested)
-        return self._scalar(kind.base, extreme, name)
+        value = self._scalar(kind.base, extreme, name)
+        return value[:kind.bound] if kind.bound is not None else value  # a bounded string
 
     def _plausible(self, message_class: type) -> Any:
         message = message_class()
