@@ -5,8 +5,9 @@ every topic the world, the robots and the evaluator subscribe to and, for a boun
 publishes well-formed messages with extreme values on all of them (NaN, infinities,
 largest or negative ids, steps, sequence numbers and stamps, huge arrays, negative and
 backwards /clock, wrong frame_ids) while a seeded lockstep team explores a small map.
-Then: no process exited, the team chose exactly the targets of the same run without the
-attack, and no process's memory grew by more than 50 MB over that run's (peak VmRSS).
+Then: no process exited, the summary (targets, every metric sample, the stop step) equals
+that of the same run without the attack, and no process's memory grew by more than 50 MB
+over that run's (peak VmRSS).
 """
 from __future__ import annotations
 
@@ -15,7 +16,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
 
 from ros_process import (RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
                          start_team_run)
@@ -23,11 +23,11 @@ from ros_process import (RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
 #: Bound of one team run [s] and of the attack [s], and its rate [messages/s].
 RUN_TIMEOUT_S = 180.0
 FUZZ_S = 10.0
-FUZZ_RATE_HZ = 100.0
+FUZZ_RATE_HZ = 150.0
 #: Memory a process may gain under the attack over the same run without it [MB].
 RSS_MARGIN_MB = 50.0
 TEAM = ("--robots", "3", "--map-size", "60", "--landmarks", "6", "--seed", "2",
-        "--planner", "CE", "--until-explored", "0.8", "--max-sim-time", "600")
+        "--planner", "CE", "--until-explored", "0.9", "--max-sim-time", "600")
 RUN_PROCESSES = {"world", "evaluator", "robot_0", "robot_1", "robot_2"}
 ATTACKED_TOPICS = {"/clock", "/mission/anchor_pose", "/team/update_requests",
                    "/world/landmarks"} | {
@@ -86,15 +86,14 @@ def run(tmp_path: Path, name: str, attack: bool) -> dict:
     summary_path = tmp_path / name / "summary.json"
     team, domain = start_team_run(tmp_path / name, *TEAM, "--summary", str(summary_path))
     memory = MemoryWatch(domain)
-    report, alive_after_attack, after_mb = None, None, {}
+    report, after_mb = None, {}
     with team:
-        if attack:  # mid-run, so that the team is running before and after the attack
+        if attack:  # mid-run, so that the team runs before the attack (it may end during it)
             started = time.monotonic()
             while "t=   20.0 s" not in team.output() and team.running():
                 assert time.monotonic() - started < RUN_TIMEOUT_S, team.output()[-3000:]
                 memory.sample()
                 time.sleep(0.2)
-            before = dict(memory.pids)
             report_path = tmp_path / name / "fuzz.json"
             fuzzer = NodeProcess([sys.executable, "-m", "em_exploration_ros.tools.fuzz",
                                   "--duration", str(FUZZ_S), "--rate", str(FUZZ_RATE_HZ),
@@ -106,8 +105,6 @@ def run(tmp_path: Path, name: str, attack: bool) -> dict:
                     time.sleep(0.2)
                 assert fuzzer.wait(10.0) == 0, fuzzer.output()[-3000:]
             after_mb = memory.sample()
-            alive_after_attack = {n: pid for n, pid in before.items() if rss_mb(pid) is not None}
-            assert alive_after_attack == before, (before, alive_after_attack)
             report = json.loads(report_path.read_text())
         deadline = time.monotonic() + RUN_TIMEOUT_S
         while team.running() and time.monotonic() < deadline:
@@ -115,8 +112,11 @@ def run(tmp_path: Path, name: str, attack: bool) -> dict:
             time.sleep(0.2)
         code = team.wait(10.0)
     output = team.output()
+    # run_team.sh reports any process that exits before the evaluator ends the run (and
+    # fails unless it is a robot): a process that the attack ended shows here, even when the
+    # team finished during the attack.
     assert code == 0, output[-3000:]
-    assert "exited with code" not in output, output[-3000:]
+    assert "exited with code" not in output and "exited early" not in output, output[-3000:]
     logs = {p.stem: p.read_text() for p in (summary_path.parent / "logs").glob("*.log")}
     return dict(summary=json.loads(summary_path.read_text()), peak_mb=memory.peak_mb,
                 after_mb=after_mb, report=report, logs=logs)
@@ -138,12 +138,11 @@ def test_fuzzed_team_keeps_running_its_result_and_its_memory(tmp_path):
 
     assert ([r["targets"] for r in attacked["summary"]["robots"]]
             == [r["targets"] for r in clean["summary"]["robots"]])
-    for key in ("explored_ratio", "distance_m", "decisions"):
+    # The evaluator reads each robot's estimates as of the evaluated step whatever the
+    # flood does to the order in which messages reach it: every sample equals the clean one.
+    for key in ("explored_ratio", "distance_m", "decisions", "loc_rmse_m", "landmark_rmse_m",
+                "sim_time_s", "stop_reason", "history"):
         assert attacked["summary"][key] == clean["summary"][key], key
-    # Known gap (issue 11): under the flood a robot's estimate can differ slightly (seen:
-    # loc RMSE 0.1681 vs 0.1678 m with identical targets); the cause is not established.
-    for key in ("loc_rmse_m", "landmark_rmse_m"):
-        assert attacked["summary"][key] == pytest.approx(clean["summary"][key], rel=0.02), key
 
     assert set(attacked["peak_mb"]) == set(clean["peak_mb"]) == RUN_PROCESSES
     print(f"\nfuzz: {report['messages']} messages on {len(report['topics'])} topics in "

@@ -94,9 +94,10 @@ class EvaluatorNodeSettings:
         0.0, "End the run at this simulation time [s] (0: no limit besides run.max_steps); "
         "give the world the same value.", 0.0, 1e9)
     estimate_wait_s: float = _param(
-        30.0, "Wall seconds an evaluation waits for every live robot's estimates of the "
-        "latest keyframe before it goes on with older ones (a loaded or flooded evaluator "
-        "can take seconds to reach them; going on early changes that evaluation).", 0.0, 1e6)
+        30.0, "Wall seconds an evaluation waits for the estimates of the latest keyframe of "
+        "every robot that is not lost before it goes on with older ones (a loaded or flooded "
+        "evaluator can take seconds to reach them; going on early changes that evaluation); "
+        "a robot waited for in vain is not waited for again until it publishes.", 0.0, 1e6)
     silence_timeout_s: float = _param(
         120.0, "End the run (exit code 3) when no ground truth arrived for this many wall "
         "seconds; a world that leaves the ROS graph is logged at once.", 0.1, 1e6)

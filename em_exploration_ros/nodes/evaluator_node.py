@@ -59,7 +59,7 @@ from rclpy.task import Future
 
 from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
-                                                     MissingRange, RendezvousEvent, TargetRecord,
+                                                     LandmarkEstimate, MissingRange, RendezvousEvent, TargetRecord,
                                                      TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
                                                           stamp_key)
@@ -80,18 +80,21 @@ from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.sim.wire_model import sim_time_s
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, given_up_from_msg,
+                                                  landmark_array_to_msg,
                                                   landmark_positions_from_msg,
-                                                  odometry_pose, path_from_msg, robot_namespace,
+                                                  odometry_pose, path_from_msg, path_to_msg,
+                                                  robot_namespace,
                                                   seconds_to_time,
                                                   time_to_seconds)
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
-from em_exploration_ros.nodes.qos import (ESTIMATE_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
+from em_exploration_ros.nodes.qos import (ESTIMATE_READER_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
                                           SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   content_problem, header_problem,
-                                                  publish_or_log)
+                                                  publish_or_log, serialized_size,
+                                                  size_limited)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
@@ -175,6 +178,7 @@ class EvaluatorNode(Node):
         self._truth: dict[int, dict[int, np.ndarray]] = {}
         self._complete_steps: deque[int] = deque()
         self._pending: tuple[int, float] | None = None
+        self._overdue: set[int] = set()
         self._last_command: list[MotionCommand | None] = [None] * self.num_robots
         self._all_finished_step: int | None = None
         self._stream_wait_deadline_s = math.inf
@@ -199,16 +203,26 @@ class EvaluatorNode(Node):
                                                  TEAM_QOS)
         self.create_subscription(LandmarkArray, "/world/landmarks", self._on_true_landmarks,
                                  LATCHED_QOS)
+        # The largest valid estimates: a path with a pose per keyframe of the run, a
+        # landmark set of the most landmarks an update may hold.
+        path_bytes = serialized_size(path_to_msg(
+            0.0, np.zeros(self._keyframes()), np.zeros((self._keyframes(), 3))))
+        landmarks_bytes = serialized_size(landmark_array_to_msg(0.0, MAP_FRAME, [
+            LandmarkEstimate(0, np.zeros(2), np.eye(2))] * MAX_LANDMARKS_PER_UPDATE))
         for robot in range(self.num_robots):
             ns = robot_namespace(robot)
             self.create_subscription(Odometry, f"/world/ground_truth/{ns}",
                                      lambda m, r=robot: self._on_truth(r, m), GROUND_TRUTH_QOS)
-            self.create_subscription(PathMsg, f"/{ns}/estimated_path",
-                                     lambda m, r=robot: self._on_path(r, m),
-                                     ESTIMATE_QOS)
-            self.create_subscription(LandmarkArray, f"/{ns}/landmarks",
-                                     lambda m, r=robot: self._on_landmark_estimates(r, m),
-                                     ESTIMATE_QOS)
+            path_topic, landmarks_topic = f"/{ns}/estimated_path", f"/{ns}/landmarks"
+            self.create_subscription(
+                PathMsg, path_topic, size_limited(
+                    self.inputs, path_topic, PathMsg, path_bytes,
+                    lambda m, r=robot: self._on_path(r, m)), ESTIMATE_READER_QOS, raw=True)
+            self.create_subscription(
+                LandmarkArray, landmarks_topic, size_limited(
+                    self.inputs, landmarks_topic, LandmarkArray, landmarks_bytes,
+                    lambda m, r=robot: self._on_landmark_estimates(r, m)),
+                ESTIMATE_READER_QOS, raw=True)
             self.create_subscription(TeamUpdate, f"/{ns}/team/updates",
                                      lambda m, r=robot: self._on_team_update(r, m), TEAM_QOS)
             self.create_subscription(MotionCommand, f"/{ns}/motion_command",
@@ -284,7 +298,7 @@ class EvaluatorNode(Node):
 
     def _on_path(self, robot: int, message: PathMsg) -> None:
         step, problem = self._stamp_problem(message.header.stamp, keyframes_only=True)
-        keyframes = self.monitor.final_step // self.params.slam.keyframe_interval_steps + 1
+        keyframes = self._keyframes()
         if not self.inputs.check(
                 f"/{robot_namespace(robot)}/estimated_path", problem,
                 header_problem(message.header, MAP_FRAME),
@@ -295,6 +309,10 @@ class EvaluatorNode(Node):
                 content_problem(message)):
             return
         self._on_estimate(self.paths, robot, message.header.stamp, path_from_msg(message))
+
+    def _keyframes(self) -> int:
+        """Keyframes of the whole run (a robot's path has at most as many poses)."""
+        return self.monitor.final_step // self.params.slam.keyframe_interval_steps + 1
 
     def _on_landmark_estimates(self, robot: int, message: LandmarkArray) -> None:
         _, problem = self._stamp_problem(message.header.stamp, keyframes_only=True)
@@ -322,6 +340,7 @@ class EvaluatorNode(Node):
     def _on_estimate(self, history: StampedEstimates, robot: int, stamp: Time,
                      value: Any) -> None:
         history.add(robot, time_to_seconds(stamp), value)
+        self._overdue.discard(robot)
         self._process()
 
     def _on_team_update(self, robot: int, message: TeamUpdate) -> None:
@@ -472,9 +491,15 @@ class EvaluatorNode(Node):
                     self._pending = (step, time.monotonic())
                 continue
             step, queued_wall_s = self._pending
-            if (not self._estimates_ready(step)
-                    and time.monotonic() - queued_wall_s < self.estimate_wait_s):
+            missing = self._robots_without_estimates(step)
+            if missing and time.monotonic() - queued_wall_s < self.estimate_wait_s:
                 return
+            if missing:
+                self._overdue.update(missing)
+                self.get_logger().warn(
+                    f"evaluating step {step} with older estimates of robots {missing}: theirs "
+                    f"did not arrive within {self.estimate_wait_s:g} s (not waited for again "
+                    f"until they publish)")
             self._pending = None
             metrics = self.evaluate(step)
             all_finished = self._finished_by(step)
@@ -504,15 +529,14 @@ class EvaluatorNode(Node):
                     EXIT_STALLED if self.monitor.stalled else EXIT_OK)
 
     def _missing_commands(self) -> list[int]:
-        """Robots, neither lost nor gone, whose motion command answering the step before the
-        stop step has not arrived."""
+        """Robots waited for (``_waited_for``) whose motion command answering the step
+        before the stop step has not arrived."""
         final = self.monitor.final_metrics
         if final is None:
             return []
         step = round(final.stamp_s / self.time_step_s)
         return [robot for robot, last in enumerate(self._last_command)
-                if self.liveness.status(robot) != LOST and not self._gone(robot, step)
-                and (last is None or int(last.step) < step - 1)]
+                if self._waited_for(robot) and (last is None or int(last.step) < step - 1)]
 
     def _finished_by(self, step: int) -> bool:
         return self._all_finished_step is not None and step >= self._all_finished_step
@@ -530,26 +554,24 @@ class EvaluatorNode(Node):
             self.evaluator.record_truth(robot, stamp_s, pose)
         self.recorded_step = step
 
-    def _estimates_ready(self, step: int) -> bool:
+    def _robots_without_estimates(self, step: int) -> list[int]:
+        """Robots waited for (``_waited_for``) whose estimates of the last keyframe before
+        ``step`` have not arrived."""
         interval = self.params.slam.keyframe_interval_steps
         needed = stamp_key(self._stamp_s(max(step - 1, 0) // interval * interval))
-        for robot in range(self.num_robots):
-            if self._gone(robot, step):
-                continue
-            for history in (self.paths, self.landmark_estimates):
-                newest = history.newest_key(robot)
-                if newest is None or newest < needed:
-                    return False
-        return True
+        return [robot for robot in range(self.num_robots) if self._waited_for(robot) and any(
+            history.newest_key(robot) is None or history.newest_key(robot) < needed
+            for history in (self.paths, self.landmark_estimates))]
 
-    def _gone(self, robot: int, step: int) -> bool:
-        """Whether a robot stopped answering the world: its last motion command is more than
-        two keyframe intervals older than ``step`` (ground truth of a step is published only
-        after every live robot answered the step before, so a live robot is never that far
-        behind). Its estimates are then not waited for."""
-        last = self._last_command[robot]
-        last_step = -1 if last is None else int(last.step)
-        return last_step < step - 2 * self.params.slam.keyframe_interval_steps
+    def _waited_for(self, robot: int) -> bool:
+        """Whether an evaluation waits for the robot's estimates: unless it is lost (its
+        liveliness lapsed) or overdue (an evaluation already went on without its estimates
+        after ``estimate_wait_s``, until it publishes one again). A live robot publishes the
+        estimates of a keyframe step right after its answer to that step, which the world
+        needs before it publishes the next step's ground truth, so the wait ends; when the
+        messages of the different topics reach this node (a flooded or loaded node takes
+        them in bursts) does not decide which estimates an evaluation reads."""
+        return self.liveness.status(robot) != LOST and robot not in self._overdue
 
     def _stamp_s(self, step: int) -> float:
         return sim_time_s(step, self.time_step_s)

@@ -6,6 +6,7 @@
 | ``TEAM_QOS`` (reliable, keep all, volatile) | /robot_<i>/team/updates, /team/update_requests | team data must arrive; losses and late joins are repaired by the sequence-number resend protocol, so durability is not needed |
 | ``LATCHED_QOS`` (reliable, keep last 1, transient local) | /world/landmarks, /robot_<i>/virtual_map, /robot_<i>/markers, /robot_<i>/target | state whose last value a late subscriber (RViz, Foxglove) needs at once |
 | ``ESTIMATE_QOS`` (reliable, keep last ``ESTIMATE_DEPTH`` = 20, transient local) | /robot_<i>/estimated_path, /robot_<i>/landmarks | as latched, and a reader that matched late (the evaluator, when discovery packets were lost) still gets the estimates of the last 20 keyframes, so its evaluations as of each keyframe are the same whatever the network did |
+| ``ESTIMATE_READER_QOS`` (as ``ESTIMATE_QOS`` with depth ``GROUND_TRUTH_DEPTH``) | the evaluator's readers of /robot_<i>/estimated_path and /robot_<i>/landmarks | the lockstep world does not wait for the evaluator: a flooded or loaded evaluator fell more than 20 keyframes (40 simulated seconds) behind the robots, its keep-last-20 queue dropped the estimates it had not taken yet, and an evaluation read an older estimate; now it may lag as far behind on estimates as on ground truth |
 | ``CLOCK_QOS`` (best effort, keep last 1) | /clock | the ROS 2 convention for /clock; only the newest time matters |
 | ``TF_QOS``, ``TF_STATIC_QOS`` | /tf, /tf_static | tf2's own profiles (below), which every tf2 listener, RViz and Foxglove expect |
 | ``LIVELINESS_QOS`` (reliable, keep last 1, volatile, automatic liveliness with a ``LIVELINESS_LEASE_S`` lease) | /robot_<i>/alive (no data) | the middleware asserts each robot process's liveliness; a process that dies, is stopped or wedges (its participant no longer asserts) is reported lost to the world, the teammates and the evaluator within the lease |
@@ -43,6 +44,11 @@ GROUND_TRUTH_DEPTH = 3000
 GROUND_TRUTH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=GROUND_TRUTH_DEPTH,
                               reliability=ReliabilityPolicy.RELIABLE,
                               durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: The evaluator's readers of the estimates: as deep as its ground-truth reader (one estimate
+#: per keyframe, at most one keyframe per step), so that it can lag as far behind.
+ESTIMATE_READER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=GROUND_TRUTH_DEPTH,
+                                 reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: /tf as tf2's TransformBroadcaster offers it (reliable, keep last 100, volatile): transforms
 #: that change are re-sent all the time, so a late subscriber only waits for the next ones.
 TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,

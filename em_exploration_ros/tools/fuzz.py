@@ -13,6 +13,8 @@ NaN, +-inf or +-1e308 in a float, the largest (or a negative) value of an intege
 numbers or ``HUGE_MESSAGE_ARRAY`` nested messages), or a wrong frame_id; the other fields
 hold small plausible values (numbers 0..3, a frame name of the system), so a /clock
 message is negative or goes backwards. Nodes must drop all of it and keep their result.
+Each topic gets ``POOL_SIZE`` different messages, serialized once and then sent again in
+turn, so that the rate holds even for messages with thousands of nested ones.
 
     em-fuzz --duration 20 --rate 500 --seed 1        # then: messages sent per topic
 
@@ -33,6 +35,7 @@ import rclpy
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 
 from em_exploration_ros.tools.bag_ros import import_message_class
 
@@ -44,6 +47,9 @@ GRAPH_SETTLE_S = 2.0
 #: Length of a huge array of numbers and of a huge array of nested messages.
 HUGE_NUMBER_ARRAY = 100_000
 HUGE_MESSAGE_ARRAY = 3_000
+#: Messages made per topic; after that, those are sent again in turn (serializing a message
+#: with thousands of nested ones takes milliseconds; reusing the bytes keeps up the rate).
+POOL_SIZE = 8
 #: Probability that a field other than the forced one is extreme too.
 EXTRA_EXTREME_PROBABILITY = 0.1
 #: Frame names of the system (plausible values) and wrong ones (extreme values).
@@ -70,17 +76,20 @@ class FieldType:
     base: str
     sequence: bool = False
     length: int | None = None  # fixed array length
+    bound: int | None = None  # upper bound of a bounded sequence or string
 
     @classmethod
     def parse(cls, spelling: str) -> "FieldType":
         """``double``, ``sequence<uint64>``, ``sequence<pkg/Msg, 5>``, ``double[36]``,
         ``string<=10`` as a FieldType."""
         if spelling.startswith("sequence<"):
-            return cls(spelling[len("sequence<"):-1].split(",")[0].strip(), sequence=True)
+            base, _, bound = spelling[len("sequence<"):-1].partition(",")
+            return cls(base.strip(), sequence=True, bound=int(bound) if bound else None)
         if spelling.endswith("]"):
             base, _, length = spelling[:-1].partition("[")
             return cls(base, length=int(length))
-        return cls(spelling.split("<=")[0])
+        base, _, bound = spelling.partition("<=")
+        return cls(base, bound=int(bound) if bound else None)
 
     @property
     def is_message(self) -> bool:
@@ -116,6 +125,8 @@ class ExtremeMessages:
                 count = HUGE_MESSAGE_ARRAY if kind.is_message else HUGE_NUMBER_ARRAY
             else:
                 count = kind.length if kind.length is not None else rng.randrange(4)
+            if kind.bound is not None:  # a bounded sequence at most at its bound
+                count = min(count, kind.bound)
             if count == 0:
                 return []
             element = FieldType(kind.base)
@@ -126,7 +137,8 @@ class ExtremeMessages:
         if kind.is_message:
             nested = import_message_class(kind.base.replace("/", "/msg/", 1))
             return self.make(nested, allow_huge) if extreme else self._plausible(nested)
-        return self._scalar(kind.base, extreme, name)
+        value = self._scalar(kind.base, extreme, name)
+        return value[:kind.bound] if kind.bound is not None else value  # a bounded string
 
     def _plausible(self, message_class: type) -> Any:
         message = message_class()
@@ -160,6 +172,16 @@ class Target:
     publisher: Any
     sent: int = 0
     subscribers: set[str] = field(default_factory=set)
+    pool: list[bytes] = field(default_factory=list)  # serialized messages made so far
+    turns: int = 0
+
+    def next_message(self, messages: ExtremeMessages) -> bytes:
+        """The next serialized message to send: a new one while the pool is not full, then
+        the pool's in turn."""
+        if len(self.pool) < POOL_SIZE:
+            self.pool.append(serialize_message(messages.make(self.message_class)))
+        self.turns += 1
+        return self.pool[(self.turns - 1) % POOL_SIZE]
 
 
 class Fuzzer(Node):
@@ -213,7 +235,7 @@ class Fuzzer(Node):
                 continue
             target = self.targets[targets[sent % len(targets)]]
             try:
-                target.publisher.publish(self._messages.make(target.message_class))
+                target.publisher.publish(target.next_message(self._messages))
                 target.sent += 1
             except RCLError:  # a refused publish is counted, the attack goes on
                 self.failed_publishes += 1
