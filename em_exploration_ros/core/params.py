@@ -282,6 +282,30 @@ class PlannerParams:
 
 
 @dataclass(frozen=True)
+class LinkParams:
+    """The links between robots (``core/sim/links.py``): range, loss, latency, bandwidth.
+    The defaults are perfect links: every update reaches every teammate at the next step."""
+
+    range_m: float = _param(
+        0.0, "Communication range [m]: team data reaches only teammates at most this far "
+        "away (true positions); 0 = unlimited.", 0.0, 1e6)
+    loss_probability: float = _param(
+        0.0, "Probability that one transmission is lost for one receiver (seeded, "
+        "independent per transmission and receiver).", 0.0, 0.99)
+    latency_s: float = _param(
+        0.0, "Delay from the end of a transmission to its arrival [s sim time].", 0.0, 3600.0)
+    bandwidth_bytes_per_s: float = _param(
+        0.0, "Each robot's send budget [bytes per simulated second, CDR on the wire]; "
+        "0 = unlimited.", 0.0, 1e9)
+    queue_frames: int = _param(
+        20, "Most frames waiting for a robot's channel; a frame offered to a full queue is "
+        "dropped (tail drop; the gap repair asks for it again).", 1, 10000)
+    repair_interval_s: float = _param(
+        2.0, "A robot missing records of a teammate's stream asks again at most this often, "
+        "and a robot re-sends to one requester at most this often [s sim time].", 0.0, 3600.0)
+
+
+@dataclass(frozen=True)
 class RunParams:
     """When an exploration run stops, and its seed."""
 
@@ -370,6 +394,7 @@ class ExplorationParams:
     frontiers: FrontierParams = field(default_factory=FrontierParams)
     progress: ProgressParams = field(default_factory=ProgressParams)
     planner: PlannerParams = field(default_factory=PlannerParams)
+    links: LinkParams = field(default_factory=LinkParams)
     run: RunParams = field(default_factory=RunParams)
 
 
