@@ -209,8 +209,9 @@ class FrontierParams:
     rendezvous_timeout_margin_s: float = _param(
         20.0, "Fixed part of the rendezvous wait limit [s sim time].", 0.0, 1e5)
     teammate_silent_after_s: float = _param(
-        60.0, "A teammate whose latest team update is older than this is treated as lost: "
-        "its meetings end and it is no rendezvous candidate [s sim time].", 0.0, 1e6)
+        60.0, "A teammate whose latest team update is older than this is out of contact "
+        "[s sim time]: a partner stops waiting for it; it stays a rendezvous candidate at "
+        "its last known target (meeting restores the link).", 0.0, 1e6)
     max_candidates: int = _param(
         40, "At most this many candidates are evaluated per decision (nearest first).", 1, 1000)
 
