@@ -94,6 +94,12 @@ class LinkCounts:
     bytes_sent: int = 0
 
 
+def perfect_links(params: LinkParams) -> bool:
+    """True when ``params`` deliver every frame to every addressee at the next step."""
+    return (params.range_m == 0.0 and params.loss_probability == 0.0
+            and params.latency_s == 0.0 and params.bandwidth_bytes_per_s == 0.0)
+
+
 def loss_draw(seed: int, kind: FrameKind, sender: int, receiver: int, key: int,
               step: int) -> float:
     """A uniform number in [0, 1) fixed by its arguments (BLAKE2b of the packed integers):
@@ -135,9 +141,7 @@ class TeamLinks:
     @property
     def perfect(self) -> bool:
         """True when every frame reaches every addressee at the next step."""
-        p = self.params
-        return (p.range_m == 0.0 and p.loss_probability == 0.0 and p.latency_s == 0.0
-                and p.bandwidth_bytes_per_s == 0.0)
+        return perfect_links(self.params)
 
     def offer(self, frame: Frame) -> None:
         """Hand a frame to its sender's channel. It joins the queue at the next
