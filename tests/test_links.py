@@ -188,3 +188,24 @@ def test_team_copes_with_poor_links_and_is_deterministic(links):
     assert counts["on_time"] + counts["late"] + counts["never"] == counts["sent"]
     assert not first.stop_reason.startswith("stalled")
     assert first.decisions > 0 and first.explored_ratio > 0.3
+
+
+def test_gap_requests_one_gap_per_interval_teammates_in_turn():
+    from em_exploration_ros.core.agent.gap_requests import GapRequests
+    from em_exploration_ros.core.agent.team_data import TeamUpdate, TeamUpdateInbox
+    inbox = TeamUpdateInbox(0, 3)
+    for robot in (1, 2):
+        inbox.receive(TeamUpdate(robot, 1, 0.0))
+        inbox.receive(TeamUpdate(robot, 4, 0.6))  # 2..3 missing from both
+    inbox.pop_ready()
+    requests = GapRequests(0, 3, interval_steps=25)
+    first = requests.due(10, inbox)
+    assert (first.robot_id, first.first_sequence, first.last_sequence) == (1, 2, 3)
+    assert requests.due(34, inbox) is None  # not yet: one request per 25 steps
+    assert requests.due(35, inbox).robot_id == 2  # the other teammate's turn
+    assert requests.due(60, inbox).robot_id == 1
+    for robot in (1, 2):
+        inbox.receive(TeamUpdate(robot, 2, 0.2))
+        inbox.receive(TeamUpdate(robot, 3, 0.4))
+    inbox.pop_ready()
+    assert requests.due(100, inbox) is None

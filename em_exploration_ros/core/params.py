@@ -302,8 +302,9 @@ class LinkParams:
         20, "Most frames waiting for a robot's channel; a frame offered to a full queue is "
         "dropped (tail drop; the gap repair asks for it again).", 1, 10000)
     repair_interval_s: float = _param(
-        2.0, "A robot missing records of a teammate's stream asks again at most this often, "
-        "and a robot re-sends to one requester at most this often [s sim time].", 0.0, 3600.0)
+        5.0, "A robot missing records of teammates' streams asks for one gap at most this "
+        "often, and re-sends to one requester at most this often [s sim time] (requests "
+        "cross the links too and cost bandwidth).", 0.0, 3600.0)
 
 
 @dataclass(frozen=True)

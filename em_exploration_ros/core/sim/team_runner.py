@@ -9,8 +9,9 @@ at which the link delivers it (k+1 over perfect links: the world's barrier), and
 and odometry go through the same wire conversions. A seeded em-sim run therefore chooses
 the same targets as the ROS system in lockstep mode.
 
-Gap repair is driven by steps: a robot whose inbox has gaps sends a request for them
-(through the link, to the stream's owner) at most every ``links.repair_interval_s``; the
+Gap repair is driven by steps: a robot whose inbox has gaps sends a request for one of
+them (through the link, to the stream's owner) at most every ``links.repair_interval_s``
+(``GapRequests``); the
 owner re-sends at most ``ResendScheduler``'s records per requester and interval (never
 more than half its queue), also through the link.
 """
@@ -25,6 +26,7 @@ from typing import Callable
 import numpy as np
 
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
+from em_exploration_ros.core.agent.gap_requests import GapRequests
 from em_exploration_ros.core.agent.resend import MAX_RESEND_RECORDS, ResendScheduler
 from em_exploration_ros.core.agent.team_data import (MissingRange, RendezvousEvent,
                                                      TeamUpdate, TeamUpdateInbox)
@@ -79,8 +81,8 @@ class TeamRunner:
         resend_records = min(MAX_RESEND_RECORDS, max(1, params.links.queue_frames // 2))
         self._resends = [ResendScheduler(params.links.repair_interval_s, resend_records)
                          for _ in range(n)]
-        self._repair_interval_steps = max(1, round(params.links.repair_interval_s / time_step))
-        self._next_request_step = [0] * n
+        repair_steps = max(1, round(params.links.repair_interval_s / time_step))
+        self._gap_requests = [GapRequests(i, n, repair_steps) for i in range(n)]
         self.monitor = RunMonitor(params)
         self.rendezvous_events: list[RendezvousEvent] = []
 
@@ -135,17 +137,14 @@ class TeamRunner:
             self._inboxes[receiver].receive(update)
 
     def _send(self, agent: RobotAgent, step: int) -> None:
-        """Offer what ``agent`` sends at ``step`` to its channel: requests for its inbox's
-        gaps (every repair interval), re-sends asked of it, then its new update."""
+        """Offer what ``agent`` sends at ``step`` to its channel: a request for a gap of its
+        inbox (``GapRequests``), re-sends asked of it, then its new update."""
         robot = agent.robot_id
         n = len(self.agents)
-        gaps = self._inboxes[robot].missing()
-        if gaps and step >= self._next_request_step[robot]:
-            self._next_request_step[robot] = step + self._repair_interval_steps
-            for gap in gaps:
-                self.links.offer(Frame(FrameKind.REQUEST, robot, (gap.robot_id,),
-                                       gap.first_sequence, update_request_wire_bytes(),
-                                       step, gap))
+        gap = self._gap_requests[robot].due(step, self._inboxes[robot])
+        if gap is not None:
+            self.links.offer(Frame(FrameKind.REQUEST, robot, (gap.robot_id,),
+                                   gap.first_sequence, update_request_wire_bytes(), step, gap))
         now_s = step * self.params.motion.time_step_s
         for due in self._resends[robot].due(now_s):
             for record in agent.outbox.resend(due.first_sequence, due.last_sequence):
