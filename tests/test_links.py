@@ -209,3 +209,9 @@ def test_gap_requests_one_gap_per_interval_teammates_in_turn():
         inbox.receive(TeamUpdate(robot, 3, 0.4))
     inbox.pop_ready()
     assert requests.due(100, inbox) is None
+
+
+def test_perfect_links_deliver_every_update_on_time_in_a_run():
+    summary = _small_run().run()
+    counts = summary.team_updates
+    assert counts["sent"] > 0 and counts["sent"] == counts["on_time"]
