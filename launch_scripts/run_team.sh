@@ -61,6 +61,10 @@ options:
   --respawn               restart a robot process that dies, or that the world reports lost
                           (alive but wedged or silent: SIGKILL, then the same command line);
                           it rejoins the team where it stopped
+  --netns PREFIX          separate hosts: run robot i in network namespace PREFIXrobot_<i> and
+                          every other process in PREFIXworld (they must exist and be joined;
+                          needs root; DDS over UDPv4 with multicast discovery on the subnet).
+                          python -m em_exploration_ros.tools.separate_hosts makes them
   -h, --help              show this help and exit
 EOF
 }
@@ -96,7 +100,7 @@ as_double() { if [[ $1 =~ [.eE] ]]; then printf '%s' "$1"; else printf '%s.0' "$
 # -- arguments -------------------------------------------------------------------------------
 ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME=""
 PARAMS_FILE="$EM_REPO_ROOT/config/exploration.yaml"
-REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH="" FOXGLOVE_PORT="" RESPAWN=""
+REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH="" FOXGLOVE_PORT="" RESPAWN="" NETNS=""
 
 while (( $# )); do
     arg=$1
@@ -146,6 +150,7 @@ while (( $# )); do
                 check_number "$arg" "$1" 1 65535 int; FOXGLOVE_PORT=$1; shift
             fi ;;
         --respawn) RESPAWN=1 ;;
+        --netns) needs_value "$@"; NETNS=$1; shift ;;
         *) usage_error "unknown argument '$arg'" ;;
     esac
 done
@@ -200,6 +205,12 @@ PY
     exit 2
 fi
 read -r NUM_ROBOTS RUN_SEED RUN_PLANNER <<<"$RESOLVED"
+if [[ -n $NETNS ]]; then
+    for host in world $(seq -f "robot_%g" 0 $(( NUM_ROBOTS - 1 ))); do
+        ip netns exec "$NETNS$host" true 2>/dev/null \
+            || usage_error "--netns: cannot run in network namespace '$NETNS$host' (missing, or not root)"
+    done
+fi
 
 STAMP=$(date +%Y%m%d-%H%M%S)
 RUN_NAME="${STAMP}_seed${RUN_SEED}_${RUN_PLANNER}"
@@ -240,17 +251,26 @@ if [[ -n $DOMAIN_ID ]]; then
 else
     em_pick_ros_domain || exit 1
 fi
+if [[ -n $NETNS ]]; then  # hosts apart: discovery by multicast on the subnet, no shared memory
+    export ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET FASTDDS_BUILTIN_TRANSPORTS=UDPv4
+fi
 export ROS_LOG_DIR="$LOG_DIR/ros" PYTHONUNBUFFERED=1 RCUTILS_LOGGING_BUFFERED_STREAM=1 \
     RCUTILS_COLORIZED_OUTPUT=0
 
 # -- processes -------------------------------------------------------------------------------
 PIDS=() NAMES=()
 
-# start NAME ARGS...: run "python ARGS" in its own session (so its own process group).
+# start NAME ARGS...: run "python ARGS" in its own session (so its own process group); with
+# --netns, robot_<i> in namespace PREFIXrobot_<i> and everything else in PREFIXworld (ip netns
+# exec runs the command in the same process, so the PID is still the group's).
 start() {
-    local name=$1
+    local name=$1 host=()
     shift
-    setsid "$PYTHON" "$@" >>"$LOG_DIR/$name.log" 2>&1 </dev/null &
+    if [[ -n $NETNS ]]; then
+        [[ $name == robot_* ]] && host=(ip netns exec "$NETNS$name") \
+            || host=(ip netns exec "${NETNS}world")
+    fi
+    setsid "${host[@]}" "$PYTHON" "$@" >>"$LOG_DIR/$name.log" 2>&1 </dev/null &
     PIDS+=("$!")
     NAMES+=("$name")
 }

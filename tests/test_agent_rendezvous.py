@@ -46,9 +46,9 @@ def update_from_1(sequence: int, stamp_s: float, *, keyframe: bool = False,
                   target: np.ndarray | None = None, events=(), finished: bool = False):
     keyframes = (KeyframeMeasurements(1, 0, 0.0, True, -1, np.zeros(3), np.zeros((3, 3)),
                                       (), ()),) if keyframe else ()
-    targets = (TargetRecord(1, 0, stamp_s, target, FrontierType.EXPLORATION, None, 0.0, 0.0),
+    targets = (TargetRecord(1, 0, stamp_s, target, FrontierType.EXPLORATION, None, 0.0),
                ) if target is not None else ()
-    return TeamUpdate(1, sequence, stamp_s, keyframes, (), targets, tuple(events), finished)
+    return TeamUpdate(1, sequence, stamp_s, keyframes, targets, tuple(events), finished)
 
 
 def event_from_1(state: RendezvousState, stamp_s: float, point, timeout_s: float = 100.0,

@@ -109,8 +109,8 @@ def test_project_messages_have_complete_definitions(project_prefix: Path) -> Non
         encoders = serialize_dynamic(type_name, definition.text)
         assert type_name in encoders
     team_update = build_message_definition("em_exploration_msgs/msg/TeamUpdate").text
-    for dependency in ("em_exploration_msgs/Keyframe", "em_exploration_msgs/LandmarkDetection",
-                       "std_msgs/Header", "builtin_interfaces/Time"):
+    for dependency in ("em_exploration_msgs/Keyframe", "em_exploration_msgs/KeyframeLandmark",
+                       "em_exploration_msgs/KeyframeTeammate", "builtin_interfaces/Time"):
         assert team_update.count(f"MSG: {dependency}\n") == 1
 
 

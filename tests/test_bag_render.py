@@ -228,3 +228,57 @@ def test_render_gives_one_line_errors(tmp_path: Path,
         assert code == 2 and phrase in err and hint in err, err
         assert len(err.strip().splitlines()) == 1 and not out.exists()
     assert scan_bag(no_robots).message_count == scan_bag(wrong_type).message_count == 1
+
+
+#: A TeamUpdate definition as recordings made before issue 12 hold it (header, landmark
+#: estimates and a TargetRecord with robot id, stamp and utility), shortened to the fields
+#: render reads around: the recording's own schema decodes it, not the installed type.
+OLDER_TEAM_UPDATE = """std_msgs/Header header
+uint32 robot_id
+uint64 sequence
+TargetRecord[] targets
+bool finished
+================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: em_exploration_msgs/TargetRecord
+uint32 robot_id
+uint32 decision_index
+builtin_interfaces/Time stamp
+float64 x
+float64 y
+uint8 frontier_type
+uint32 partner_id
+float64 utility
+float64 planning_time
+bool planner_failed
+"""
+
+
+def test_render_reads_targets_recorded_with_an_older_schema(tmp_path: Path) -> None:
+    from mcap_ros2._dynamic import serialize_dynamic
+
+    from em_exploration_ros.bag_format.mcap_ros2_schema import MessageDefinition
+
+    type_name = "em_exploration_msgs/msg/TeamUpdate"
+    encode = serialize_dynamic(type_name, OLDER_TEAM_UPDATE)[type_name]
+
+    def target(index: int, x: float, kind: int) -> dict:
+        return {"robot_id": 0, "decision_index": index, "stamp": {"sec": index, "nanosec": 0},
+                "x": x, "y": 2.0 * x, "frontier_type": kind, "partner_id": 0, "utility": 0.5,
+                "planning_time": 0.1, "planner_failed": False}
+
+    path = tmp_path / "older.mcap"
+    with BagWriter(path) as writer:
+        channel = writer.add_topic("/robot_0/team/updates",
+                                   MessageDefinition(type_name, "ros2msg", OLDER_TEAM_UPDATE))
+        for sequence, targets in ((1, [target(0, 3.0, 0)]), (2, [target(1, 5.0, 1)]),
+                                  (2, [target(1, 5.0, 1)])):  # a re-sent update counts once
+            writer.write(channel, sequence, encode({
+                "header": {"stamp": {"sec": sequence, "nanosec": 0}, "frame_id": "map"},
+                "robot_id": 0, "sequence": sequence, "targets": targets, "finished": False}))
+    targets = read_team_map(path).layers.targets[0]
+    assert [(t.x, t.y, t.type) for t in targets] == [(3.0, 6.0, "exploration"),
+                                                     (5.0, 10.0, "revisiting")]

@@ -6,7 +6,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
-                                                     TargetRecord)
+                                                     TargetRecord, TeamUpdate)
+from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.sim.team_runner import TeamRunner, step_input
 from em_exploration_ros.core.sim.wire_model import sim_time_s, twist_to_increment_covariance
@@ -63,7 +64,8 @@ def test_sensor_frame_over_the_wire_equals_em_sim_input(running_team):
 
 
 def _assert_same_update(a, b):
-    assert (a.robot_id, a.sequence, a.stamp_s) == (b.robot_id, b.sequence, b.stamp_s)
+    assert (a.robot_id, a.sequence, a.stamp_s, a.finished) == (b.robot_id, b.sequence,
+                                                               b.stamp_s, b.finished)
     assert len(a.keyframes) == len(b.keyframes)
     for mx, my in zip(a.keyframes, b.keyframes):
         assert (mx.robot_id, mx.index, mx.stamp_s, mx.is_first, mx.previous_index) == \
@@ -71,49 +73,65 @@ def _assert_same_update(a, b):
         for name in ("odom_delta", "odom_covariance"):
             assert np.array_equal(getattr(mx, name), getattr(my, name))
         assert mx.landmarks == my.landmarks
+        assert [t.robot_id for t in mx.teammates] == [t.robot_id for t in my.teammates]
+        for tx, ty in zip(mx.teammates, my.teammates):
+            assert np.array_equal(tx.relative_pose, ty.relative_pose)
+            assert np.array_equal(tx.covariance, ty.covariance)
+    assert len(a.targets) == len(b.targets)
     for x, y in zip(a.targets, b.targets):
-        assert (x.robot_id, x.decision_index, x.stamp_s, x.kind, x.partner_id, x.utility,
-                x.planning_time_s) == (y.robot_id, y.decision_index, y.stamp_s, y.kind,
-                                       y.partner_id, y.utility, y.planning_time_s)
+        assert (x.robot_id, x.decision_index, x.stamp_s, x.kind, x.partner_id,
+                x.planning_time_s, x.planner_failed) == (y.robot_id, y.decision_index,
+                                                         y.stamp_s, y.kind, y.partner_id,
+                                                         y.planning_time_s, y.planner_failed)
         assert np.array_equal(x.position, y.position)
-    for x, y in zip(a.landmarks, b.landmarks):
-        assert x.landmark_id == y.landmark_id and np.array_equal(x.position, y.position)
+    assert len(a.rendezvous) == len(b.rendezvous)
 
 
 def test_team_updates_survive_the_wire(running_team):
+    """What a robot sent arrives bit for bit, although the wire form is compact: the agent
+    rounded it before using it itself."""
+    wire = TeamWireFormat(PARAMS)
     agent = running_team.agents[1]
     sent = agent.outbox.resend(1, 0)
     assert len(sent) > 5 and any(u.targets for u in sent)
+    assert any(kf.landmarks for u in sent for kf in u.keyframes)
+    assert any(kf.teammates for u in sent for kf in u.keyframes)
     for update in sent:
-        message = through_dds(conv.team_update_to_msg(update))
-        assert message.header.frame_id == "map"
-        _assert_same_update(conv.team_update_from_msg(message), update)
+        message = through_dds(conv.team_update_to_msg(update, wire))
+        _assert_same_update(conv.team_update_from_msg(message, wire), update)
+
+
+def test_an_update_off_the_step_grid_cannot_be_sent():
+    wire = TeamWireFormat(PARAMS)
+    with pytest.raises(ValueError, match="not the time of a simulation step"):
+        conv.team_update_to_msg(TeamUpdate(0, 1, 0.3), wire)
+    target = TargetRecord(0, 0, 0.2, np.zeros(2), FrontierType.EXPLORATION, None, 0.1)
+    with pytest.raises(ValueError, match="stamp is not the update's"):
+        conv.team_update_to_msg(TeamUpdate(0, 1, 0.4, targets=(target,)), wire)
 
 
 def test_no_partner_is_explicit_on_the_wire():
     def target(kind, partner):
-        return TargetRecord(1, 0, 2.0, np.array([1.0, 2.0]), kind, partner, 0.5, 0.1)
+        return TargetRecord(1, 0, 2.0, np.array([1.0, 2.0]), kind, partner, 0.125)
 
     exploring = conv.target_to_msg(target(FrontierType.EXPLORATION, None))
     assert exploring.partner_id == conv.em_msg.TargetRecord.NO_PARTNER
-    assert conv.target_from_msg(through_dds(exploring)).partner_id is None
+    assert conv.target_from_msg(through_dds(exploring), 1, 2.0).partner_id is None
     meeting = conv.target_to_msg(target(FrontierType.RENDEZVOUS, 2))
-    assert conv.target_from_msg(through_dds(meeting)).partner_id == 2
-    # Recordings made before NO_PARTNER marked "no partner" with the robot's own id.
-    legacy = conv.em_msg.TargetRecord(robot_id=1, frontier_type=1, partner_id=1)
-    assert conv.target_from_msg(legacy).partner_id is None
+    assert conv.target_from_msg(through_dds(meeting), 1, 2.0).partner_id == 2
     assert conv.em_msg.TargetRecord().partner_id == conv.em_msg.TargetRecord.NO_PARTNER
 
 
 def test_malformed_team_update_messages_are_rejected():
+    wire = TeamWireFormat(PARAMS)
     message = TeamUpdateMsg(robot_id=1, sequence=1)
     message.targets.append(conv.em_msg.TargetRecord(frontier_type=9))
     with pytest.raises(InvalidTeamUpdate, match="frontier type"):
-        conv.team_update_from_msg(message)
+        conv.team_update_from_msg(message, wire)
     message = TeamUpdateMsg(robot_id=1, sequence=1)
     message.rendezvous.append(conv.em_msg.Rendezvous(state=7))
     with pytest.raises(InvalidTeamUpdate, match="rendezvous state"):
-        conv.team_update_from_msg(message)
+        conv.team_update_from_msg(message, wire)
 
 
 def test_path_and_landmarks_round_trip(running_team):

@@ -452,9 +452,25 @@ def test_bad_files_give_one_line_errors(tmp_path: Path,
         channel = writer.add_topic("/x", MessageDefinition("ghost_msgs/msg/Ghost", "ros2msg",
                                                            "int32 boo\n"))
         writer.write(channel, 1, b"\x00\x01\x00\x00\x07\x00\x00\x00")
+    # A recording of an installed type made with another definition of it (an older
+    # TeamUpdate): playing it would publish misread messages.
+    older = tmp_path / "older.mcap"
+    with BagWriter(older) as writer:
+        channel = writer.add_topic("/robot_0/team/updates", MessageDefinition(
+            "em_exploration_msgs/msg/TeamUpdate", "ros2msg", "uint32 robot_id\nuint64 sequence\n"))
+        writer.write(channel, 1, bytes(16))
+    # Comments aside, a definition as installed plays (as recorded by another rosbag2).
+    commented = tmp_path / "commented.mcap"
+    installed = build_message_definition("em_exploration_msgs/msg/TeamUpdate")
+    with BagWriter(commented) as writer:
+        writer.add_topic("/robot_0/team/updates", MessageDefinition(
+            installed.type_name, installed.encoding,
+            "# another comment\n" + installed.text.replace("# ", "#  ")))
+    assert replay.recorded_as_installed(next(iter(scan_bag(commented).schemas.values())))
     cases = {truncated: "truncated", text: "not an MCAP file",
              tmp_path / "missing.mcap": "no such file",
-             unknown: "ghost_msgs/msg/Ghost, which is not installed"}
+             unknown: "ghost_msgs/msg/Ghost, which is not installed",
+             older: "recorded with another definition of em_exploration_msgs/msg/TeamUpdate"}
     for path, phrase in cases.items():
         assert _exit_code(replay.main, ["em-replay", str(path)]) == 2
         stderr = capsys.readouterr().err

@@ -52,6 +52,7 @@ def run_team(*args: str, timeout_s: float = 20.0) -> subprocess.CompletedProcess
     (["--domain-id", "500"], "--domain-id must be in [0, 232]"),
     (["--robots"], "--robots needs a value"),
     (["--foxglove", "70000"], "--foxglove must be in [1, 65535]"),
+    (["--netns", "em_absent_"], "cannot run in network namespace 'em_absent_world'"),
 ])
 def test_refuses_bad_arguments(args, message):
     result = run_team(*args)

@@ -7,21 +7,21 @@ import pytest
 from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.sim.sensors import LandmarkReading, TeammateReading
 from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
-from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
+from em_exploration_ros.core.agent.team_data import (MAX_TARGETS_PER_UPDATE,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
-                                                     LandmarkEstimate, MissingRange,
+                                                     MissingRange,
                                                      TargetRecord, TeamUpdateInbox,
                                                      TeamUpdateOutbox, validate_team_update)
 
 NUM_ROBOTS = 3
 
 
-def keyframe(robot_id: int = 1, index: int = 2,
-             odom=(2.0, 0.0, 0.1)) -> KeyframeMeasurements:
+def keyframe(robot_id: int = 1, index: int = 2, odom=(2.0, 0.0, 0.1),
+             covariance=np.diag([1e-4, 1e-4, 1e-5]), landmark_id: int = 3) -> KeyframeMeasurements:
     return KeyframeMeasurements(
         robot_id=robot_id, index=index, stamp_s=4.0, is_first=False, previous_index=index - 1,
-        odom_delta=np.array(odom), odom_covariance=np.diag([1e-4, 1e-4, 1e-5]),
-        landmarks=(LandmarkReading(3, 5.0, 0.2, 1e-6, 1e-5),),
+        odom_delta=np.array(odom), odom_covariance=covariance,
+        landmarks=(LandmarkReading(landmark_id, 5.0, 0.2, 1e-6, 1e-5),),
         teammates=(TeammateReading((robot_id + 1) % NUM_ROBOTS, np.array([3.0, 1.0, 0.2]),
                                    np.eye(3) * 1e-6),))
 
@@ -82,34 +82,33 @@ def test_inbox_rejects_own_id_and_implausible_sequence():
     (lambda u: dict(stamp_s=math.nan), "stamp"),
     (lambda u: dict(keyframes=(keyframe(odom=(math.nan, 0.0, 0.0)),)), "odometry"),
     (lambda u: dict(keyframes=(keyframe(robot_id=2),)), "keyframe of robot 2"),
-    (lambda u: dict(landmarks=(LandmarkEstimate(1, np.array([1.0, 2.0, 3.0]), np.eye(2)),)),
-     "2 elements"),
-    (lambda u: dict(landmarks=(LandmarkEstimate(1, np.zeros(2), -np.eye(2)),)), "not a covariance"),
+    (lambda u: dict(keyframes=(keyframe(covariance=-np.eye(3)),)), "not a covariance"),
     (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.array([np.inf, 0.0]),
-                                          FrontierType.EXPLORATION, None, 0.0, 0.0),)), "target"),
+                                          FrontierType.EXPLORATION, None, 0.0),)), "target"),
     (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.EXPLORATION,
-                                          1, 0.0, 0.0),)), "EXPLORATION target with partner 1"),
+                                          1, 0.0),)), "EXPLORATION target with partner 1"),
     (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.RENDEZVOUS,
-                                          None, 0.0, 0.0),)), "rendezvous target without"),
+                                          None, 0.0),)), "rendezvous target without"),
     (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.RENDEZVOUS,
-                                          1, 0.0, 0.0),)), "robot itself as partner"),
+                                          1, 0.0),)), "robot itself as partner"),
     (lambda u: dict(targets=(TargetRecord(1, 0, 0.0, np.zeros(2), FrontierType.RENDEZVOUS,
-                                          9, 0.0, 0.0),)), "partner id 9 is not a robot"),
+                                          9, 0.0),)), "partner id 9 is not a robot"),
     (lambda u: dict(targets=(TargetRecord(1, 2**32 - 1, 0.0, np.zeros(2),
-                                          FrontierType.EXPLORATION, None, 0.0, 0.0),)),
+                                          FrontierType.EXPLORATION, None, 0.0),)),
      "decision index"),
     (lambda u: dict(keyframes=(keyframe(odom=(1e300, 0.0, 0.0)),)), "implausibly large"),
-    (lambda u: dict(landmarks=(LandmarkEstimate(2**32 - 1, np.zeros(2), np.eye(2)),)),
-     "landmark id"),
-    (lambda u: dict(landmarks=tuple(LandmarkEstimate(i, np.zeros(2), np.eye(2))
-                                    for i in range(MAX_LANDMARKS_PER_UPDATE + 1))),
-     "at most"),
+    (lambda u: dict(keyframes=(keyframe(landmark_id=2**32 - 1),)), "landmark id"),
+    (lambda u: dict(targets=(TargetRecord(1, 0, 1.0, np.zeros(2), FrontierType.EXPLORATION,
+                                          None, 0.0),)), "not its update's"),
+    (lambda u: dict(targets=tuple(TargetRecord(1, i, 0.0, np.zeros(2), FrontierType.EXPLORATION,
+                                               None, 0.0)
+                                  for i in range(MAX_TARGETS_PER_UPDATE + 1))), "at most"),
 ])
 def test_validation_rejects_malformed_updates(corrupt, message):
     good = updates_from(1, 1)[0]
     validate_team_update(good, NUM_ROBOTS)
     fields = dict(robot_id=good.robot_id, sequence=good.sequence, stamp_s=good.stamp_s,
-                  keyframes=good.keyframes, landmarks=good.landmarks, targets=good.targets,
+                  keyframes=good.keyframes, targets=good.targets,
                   rendezvous=good.rendezvous)
     fields.update(corrupt(good))
     with pytest.raises(InvalidTeamUpdate, match=message):

@@ -118,7 +118,7 @@ from rclpy.node import Node
 
 from em_exploration_ros.nodes.qos import TEAM_QOS
 from rclpy.serialization import serialize_message
-from em_exploration_msgs.msg import Keyframe, TeamUpdate, TargetRecord, TeammateDetection
+from em_exploration_msgs.msg import Keyframe, KeyframeTeammate, TeamUpdate, TargetRecord
 from em_exploration_ros.nodes.qos import TEAM_QOS
 
 rclpy.init()
@@ -128,15 +128,13 @@ pubs = {r: node.create_publisher(TeamUpdate, f"/robot_{r}/team/updates", TEAM_QO
 
 def update(robot, sequence, **fields):
     message = TeamUpdate(robot_id=robot, sequence=sequence)
-    message.header.frame_id = "map"  # as a robot's, so that the content is what is wrong
     for key, value in fields.items():
         setattr(message, key, value)
     return message
 
-nan_keyframe = Keyframe(robot_id=1, index=3, previous_index=2, odom_x=math.nan)
-bad_target = TargetRecord(robot_id=1, x=math.inf, frontier_type=1)
-stranger = Keyframe(robot_id=1, index=4, previous_index=3,
-                    teammates=[TeammateDetection(robot_id=9)])
+nan_keyframe = Keyframe(index=3, previous_index=2, odom_x=math.nan)
+bad_target = TargetRecord(x=math.inf, frontier_type=1)
+stranger = Keyframe(index=4, previous_index=3, teammates=[KeyframeTeammate(robot_id=9)])
 deadline = time.monotonic() + float(sys.argv[1])
 count = 0
 while time.monotonic() < deadline:

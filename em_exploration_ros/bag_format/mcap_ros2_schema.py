@@ -112,3 +112,31 @@ def build_message_definition(type_name: str) -> MessageDefinition:
                           lambda idl, _package: parse_idl_dependencies(idl))
         return MessageDefinition(
             type_name, ENCODING_IDL, f"{DELIMITER_LINE}\nIDL: {type_name}\n{text}")
+
+
+
+def _definition_line(line: str) -> str:
+    """A ``ros2msg`` line without its comment (a string constant keeps its whole value,
+    which may hold ``#``)."""
+    stripped = line.strip()
+    head = stripped.split("#", 1)[0]
+    if "=" in head and head.split()[0] in ("string", "wstring"):
+        return stripped
+    return head.strip()
+
+
+def same_layout(recorded_text: str, recorded_encoding: str,
+                installed: MessageDefinition) -> bool:
+    """True when a recorded schema declares the same fields, types, defaults and constants
+    in the same order as the installed definition, so its messages are read correctly with
+    the installed type. ``ros2msg`` texts are compared without comments and blank lines,
+    other encodings exactly."""
+    if recorded_encoding != installed.encoding:
+        return False
+    if installed.encoding != ENCODING_MSG:
+        return recorded_text == installed.text
+
+    def layout(text: str) -> list[str]:
+        return [line for line in map(_definition_line, text.splitlines()) if line]
+
+    return layout(recorded_text) == layout(installed.text)

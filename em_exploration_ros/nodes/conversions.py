@@ -23,6 +23,8 @@ from em_exploration_ros.core.sim.wire_model import (NANOSECONDS_PER_SECOND,
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
                                                      RendezvousEvent, RendezvousState,
                                                      TargetRecord, TeamUpdate, check_record_sizes)
+from em_exploration_ros.core.agent.team_wire import (TeamWireFormat, covariance_from_upper,
+                                                     covariance_upper)
 
 MAP_FRAME = "map"
 WORLD_FRAME = "world"
@@ -142,28 +144,40 @@ def odometry_twist_covariance(message: Odometry) -> np.ndarray:
 
 
 # -- team data (robot <-> robot) ----------------------------------------------------------
+# The wire form is compact (msg_schemas/msg/TeamUpdate.msg); ``TeamWireFormat`` holds the
+# shared parameters a receiver rebuilds the rest from. A record the core made goes through
+# ``to_msg`` and back unchanged: the sender already rounded it (core/agent/team_wire.py).
 
 def _keyframe_to_msg(kf: KeyframeMeasurements) -> em_msg.Keyframe:
-    message = em_msg.Keyframe(
-        robot_id=kf.robot_id, index=kf.index, is_first=kf.is_first,
-        previous_index=max(kf.previous_index, 0),
+    previous = em_msg.Keyframe.NO_PREVIOUS if kf.is_first else kf.previous_index
+    return em_msg.Keyframe(
+        index=kf.index, previous_index=int(previous),
         odom_x=float(kf.odom_delta[0]), odom_y=float(kf.odom_delta[1]),
-        odom_theta=float(kf.odom_delta[2]), odom_covariance=_flat(kf.odom_covariance),
-        landmarks=[landmark_reading_to_msg(r) for r in kf.landmarks],
-        teammates=[teammate_reading_to_msg(r) for r in kf.teammates])
-    message.stamp = seconds_to_time(kf.stamp_s)
-    return message
+        odom_theta=float(kf.odom_delta[2]),
+        odom_covariance=[float(v) for v in covariance_upper(kf.odom_covariance)],
+        landmarks=[em_msg.KeyframeLandmark(landmark_id=int(r.landmark_id),
+                                           range=float(r.range_m), bearing=float(r.bearing_rad))
+                   for r in kf.landmarks],
+        teammates=[em_msg.KeyframeTeammate(robot_id=int(r.robot_id),
+                                           x=float(r.relative_pose[0]),
+                                           y=float(r.relative_pose[1]),
+                                           theta=float(r.relative_pose[2]))
+                   for r in kf.teammates])
 
 
-def _keyframe_from_msg(message: em_msg.Keyframe) -> KeyframeMeasurements:
+def _keyframe_from_msg(message: em_msg.Keyframe, robot_id: int,
+                       wire: TeamWireFormat) -> KeyframeMeasurements:
+    is_first = message.previous_index == em_msg.Keyframe.NO_PREVIOUS
     return KeyframeMeasurements(
-        robot_id=int(message.robot_id), index=int(message.index),
-        stamp_s=time_to_seconds(message.stamp), is_first=bool(message.is_first),
-        previous_index=-1 if message.is_first else int(message.previous_index),
-        odom_delta=np.array([message.odom_x, message.odom_y, message.odom_theta]),
-        odom_covariance=_matrix(message.odom_covariance, 3),
-        landmarks=tuple(landmark_reading_from_msg(r) for r in message.landmarks),
-        teammates=tuple(teammate_reading_from_msg(r) for r in message.teammates))
+        robot_id=robot_id, index=int(message.index),
+        stamp_s=wire.keyframe_time_s(int(message.index)), is_first=is_first,
+        previous_index=-1 if is_first else int(message.previous_index),
+        odom_delta=np.array([message.odom_x, message.odom_y, message.odom_theta], dtype=float),
+        odom_covariance=covariance_from_upper(np.asarray(message.odom_covariance, dtype=float)),
+        landmarks=tuple(wire.landmark_reading(r.landmark_id, r.range, r.bearing)
+                        for r in message.landmarks),
+        teammates=tuple(wire.teammate_reading(r.robot_id, np.array([r.x, r.y, r.theta]))
+                        for r in message.teammates))
 
 
 def landmark_estimate_to_msg(landmark: LandmarkEstimate) -> em_msg.LandmarkEstimate:
@@ -172,38 +186,29 @@ def landmark_estimate_to_msg(landmark: LandmarkEstimate) -> em_msg.LandmarkEstim
                                    covariance=_flat(landmark.covariance))
 
 
-def landmark_estimate_from_msg(message: em_msg.LandmarkEstimate) -> LandmarkEstimate:
-    return LandmarkEstimate(int(message.landmark_id), np.array([message.x, message.y]),
-                            _matrix(message.covariance, 2))
-
-
 def target_to_msg(target: TargetRecord) -> em_msg.TargetRecord:
+    """A target as carried in its robot's TeamUpdate (robot and time are the update's)."""
     partner = em_msg.TargetRecord.NO_PARTNER if target.partner_id is None else target.partner_id
-    message = em_msg.TargetRecord(
-        robot_id=target.robot_id, decision_index=target.decision_index,
+    return em_msg.TargetRecord(
+        decision_index=target.decision_index, partner_id=int(partner),
         x=float(target.position[0]), y=float(target.position[1]),
-        frontier_type=int(target.kind), partner_id=int(partner),
-        utility=float(target.utility), planning_time=float(target.planning_time_s),
+        planning_time=float(target.planning_time_s), frontier_type=int(target.kind),
         planner_failed=bool(target.planner_failed))
-    message.stamp = seconds_to_time(target.stamp_s)
-    return message
 
 
-def target_from_msg(message: em_msg.TargetRecord) -> TargetRecord:
-    """The core record; ``partner_id`` NO_PARTNER becomes None, and so does a non-RENDEZVOUS
-    target's own robot id (how recordings made before NO_PARTNER marked "no partner")."""
+def target_from_msg(message: em_msg.TargetRecord, robot_id: int,
+                    stamp_s: float) -> TargetRecord:
+    """The core record of a target of robot ``robot_id`` carried by an update of time
+    ``stamp_s`` [s]; ``partner_id`` NO_PARTNER becomes None."""
     try:
         kind = FrontierType(message.frontier_type)
     except ValueError:
         raise InvalidTeamUpdate(f"unknown frontier type {message.frontier_type}") from None
-    partner: int | None = int(message.partner_id)
-    legacy_none = kind != FrontierType.RENDEZVOUS and partner == message.robot_id
-    if partner == em_msg.TargetRecord.NO_PARTNER or legacy_none:
-        partner = None
-    return TargetRecord(int(message.robot_id), int(message.decision_index),
-                        time_to_seconds(message.stamp), np.array([message.x, message.y]), kind,
-                        partner, float(message.utility), float(message.planning_time),
-                        bool(message.planner_failed))
+    partner = None if message.partner_id == em_msg.TargetRecord.NO_PARTNER else int(
+        message.partner_id)
+    return TargetRecord(robot_id, int(message.decision_index), stamp_s,
+                        np.array([message.x, message.y]), kind, partner,
+                        float(message.planning_time), bool(message.planner_failed))
 
 
 def _rendezvous_to_msg(event: RendezvousEvent) -> em_msg.Rendezvous:
@@ -227,33 +232,34 @@ def _rendezvous_from_msg(message: em_msg.Rendezvous) -> RendezvousEvent:
                            float(message.timeout))
 
 
-def team_update_to_msg(update: TeamUpdate) -> em_msg.TeamUpdate:
-    """A core TeamUpdate as em_exploration_msgs/TeamUpdate (frame ``map``)."""
-    message = em_msg.TeamUpdate(
-        robot_id=update.robot_id, sequence=update.sequence,
+def team_update_to_msg(update: TeamUpdate, wire: TeamWireFormat) -> em_msg.TeamUpdate:
+    """A core TeamUpdate as em_exploration_msgs/TeamUpdate. ValueError if the update cannot
+    travel in that form: its time is no step's, or a target is stamped at another time (a
+    decision travels in the update of its step)."""
+    step = wire.step_of(update.stamp_s)
+    if any(target.stamp_s != update.stamp_s for target in update.targets):
+        raise ValueError(f"robot {update.robot_id}, update {update.sequence}: a target's "
+                         "stamp is not the update's")
+    return em_msg.TeamUpdate(
+        step=step, sequence=update.sequence, robot_id=update.robot_id,
+        finished=bool(update.finished),
         keyframes=[_keyframe_to_msg(k) for k in update.keyframes],
-        landmarks=[landmark_estimate_to_msg(lm) for lm in update.landmarks],
         targets=[target_to_msg(t) for t in update.targets],
-        rendezvous=[_rendezvous_to_msg(r) for r in update.rendezvous],
-        finished=bool(update.finished))
-    message.header.stamp = seconds_to_time(update.stamp_s)
-    message.header.frame_id = MAP_FRAME
-    return message
+        rendezvous=[_rendezvous_to_msg(r) for r in update.rendezvous])
 
 
-def team_update_from_msg(message: em_msg.TeamUpdate) -> TeamUpdate:
+def team_update_from_msg(message: em_msg.TeamUpdate, wire: TeamWireFormat) -> TeamUpdate:
     """A received TeamUpdate as core data; raises InvalidTeamUpdate on malformed content
     (the caller validates the values with ``validate_team_update``; arrays longer than
     it allows are refused here, before they are converted)."""
-    check_record_sizes(len(message.keyframes), len(message.landmarks), len(message.targets),
-                       len(message.rendezvous))
+    check_record_sizes(len(message.keyframes), len(message.targets), len(message.rendezvous))
+    robot_id = int(message.robot_id)
+    stamp_s = wire.step_time_s(int(message.step))
     try:
         return TeamUpdate(
-            robot_id=int(message.robot_id), sequence=int(message.sequence),
-            stamp_s=time_to_seconds(message.header.stamp),
-            keyframes=tuple(_keyframe_from_msg(k) for k in message.keyframes),
-            landmarks=tuple(landmark_estimate_from_msg(lm) for lm in message.landmarks),
-            targets=tuple(target_from_msg(t) for t in message.targets),
+            robot_id=robot_id, sequence=int(message.sequence), stamp_s=stamp_s,
+            keyframes=tuple(_keyframe_from_msg(k, robot_id, wire) for k in message.keyframes),
+            targets=tuple(target_from_msg(t, robot_id, stamp_s) for t in message.targets),
             rendezvous=tuple(_rendezvous_from_msg(r) for r in message.rendezvous),
             finished=bool(message.finished))
     except (ValueError, TypeError) as error:  # e.g. wrong covariance length

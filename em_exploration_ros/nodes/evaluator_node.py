@@ -65,6 +65,7 @@ from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, fir
                                                         frame_problem, id_problem,
                                                         sequence_entry_problem, size_problem,
                                                         stamp_step_problem, step_problem)
+from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness
 from em_exploration_ros.core.evaluation.run_monitor import EXIT_STALLED, DecisionEntry, RunMonitor
@@ -147,6 +148,7 @@ class EvaluatorNode(Node):
         self.estimate_wait_s = settings.estimate_wait_s
         self.silence_timeout_s = settings.silence_timeout_s
         self.params = declare_exploration_params(self)
+        self.wire = TeamWireFormat(self.params)
         refuse_unknown_overrides(self)
         self.num_robots = self.params.world.num_robots
         self.time_step_s = self.params.motion.time_step_s
@@ -317,7 +319,7 @@ class EvaluatorNode(Node):
         """Targets from the robots' update streams, validated and in sequence order exactly
         as a robot reads them (malformed or impostor records are rejected)."""
         try:
-            self.team_updates.receive(checked_team_update(message), robot)
+            self.team_updates.receive(checked_team_update(message, self.wire), robot)
         except InvalidTeamUpdate as error:
             self.inputs.drop(f"/{robot_namespace(robot)}/team/updates",
                              f"rejected a team update: {error}")

@@ -22,7 +22,8 @@ from em_exploration_ros.core.agent.input_checks import (RejectionLog, array_prob
                                                         frame_problem, reason_kind,
                                                         stamp_problem)
 from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TeamUpdate
-from em_exploration_ros.nodes.conversions import MAP_FRAME, team_update_from_msg
+from em_exploration_ros.core.agent.team_wire import TeamWireFormat
+from em_exploration_ros.nodes.conversions import team_update_from_msg
 
 #: Wall seconds between two log lines about the same topic's dropped input.
 LOG_PERIOD_S = 5.0
@@ -93,15 +94,13 @@ def _leaves(message: Any) -> Iterator[tuple[str, Any]]:
                 yield from _leaves(item)
 
 
-def checked_team_update(message: Any) -> TeamUpdate:
-    """A received em_exploration_msgs/TeamUpdate as core data, after the checks that do
-    not need the receiver's state: header (stamp, frame ``map``), array sizes (before
-    anything is converted), every number and time. ``InvalidTeamUpdate`` says why not;
-    the receiver's inbox then validates the content against the team."""
-    problem = header_problem(message.header, MAP_FRAME)
-    if problem:
-        raise InvalidTeamUpdate(problem)
-    update = team_update_from_msg(message)
+def checked_team_update(message: Any, wire: TeamWireFormat) -> TeamUpdate:
+    """A received em_exploration_msgs/TeamUpdate as core data (``wire``: the team's shared
+    parameters that rebuild what is not sent), after the checks that do not need the
+    receiver's state: array sizes (before anything is converted), every number and time.
+    ``InvalidTeamUpdate`` says why not; the receiver's inbox then validates the content
+    against the team."""
+    update = team_update_from_msg(message, wire)
     problem = content_problem(message)
     if problem:
         raise InvalidTeamUpdate(problem)

@@ -60,6 +60,7 @@ from em_exploration_ros.core.agent.resend import ResendScheduler
 from em_exploration_ros.core.agent.team_data import (MAX_READINGS_PER_KEYFRAME,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
                                                      LandmarkEstimate, TeamUpdateInbox)
+from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.node_settings import RobotNodeSettings
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, sim_time_s,
@@ -107,6 +108,7 @@ class RobotNode(Node):
         if not 0 <= self.robot_id < self.num_robots:
             raise ValueError(f"robot_id {self.robot_id} is not in 0..{self.num_robots - 1}")
         self.time_step_s = self.params.motion.time_step_s
+        self.wire = TeamWireFormat(self.params)
         self.agent: RobotAgent | None = None
         self.inbox = TeamUpdateInbox(self.robot_id, self.num_robots)
         self.resends = ResendScheduler(self.settings.resend_interval_s)
@@ -262,7 +264,7 @@ class RobotNode(Node):
     def _on_team_update(self, sender: int, message: TeamUpdate) -> None:
         topic = f"/{robot_namespace(sender)}/team/updates"
         try:
-            self.inbox.receive(checked_team_update(message), sender)
+            self.inbox.receive(checked_team_update(message, self.wire), sender)
         except InvalidTeamUpdate as error:
             self.rejected_updates += 1
             self.inputs.drop(topic, f"rejected a team update: {error}")
@@ -274,7 +276,7 @@ class RobotNode(Node):
         if self._recovery is None:
             return
         try:
-            self._recovery.receive(checked_team_update(message))
+            self._recovery.receive(checked_team_update(message, self.wire))
         except InvalidTeamUpdate as error:
             self.rejected_updates += 1
             self.get_logger().warn(f"rejected a relayed record of this robot's history: {error}")
@@ -288,7 +290,7 @@ class RobotNode(Node):
         self._served_history[requester] = now
         held = self.archive.held(requester)
         for update in held:
-            publish_or_log(self.history_pubs[requester], team_update_to_msg(update), self,
+            publish_or_log(self.history_pubs[requester], team_update_to_msg(update, self.wire), self,
                            f"robot {requester}'s record {update.sequence}")
         self.get_logger().info(f"robot {requester} restarted: re-sent the {len(held)} records "
                                f"of its stream this robot holds")
@@ -317,7 +319,7 @@ class RobotNode(Node):
             return
         for due in self.resends.due(time.monotonic()):
             resent = self.agent.outbox.resend(due.first_sequence, due.last_sequence)
-            sent = sum(publish_or_log(self.update_pub, team_update_to_msg(update), self,
+            sent = sum(publish_or_log(self.update_pub, team_update_to_msg(update, self.wire), self,
                                       f"re-sent update {update.sequence}") for update in resent)
             if resent:
                 self.get_logger().info(
@@ -457,7 +459,7 @@ class RobotNode(Node):
             tuple(teammate_reading_from_msg(r) for r in scan.teammates)))
         update = agent.take_outgoing()
         if update is not None:
-            publish_or_log(self.update_pub, team_update_to_msg(update), self,
+            publish_or_log(self.update_pub, team_update_to_msg(update, self.wire), self,
                            f"team update {update.sequence} (teammates will ask for it again)")
         self._publish_transforms(stamp_s, odometry)
         linear_x, angular_z = command_to_twist(command.turn_rad, command.forward_m,

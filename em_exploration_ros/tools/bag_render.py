@@ -3,7 +3,10 @@
 One validating pass over the recording (``BagScanner``) keeps the last message of every
 state topic and every message of the stream topics; only those are deserialized, with
 ``rclpy.serialization`` (no ROS graph, no ``rclpy.init``), and converted with
-``nodes.conversions``. All positions are in the ``map`` frame, which is the ``world`` frame
+``nodes.conversions``. A type whose recorded schema is not the installed definition (a
+recording made before a message changed, e.g. the compact TeamUpdate of issue 12) is
+decoded with the schema the recording holds (mcap-ros2-support's dynamic decoder) and read
+by field name. All positions are in the ``map`` frame, which is the ``world`` frame
 in simulation, in metres.
 
 What is read, per robot ``i`` (topics absent from the recording are simply left out):
@@ -32,13 +35,17 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from rclpy.serialization import deserialize_message
 from visualization_msgs.msg import Marker
 
-from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, ChannelInfo
+from mcap.records import Schema
+from mcap_ros2.decoder import DecoderFactory
+
+from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, ChannelInfo, SchemaInfo
+from em_exploration_ros.bag_format.mcap_ros2_schema import same_layout
 from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.evaluation.map_render import (TeamMapLayers, UncertaintyEllipses,
                                                 render_team_map)
@@ -46,9 +53,8 @@ from em_exploration_ros.core.params import MapParams
 from em_exploration_ros.core.evaluation.summary import TARGET_TYPES, TargetEntry
 from em_exploration_ros.core.sim.wire_model import nanoseconds_to_seconds
 from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg, odometry_pose,
-                                                  path_from_msg, quaternion_to_yaw,
-                                                  target_from_msg)
-from em_exploration_ros.tools.bag_ros import MessageTypeError, import_message_class
+                                                  path_from_msg, quaternion_to_yaw)
+from em_exploration_ros.tools.bag_ros import MessageTypeError, message_type_support
 
 #: Message type of each topic kind this module reads.
 EXPECTED_TYPES = {
@@ -132,21 +138,39 @@ class _Collected:
 
     last: dict[tuple[int | None, str], bytes] = field(default_factory=dict)
     streams: dict[tuple[int | None, str], list[bytes]] = field(default_factory=dict)
-    classes: dict[str, type] = field(default_factory=dict)
+    decoders: dict[str, Callable[[bytes], Any]] = field(default_factory=dict)
     last_log_ns: int = 0
 
 
-def _register_class(path: Path, channel: ChannelInfo, type_name: str, kind: str,
-                    classes: dict[str, type]) -> None:
-    """Check a read topic's recorded type and import its message class into ``classes``."""
+def _register_decoder(path: Path, channel: ChannelInfo, schema: SchemaInfo, kind: str,
+                      decoders: dict[str, Callable[[bytes], Any]]) -> None:
+    """Check a read topic's recorded type and file its decoder in ``decoders``: the installed
+    message class when the recording's schema is the installed definition, else the
+    recorded schema itself."""
     expected = EXPECTED_TYPES[kind]
-    if type_name != expected:
-        raise BagError(f"{path}: topic {channel.topic} has type {type_name}, expected {expected}")
-    if expected not in classes:
-        try:
-            classes[expected] = import_message_class(expected)
-        except MessageTypeError as error:
-            raise BagError(f"{path}: {error}") from None
+    if schema.name != expected:
+        raise BagError(f"{path}: topic {channel.topic} has type {schema.name}, expected {expected}")
+    if expected in decoders:
+        return
+    recorded = schema.data.decode("utf-8", errors="replace")
+    try:
+        message_class, definition = message_type_support(expected)
+    except MessageTypeError:
+        message_class, definition = None, None
+    if definition is not None and same_layout(recorded, schema.encoding, definition):
+        decoders[expected] = lambda data: deserialize_message(data, message_class)
+        return
+    try:
+        decoder = DecoderFactory().decoder_for("cdr", Schema(
+            id=schema.id, name=schema.name, encoding=schema.encoding, data=schema.data))
+    except Exception as error:  # the recorded schema text does not parse
+        raise BagError(f"{path}: the recorded schema of {expected} cannot be used: "
+                       f"{str(error).splitlines()[0] if str(error) else type(error).__name__}"
+                       ) from None
+    if decoder is None:
+        raise BagError(f"{path}: {expected} is recorded with schema encoding "
+                       f"{schema.encoding!r}, which cannot be decoded without the installed type")
+    decoders[expected] = decoder
 
 
 def _collect(path: Path) -> _Collected:
@@ -158,8 +182,8 @@ def _collect(path: Path) -> _Collected:
         if channel.id not in kinds:
             kinds[channel.id] = _topic_kind(channel.topic)
             if kinds[channel.id] is not None:
-                _register_class(path, channel, scanner.info.schema_of(channel).name,
-                                kinds[channel.id][1], collected.classes)
+                _register_decoder(path, channel, scanner.info.schema_of(channel),
+                                  kinds[channel.id][1], collected.decoders)
         key = kinds[channel.id]
         if key is None:
             continue
@@ -173,8 +197,8 @@ def _collect(path: Path) -> _Collected:
 
 def _decode(path: Path, data: bytes, kind: str, collected: _Collected) -> Any:
     try:
-        return deserialize_message(data, collected.classes[EXPECTED_TYPES[kind]])
-    except RuntimeError as error:
+        return collected.decoders[EXPECTED_TYPES[kind]](data)
+    except Exception as error:  # rclpy: RuntimeError; the dynamic decoder: any parse error
         raise BagError(f"{path}: a {EXPECTED_TYPES[kind]} message does not deserialize: "
                        f"{str(error).splitlines()[0]}") from None
 
@@ -202,13 +226,18 @@ def _marker_arrays(markers: list[Marker]) -> tuple[UncertaintyEllipses, list[Tar
 
 
 def _targets(path: Path, updates: list[bytes], collected: _Collected) -> list[TargetEntry]:
-    """A robot's chosen targets in decision order; a resent update counts once."""
+    """A robot's chosen targets in decision order; a resent update counts once. Reads the
+    fields every TargetRecord schema has had (decision_index, x, y, frontier_type)."""
     by_decision = {}
     for data in updates:
         for record in _decode(path, data, "team/updates", collected).targets:
-            target = target_from_msg(record)
-            by_decision[target.decision_index] = TargetEntry(
-                float(target.position[0]), float(target.position[1]), target.kind.name.lower())
+            try:
+                kind = FrontierType(record.frontier_type)
+            except ValueError:
+                raise BagError(f"{path}: a target has the unknown frontier type "
+                               f"{record.frontier_type}") from None
+            by_decision[int(record.decision_index)] = TargetEntry(
+                float(record.x), float(record.y), kind.name.lower())
     return [by_decision[index] for index in sorted(by_decision)]
 
 

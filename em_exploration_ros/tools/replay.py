@@ -34,7 +34,11 @@ from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
-from em_exploration_ros.bag_format.bag_reader import BagError, BagInfo, BagScanner, scan_bag
+from em_exploration_ros.bag_format.bag_reader import (BagError, BagInfo, BagScanner, SchemaInfo,
+                                                      scan_bag)
+from em_exploration_ros.bag_format.mcap_ros2_schema import (DefinitionNotFoundError,
+                                                            build_message_definition,
+                                                            same_layout)
 from em_exploration_ros.bag_format.qos_yaml import QosFormatError, QosProfile, offer_for_playback
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.tools.bag_ros import (
@@ -148,7 +152,8 @@ def check_playable(info: BagInfo, selection: TopicSelection) -> dict[int, Playab
                            f"{channel.message_encoding!r}, not cdr")
         if channel.schema_id not in info.schemas:
             raise BagError(f"{info.path}: topic {channel.topic} has no schema")
-        type_name = info.schema_of(channel).name
+        schema = info.schema_of(channel)
+        type_name = schema.name
         try:
             playable[channel.id] = PlayableTopic(import_message_class(type_name),
                                                  tuple(channel.offered_qos))
@@ -158,7 +163,23 @@ def check_playable(info: BagInfo, selection: TopicSelection) -> dict[int, Playab
         except QosFormatError as error:
             raise BagError(f"{info.path}: topic {channel.topic}: bad offered_qos_profiles: "
                            f"{error}") from None
+        if not recorded_as_installed(schema):
+            raise BagError(f"{info.path}: topic {channel.topic} was recorded with another "
+                           f"definition of {type_name} than the installed one (made before "
+                           "the message changed?): playing it would publish misread messages; "
+                           "exclude it with --exclude, or replay with the version that "
+                           "recorded it")
     return playable
+
+
+def recorded_as_installed(schema: SchemaInfo) -> bool:
+    """True when a recorded schema has the installed definition's layout, or when the
+    installed definition is not available to compare (the type's class alone is)."""
+    try:
+        installed = build_message_definition(schema.name)
+    except DefinitionNotFoundError:
+        return True
+    return same_layout(schema.data.decode("utf-8", errors="replace"), schema.encoding, installed)
 
 
 def _clock_message(ns: int) -> Clock:

@@ -53,9 +53,9 @@ from em_exploration_ros.core.planning.progress import (GivenUpTarget, GiveUpReas
 from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReading, TeammateReading,
                                                  odometry_covariance_per_step)
 from em_exploration_ros.core.slam.team_slam import KeyframeBuilder, KeyframeMeasurements, TeamSlam
-from em_exploration_ros.core.agent.team_data import (LandmarkEstimate, RendezvousEvent,
-                                               RendezvousState, TargetRecord,
-                                               TeamUpdate, TeamUpdateOutbox)
+from em_exploration_ros.core.agent.team_data import (RendezvousEvent, RendezvousState,
+                                                     TargetRecord, TeamUpdate, TeamUpdateOutbox)
+from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.sim.wire_model import DeadReckoningDifferencer
 
 _LOG = logging.getLogger(__name__)
@@ -150,6 +150,7 @@ class RobotAgent:
                                         params.world.robot_radius_m)
         self.rendezvous = RendezvousBook()
         self.outbox = TeamUpdateOutbox(robot_id)
+        self.wire = TeamWireFormat(params)
         self.decisions: list[DecisionRecord] = []
         self.target: Frontier | None = None
         self.finished = False
@@ -252,6 +253,7 @@ class RobotAgent:
         keyframe = self._keyframes.add_step(sensed.step, sensed.stamp_s, odometry,
                                             sensed.landmarks, sensed.teammates)
         if keyframe is not None:
+            keyframe = self.wire.keyframe(keyframe)  # what the teammates will receive
             self._since_keyframe = np.zeros(3)
             self.slam.add_keyframe(keyframe)
             self._update_slam()
@@ -289,12 +291,7 @@ class RobotAgent:
         pending, self._pending = self._pending, _Pending()
         if not (pending.keyframes or pending.targets or pending.rendezvous or pending.finished):
             return None
-        seen = sorted({reading.landmark_id for kf in pending.keyframes
-                       for reading in kf.landmarks})
-        known = self.slam.landmark_estimates()
-        landmarks = tuple(LandmarkEstimate(lid, known[lid], self.slam.landmark_covariance(lid))
-                          for lid in seen if lid in known)
-        return self.outbox.publish(self._stamp_s, tuple(pending.keyframes), landmarks,
+        return self.outbox.publish(self._stamp_s, tuple(pending.keyframes),
                                    tuple(pending.targets), tuple(pending.rendezvous),
                                    self.finished)
 
@@ -417,9 +414,7 @@ class RobotAgent:
             planner_failed = True
         self.last_decision = decision
         planning_time_s = time.perf_counter() - started
-        chosen = next(u.total for u in decision.utilities if u.frontier is decision.target)
-        self._set_target(decision.target, pose, planning_time_s, len(candidates), chosen,
-                         planner_failed)
+        self._set_target(decision.target, pose, planning_time_s, len(candidates), planner_failed)
 
     def _fall_back(self, cells: np.ndarray, pose: np.ndarray, started: float) -> None:
         """Every candidate lies near a given-up target: the nearest frontier cell that does
@@ -432,12 +427,10 @@ class RobotAgent:
                                        self.params.frontiers)[0]  # the nearest comes first
         _LOG.info("robot %d: every candidate is near a given-up target; nearest other "
                   "frontier %s", self.robot_id, target.position.tolist())
-        distance = float(np.linalg.norm(target.position - pose[:2]))
-        self._set_target(target, pose, time.perf_counter() - started, 1, distance,
-                         planner_failed=False)
+        self._set_target(target, pose, time.perf_counter() - started, 1, planner_failed=False)
 
     def _set_target(self, target: Frontier, pose: np.ndarray, planning_time_s: float,
-                    num_candidates: int, utility: float, planner_failed: bool) -> None:
+                    num_candidates: int, planner_failed: bool) -> None:
         self._give_up_own_meeting("new target chosen")
         index = len(self.decisions)
         self.target = target
@@ -450,8 +443,9 @@ class RobotAgent:
         self._target_deadline_s = (self._stamp_s + motion.target_timeout_factor * distance
                                    / motion.speed_mps + motion.target_timeout_margin_s)
         partner = target.partner_id if target.kind == FrontierType.RENDEZVOUS else None
-        record = TargetRecord(self.robot_id, index, self._stamp_s, target.position.copy(),
-                              target.kind, partner, utility, planning_time_s, planner_failed)
+        record = self.wire.target(TargetRecord(self.robot_id, index, self._stamp_s,
+                                               target.position.copy(), target.kind, partner,
+                                               planning_time_s, planner_failed))
         self.team_targets[self.robot_id].append(record)
         self._pending.targets.append(record)
         if partner is not None:

@@ -1,12 +1,13 @@
 """What teammates share, as plain data, and the bookkeeping that keeps the stream whole.
 
 Each robot publishes one ordered stream of ``TeamUpdate`` records: every record carries
-what is new since the previous one (keyframes with their measurements, landmark
-estimates, chosen targets, rendezvous events) and a sequence number
+what is new since the previous one (keyframes with their measurements, chosen targets,
+rendezvous events) and a sequence number
 (1, 2, 3, ...). A receiver applies records strictly in sequence order, buffers records
 that arrive early, asks for the missing range again, and rejects malformed records
 before they touch any state. These types mirror em_exploration_msgs/TeamUpdate; the
-ROS nodes convert between the two, em-sim passes them directly.
+ROS nodes convert between the two (the wire form: ``team_wire``), em-sim passes them
+directly.
 """
 from __future__ import annotations
 
@@ -27,10 +28,11 @@ MAX_SEQUENCE_LEAD = 10_000
 #: Most entries of each array in one record (a robot sends about one keyframe per update;
 #: these bounds leave room for bulk re-sends and large teams and maps).
 MAX_KEYFRAMES_PER_UPDATE = 1000
-MAX_LANDMARKS_PER_UPDATE = 1000
 MAX_TARGETS_PER_UPDATE = 1000
 MAX_RENDEZVOUS_PER_UPDATE = 1000
 MAX_READINGS_PER_KEYFRAME = 1000
+#: Most landmark estimates in one robot's /robot_<i>/landmarks message.
+MAX_LANDMARKS_PER_UPDATE = 1000
 
 
 class RendezvousState(IntEnum):
@@ -56,7 +58,8 @@ class TargetRecord:
 
     ``partner_id``: the teammate to meet for a RENDEZVOUS target, None for every other
     target. ``planning_time_s``: wall time of the whole decision [s] (map rebuild,
-    candidates and planner).
+    candidates and planner). ``stamp_s`` is the time of the update that carries it (the
+    decision's step).
     """
 
     robot_id: int
@@ -65,7 +68,6 @@ class TargetRecord:
     position: np.ndarray  # (2,) [m]
     kind: FrontierType
     partner_id: int | None
-    utility: float
     planning_time_s: float
     planner_failed: bool = False
 
@@ -92,7 +94,6 @@ class TeamUpdate:
     sequence: int
     stamp_s: float
     keyframes: tuple[KeyframeMeasurements, ...] = ()
-    landmarks: tuple[LandmarkEstimate, ...] = ()
     targets: tuple[TargetRecord, ...] = ()
     rendezvous: tuple[RendezvousEvent, ...] = ()
     finished: bool = False
@@ -113,8 +114,7 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
     if update.sequence < 1:
         raise InvalidTeamUpdate(f"sequence must be >= 1, got {update.sequence}")
     _check_finite(update.stamp_s, "stamp")
-    check_record_sizes(len(update.keyframes), len(update.landmarks), len(update.targets),
-                       len(update.rendezvous))
+    check_record_sizes(len(update.keyframes), len(update.targets), len(update.rendezvous))
     for kf in update.keyframes:
         if kf.robot_id != update.robot_id:
             raise InvalidTeamUpdate(
@@ -140,17 +140,15 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
                 raise InvalidTeamUpdate("a robot cannot observe itself")
             _check_vector(reading.relative_pose, 3, "teammate relative pose")
             _check_covariance(reading.covariance, 3, "teammate covariance")
-    for landmark in update.landmarks:
-        _check_id(landmark.landmark_id, "landmark id")
-        _check_vector(landmark.position, 2, "landmark estimate")
-        _check_covariance(landmark.covariance, 2, "landmark covariance")
     for target in update.targets:
         if target.robot_id != update.robot_id:
             raise InvalidTeamUpdate("target of another robot inside an update")
         _check_partner(target, num_robots)
         _check_id(target.decision_index, "decision index")
         _check_vector(target.position, 2, "target position")
-        _check_finite(target.stamp_s, "target stamp")
+        if target.stamp_s != update.stamp_s:
+            raise InvalidTeamUpdate(f"target stamp {target.stamp_s} is not its update's "
+                                    f"{update.stamp_s} (a decision travels at its step)")
     for event in update.rendezvous:
         for name in ("requester_id", "partner_id", "sender_id"):
             _check_robot_id(getattr(event, name), num_robots, f"rendezvous {name}")
@@ -163,11 +161,10 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
             raise InvalidTeamUpdate(f"negative rendezvous timeout {event.timeout_s}")
 
 
-def check_record_sizes(keyframes: int, landmarks: int, targets: int, rendezvous: int) -> None:
+def check_record_sizes(keyframes: int, targets: int, rendezvous: int) -> None:
     """Raise ``InvalidTeamUpdate`` if a record's arrays are longer than plausible (the
     ``MAX_*_PER_UPDATE`` bounds); cheap, so receivers call it before converting a message."""
     for size, limit, what in ((keyframes, MAX_KEYFRAMES_PER_UPDATE, "keyframes"),
-                              (landmarks, MAX_LANDMARKS_PER_UPDATE, "landmarks"),
                               (targets, MAX_TARGETS_PER_UPDATE, "targets"),
                               (rendezvous, MAX_RENDEZVOUS_PER_UPDATE, "rendezvous")):
         _check_size(size, limit, what)
@@ -350,13 +347,12 @@ class TeamUpdateOutbox:
         return len(self._sent)
 
     def publish(self, stamp_s: float, keyframes: tuple[KeyframeMeasurements, ...] = (),
-                landmarks: tuple[LandmarkEstimate, ...] = (),
                 targets: tuple[TargetRecord, ...] = (),
                 rendezvous: tuple[RendezvousEvent, ...] = (),
                 finished: bool = False) -> TeamUpdate:
         """Create, number and remember the next update."""
         update = TeamUpdate(self._robot_id, self.last_sequence + 1, stamp_s, keyframes,
-                            landmarks, targets, rendezvous, finished)
+                            targets, rendezvous, finished)
         self._sent.append(update)
         return update
 

@@ -91,6 +91,19 @@ def odometry_covariance_per_step(step_length_m: float, turned: bool,
     return covariance
 
 
+def sonar_variances(sensor_params: SensorParams) -> tuple[float, float]:
+    """Variances of a sonar reading's noise: range [m^2] and bearing [rad^2]."""
+    return sensor_params.sonar_range_sigma_m ** 2, sensor_params.sonar_bearing_sigma_rad ** 2
+
+
+def teammate_covariance(sensor_params: SensorParams) -> FloatArray:
+    """Covariance ``(3, 3)`` of a teammate reading's additive noise, ``diag(sxy^2, sxy^2,
+    stheta^2)`` in the observer's body frame [m^2, m^2, rad^2]."""
+    xy_variance = (sensor_params.robot_obs_xy_bound_m / BOUND_95_TO_SIGMA) ** 2
+    theta_variance = (sensor_params.robot_obs_theta_bound_rad / BOUND_95_TO_SIGMA) ** 2
+    return np.diag([xy_variance, xy_variance, theta_variance])
+
+
 class SensorSimulator:
     """The sensors of every robot of a team in one simulated world (world frame, truth in)."""
 
@@ -109,12 +122,8 @@ class SensorSimulator:
             [np.random.default_rng(derive_seed_sequence(seed_sequence, robot, sensor))
              for sensor in (SONAR_STREAM, TEAMMATE_STREAM, ODOMETRY_STREAM)]
             for robot in range(world.num_robots)]
-        sp = sensor_params
-        self._range_variance = sp.sonar_range_sigma_m ** 2
-        self._bearing_variance = sp.sonar_bearing_sigma_rad ** 2
-        xy_variance = (sp.robot_obs_xy_bound_m / BOUND_95_TO_SIGMA) ** 2
-        theta_variance = (sp.robot_obs_theta_bound_rad / BOUND_95_TO_SIGMA) ** 2
-        self._teammate_covariance = np.diag([xy_variance, xy_variance, theta_variance])
+        self._range_variance, self._bearing_variance = sonar_variances(sensor_params)
+        self._teammate_covariance = teammate_covariance(sensor_params)
 
     @property
     def motion_params(self) -> MotionParams:
