@@ -1,5 +1,5 @@
 """The link model between robots (core/sim/links.py), the wire sizes of team data
-(core/sim/wire_size.py) and em-sim under imperfect links."""
+(core/agent/team_wire.py: a request's bytes) and em-sim under imperfect links."""
 from __future__ import annotations
 
 import dataclasses
@@ -7,15 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.agent.team_data import (RendezvousEvent, RendezvousState,
-                                                     TargetRecord)
 from em_exploration_ros.core.params import ExplorationParams, LinkParams
-from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.sim.links import (DeliveryLedger, Frame, FrameKind, TeamLinks,
                                                loss_draw)
 from em_exploration_ros.core.sim.team_runner import TeamRunner
-from em_exploration_ros.core.sim.wire_size import (team_update_wire_bytes,
-                                                   update_request_wire_bytes)
+from em_exploration_ros.core.agent.team_wire import cdr_size, request_cdr_size
 
 DT = 0.2
 
@@ -142,26 +138,18 @@ def short_run_updates():
     return sent
 
 
-def test_wire_size_equals_rclpy_serialization(short_run_updates):
+def test_frames_carry_the_wire_size_of_what_they_carry(short_run_updates):
     serialization = pytest.importorskip("rclpy.serialization")
+    from em_exploration_ros.core.agent.team_wire import TeamWireFormat
     from em_exploration_ros.nodes.conversions import team_update_to_msg
-    updates = [frame.payload for frame in short_run_updates]
-    assert any(u.keyframes and u.keyframes[0].landmarks for u in updates)
-    assert any(u.targets for u in updates)
-    base = updates[-1]
-    extra = dataclasses.replace(base, targets=(TargetRecord(
-        base.robot_id, 3, 1.0, np.array([1.0, 2.0]), FrontierType.RENDEZVOUS,
-        (base.robot_id + 1) % 3, 0.5, 0.1),), rendezvous=(RendezvousEvent(
-            1, base.robot_id, (base.robot_id + 1) % 3, base.robot_id, RendezvousState.REQUEST,
-            1.0, np.array([3.0, 4.0]), 20.0),), finished=True)
-    for update in updates + [extra]:
-        wire = serialization.serialize_message(team_update_to_msg(update))
-        assert team_update_wire_bytes(update) == len(wire)
+    assert short_run_updates
+    form = TeamWireFormat(ExplorationParams())
     for frame in short_run_updates:
-        assert frame.size_bytes == team_update_wire_bytes(frame.payload)
+        wire = serialization.serialize_message(team_update_to_msg(frame.payload, form))
+        assert frame.size_bytes == cdr_size(frame.payload) == len(wire)
     from em_exploration_msgs.msg import TeamUpdateRequest
     request = TeamUpdateRequest(requester_id=1, robot_id=2, first_sequence=3, last_sequence=9)
-    assert update_request_wire_bytes() == len(serialization.serialize_message(request))
+    assert request_cdr_size() == len(serialization.serialize_message(request))
 
 
 def _small_run(**links) -> TeamRunner:

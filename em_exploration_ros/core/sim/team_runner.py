@@ -28,6 +28,7 @@ import numpy as np
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.agent.gap_requests import GapRequests
 from em_exploration_ros.core.agent.resend import MAX_RESEND_RECORDS, ResendScheduler
+from em_exploration_ros.core.agent.team_wire import cdr_size, request_cdr_size
 from em_exploration_ros.core.agent.team_data import (MissingRange, RendezvousEvent,
                                                      TeamUpdate, TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
@@ -39,8 +40,6 @@ from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntr
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.links import DeliveryLedger, Frame, FrameKind, TeamLinks
 from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
-from em_exploration_ros.core.sim.wire_size import (team_update_wire_bytes,
-                                                   update_request_wire_bytes)
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
                                                     twist_to_increment_covariance)
 
@@ -144,12 +143,12 @@ class TeamRunner:
         gap = self._gap_requests[robot].due(step, self._inboxes[robot])
         if gap is not None:
             self.links.offer(Frame(FrameKind.REQUEST, robot, (gap.robot_id,),
-                                   gap.first_sequence, update_request_wire_bytes(), step, gap))
+                                   gap.first_sequence, request_cdr_size(), step, gap))
         now_s = step * self.params.motion.time_step_s
         for due in self._resends[robot].due(now_s):
             for record in agent.outbox.resend(due.first_sequence, due.last_sequence):
                 self.links.offer(Frame(FrameKind.RESEND, robot, (due.requester_id,),
-                                       record.sequence, team_update_wire_bytes(record),
+                                       record.sequence, cdr_size(record),
                                        step, record))
         update = agent.take_outgoing()
         if update is None:
@@ -158,7 +157,7 @@ class TeamRunner:
         self.ledger.sent(robot, update.sequence, step)
         self.links.offer(Frame(FrameKind.UPDATE, robot,
                                tuple(r for r in range(n) if r != robot), update.sequence,
-                               team_update_wire_bytes(update), step, update))
+                               cdr_size(update), step, update))
 
     @property
     def num_decisions(self) -> int:
