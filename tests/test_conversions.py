@@ -8,7 +8,9 @@ from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
                                                      TargetRecord, TeamUpdate)
 from em_exploration_ros.core.agent.team_wire import TeamWireFormat
+from em_exploration_ros.core.evaluation.summary import GivenUpEntry
 from em_exploration_ros.core.planning.frontiers import FrontierType
+from em_exploration_ros.core.planning.progress import GivenUpTarget, GiveUpReason
 from em_exploration_ros.core.sim.team_runner import TeamRunner, step_input
 from em_exploration_ros.core.sim.wire_model import sim_time_s, twist_to_increment_covariance
 from em_exploration_ros.nodes import conversions as conv
@@ -132,6 +134,17 @@ def test_malformed_team_update_messages_are_rejected():
     message.rendezvous.append(conv.em_msg.Rendezvous(state=7))
     with pytest.raises(InvalidTeamUpdate, match="rendezvous state"):
         conv.team_update_from_msg(message, wire)
+
+
+def test_targets_given_up_reach_the_evaluator_as_the_summary_lists_them():
+    for reason in GiveUpReason:
+        given_up = GivenUpTarget(np.array([12.5, -3.25]), 40.2, reason)
+        command = conv.em_msg.MotionCommand(given_up=[conv.given_up_to_msg(given_up)])
+        received = through_dds(command).given_up[0]
+        assert conv.given_up_from_msg(received, 40.2) == GivenUpEntry(12.5, -3.25, 40.2,
+                                                                      reason.value)
+    with pytest.raises(ValueError, match="unknown give-up reason 7"):
+        conv.given_up_from_msg(conv.em_msg.GivenUpTarget(reason=7), 1.0)
 
 
 def test_path_and_landmarks_round_trip(running_team):

@@ -2,9 +2,9 @@
 import math
 
 from em_exploration_ros.core.evaluation.evaluator import TeamMetrics
-from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RunMonitor, StallWatch,
-                                                            final_step)
-from em_exploration_ros.core.evaluation.summary import check_summary
+from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RobotProgressRecord,
+                                                            RunMonitor, StallWatch, final_step)
+from em_exploration_ros.core.evaluation.summary import GivenUpEntry, check_summary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.frontiers import FrontierType
 
@@ -44,6 +44,19 @@ def test_summary_holds_the_values_of_the_step_where_the_rule_fired():
     # decisions made before the stop step count, later ones do not
     assert [t.x for t in summary.robots[0].targets] == [1.0, 2.0]
     assert summary.decisions == 3 and len(summary.history) == 2
+    assert check_summary(summary.to_dict()) == []
+
+
+def test_targets_given_up_count_when_made_before_the_step_where_the_rule_fired():
+    monitor = RunMonitor(ExplorationParams().replace(run={"until_explored": 0.8}))
+    monitor.observe(20, metrics(20, 0.803))
+    given_up = [GivenUpEntry(float(step), 0.0, step * STEP_S, "blocked") for step in (5, 19, 20)]
+    summary = monitor.summary([[], []], wall_s=1.0, progress=[
+        RobotProgressRecord(tuple(given_up), 3.2), RobotProgressRecord((), 0.0)])
+    # the watcher's list may hold targets given up after the stop step (the world went on)
+    assert [g.x for g in summary.robots[0].given_up] == [5.0, 19.0]
+    assert [r.blocked_s for r in summary.robots] == [3.2, 0.0]
+    assert summary.robots[1].given_up == []
     assert check_summary(summary.to_dict()) == []
 
 

@@ -88,13 +88,23 @@ def test_help_lists_the_options():
         assert flag in result.stdout
 
 
+#: A progress window short enough that, with seed 2, a robot gives a target up (no
+#: progress while it turns towards it), so the summaries' given_up lists are compared.
+PROGRESS_WINDOW_S = 2.0
+
+
 def test_three_robots_explore_end_to_end(tmp_path):
     summary_path = tmp_path / "run" / "summary.json"
     bag = tmp_path / "run_bag"
     until = 0.85
+    default = (REPO_ROOT / "config" / "exploration.yaml").read_text()
+    assert default.count("window_s: 20.0") == 1
+    params = tmp_path / "params.yaml"
+    params.write_text(default.replace("window_s: 20.0", f"window_s: {PROGRESS_WINDOW_S}"))
     run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
                             "--map-size", "40", "--landmarks", "4", "--seed", "2",
                             "--until-explored", str(until), "--max-sim-time", "600",
+                            "--params", str(params),
                             "--summary", str(summary_path), "--record", str(bag))
     with run:
         try:
@@ -122,9 +132,14 @@ def test_three_robots_explore_end_to_end(tmp_path):
     # The ROS system in lockstep makes em-sim's decisions (same seed, same parameters).
     reference = TeamRunner(load_params(REPO_ROOT / "config" / "exploration.yaml").replace(
         world={"num_robots": 3, "width_m": 40.0, "height_m": 40.0, "num_landmarks": 4},
-        planner={"name": "NEAREST"}, run={"seed": 2, "until_explored": until})).run().to_dict()
+        planner={"name": "NEAREST"}, run={"seed": 2, "until_explored": until},
+        progress={"window_s": PROGRESS_WINDOW_S})).run().to_dict()
     assert [r["targets"] for r in summary["robots"]] == [r["targets"] for r in
                                                          reference["robots"]]
+    # Each robot's own progress bookkeeping reaches the evaluator through its commands.
+    assert any(r["given_up"] for r in reference["robots"])
+    assert [(r["given_up"], r["blocked_s"]) for r in summary["robots"]] == [
+        (r["given_up"], r["blocked_s"]) for r in reference["robots"]]
     assert (summary["stop_reason"], summary["sim_time_s"]) == (reference["stop_reason"],
                                                                reference["sim_time_s"])
     assert summary["distance_m"] == pytest.approx(reference["distance_m"], abs=1e-6)

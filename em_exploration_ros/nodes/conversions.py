@@ -12,7 +12,9 @@ from em_exploration_msgs import msg as em_msg
 from geometry_msgs.msg import PoseStamped, Quaternion
 from nav_msgs.msg import Odometry, Path
 
+from em_exploration_ros.core.evaluation.summary import GivenUpEntry
 from em_exploration_ros.core.planning.frontiers import FrontierType
+from em_exploration_ros.core.planning.progress import GivenUpTarget, GiveUpReason
 from em_exploration_ros.core.sim.sensors import LandmarkReading, TeammateReading
 from em_exploration_ros.core.sim.simulation import SensorFrame
 from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
@@ -209,6 +211,29 @@ def target_from_msg(message: em_msg.TargetRecord, robot_id: int,
     return TargetRecord(robot_id, int(message.decision_index), stamp_s,
                         np.array([message.x, message.y]), kind, partner,
                         float(message.planning_time), bool(message.planner_failed))
+
+
+#: GivenUpTarget.reason on the wire for each reason a robot gives a target up.
+_GIVE_UP_REASON_CODES = {GiveUpReason.BLOCKED: em_msg.GivenUpTarget.BLOCKED,
+                         GiveUpReason.NO_PROGRESS: em_msg.GivenUpTarget.NO_PROGRESS,
+                         GiveUpReason.DEADLINE: em_msg.GivenUpTarget.DEADLINE}
+_GIVE_UP_REASONS = {code: reason for reason, code in _GIVE_UP_REASON_CODES.items()}
+
+
+def given_up_to_msg(given_up: GivenUpTarget) -> em_msg.GivenUpTarget:
+    """A target the robot gave up, as carried in its MotionCommand (robot and time are the
+    command's)."""
+    return em_msg.GivenUpTarget(x=float(given_up.position[0]), y=float(given_up.position[1]),
+                                reason=_GIVE_UP_REASON_CODES[given_up.reason])
+
+
+def given_up_from_msg(message: em_msg.GivenUpTarget, stamp_s: float) -> GivenUpEntry:
+    """The summary's entry of a target given up at ``stamp_s`` [s sim time] (the time of the
+    command carrying it); ValueError for an unknown reason code."""
+    reason = _GIVE_UP_REASONS.get(message.reason)
+    if reason is None:
+        raise ValueError(f"unknown give-up reason {message.reason}")
+    return GivenUpEntry(float(message.x), float(message.y), stamp_s, reason.value)
 
 
 def _rendezvous_to_msg(event: RendezvousEvent) -> em_msg.Rendezvous:

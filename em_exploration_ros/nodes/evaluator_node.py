@@ -3,8 +3,9 @@
 Subscribes to the ground truth (``/world/ground_truth/robot_i``, ``/world/landmarks``) and to
 what each robot publishes (``/robot_i/estimated_path``, ``/robot_i/landmarks``,
 ``/robot_i/team/updates`` for the chosen targets, ``/robot_i/motion_command`` for the
-finished flags). It never publishes anything a robot uses for its estimates or decisions;
-it only asks robots to re-send team updates it missed, as robots do.
+finished flags and the robots' own progress bookkeeping). It never publishes anything a
+robot uses for its estimates or decisions; it only asks robots to re-send team updates it
+missed, as robots do.
 
 A simulation step is complete when the true poses of every robot at that step arrived; steps
 are recorded in order. Every ``metrics_interval_s`` of simulation time (default 2 s = em-sim's
@@ -16,7 +17,8 @@ gives the same metrics every time, whatever the message timing. They are publish
 (``core.evaluation.run_monitor.RunMonitor``, the same stop rule and summary as em-sim). Once a
 stop rule fired, the evaluator waits (up to ``estimate_wait_s``) until every robot's update
 stream is complete up to the sequence the robot reported, so that the summary lists every
-decision made before the stop step; the summary holds the values of that step. The run ends,
+decision made before the stop step, and until every robot's motion command of the step before
+is in; the summary holds the values of that step. The run ends,
 with the summary JSON (em-sim's schema) and the final map PNG written, when:
 
 - the team explored ratio reaches ``run.until_explored``, the team distance reaches
@@ -28,8 +30,11 @@ with the summary JSON (em-sim's schema) and the final map PNG written, when:
 - the team neither travelled nor explored new area for ``run.stall_timeout_s`` of
   simulation time: stop reason "stalled: ...", exit code 4 (``EXIT_STALLED``).
 
-The robots' own progress bookkeeping (targets given up, time blocked) reaches no topic,
-so the summary's ``given_up`` and ``blocked_s`` are null here.
+Each robot's motion command carries its own progress bookkeeping (issue 17): the time its
+odometry showed it blocked so far and the targets it gave up at that step. The summary's
+``given_up`` lists those given up before the stop step and ``blocked_s`` is the value of the
+command answering the step before it, as em-sim's agents hold them at that step (null for a
+robot whose command of that step never arrived; for a restarted robot, its new process's).
 
 Run (with the simulation clock): ``python -m em_exploration_ros.nodes.evaluator_node
 --ros-args -p use_sim_time:=true -p summary_path:=runs/x/summary.json``
@@ -68,12 +73,14 @@ from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, fir
 from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness
-from em_exploration_ros.core.evaluation.run_monitor import EXIT_STALLED, DecisionEntry, RunMonitor
-from em_exploration_ros.core.evaluation.summary import RunSummary
+from em_exploration_ros.core.evaluation.run_monitor import (EXIT_STALLED, DecisionEntry,
+                                                            RobotProgressRecord, RunMonitor)
+from em_exploration_ros.core.evaluation.summary import GivenUpEntry, RunSummary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.sim.wire_model import sim_time_s
-from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, landmark_positions_from_msg,
+from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, given_up_from_msg,
+                                                  landmark_positions_from_msg,
                                                   odometry_pose, path_from_msg, robot_namespace,
                                                   seconds_to_time,
                                                   time_to_seconds)
@@ -157,6 +164,8 @@ class EvaluatorNode(Node):
         self.evaluator: TeamEvaluator | None = None
         self.paths = StampedEstimates()
         self.landmark_estimates = StampedEstimates()
+        self.blocked_s = StampedEstimates()
+        self.given_up: list[list[GivenUpEntry]] = [[] for _ in range(self.num_robots)]
         self.targets: list[dict[int, TargetRecord]] = [{} for _ in range(self.num_robots)]
         self.rendezvous_events: list[RendezvousEvent] = []
         self.team_updates = TeamUpdateInbox(None, self.num_robots)
@@ -350,6 +359,12 @@ class EvaluatorNode(Node):
     def _on_command(self, robot: int, message: MotionCommand) -> None:
         last = self._last_command[robot]
         step, problem = self._stamp_problem(message.header.stamp)
+        stamp_s = self._stamp_s(int(message.step))
+        try:
+            given_up, given_up_problem = [given_up_from_msg(g, stamp_s)
+                                          for g in message.given_up], None
+        except ValueError as error:
+            given_up, given_up_problem = [], str(error)
         if not self.inputs.check(
                 f"/{robot_namespace(robot)}/motion_command",
                 (f"robot_id {message.robot_id} on robot {robot}'s topic"
@@ -357,13 +372,16 @@ class EvaluatorNode(Node):
                 header_problem(message.header, f"{robot_namespace(robot)}/base_link"), problem,
                 f"stamp of step {step} in a command for step {message.step}"
                 if step != message.step else None,
-                content_problem(message),
+                content_problem(message), given_up_problem,
+                f"blocked_s {message.blocked_s} < 0" if message.blocked_s < 0.0 else None,
                 sequence_entry_problem(message.team_sequence, 0 if last is None else int(
                     last.team_sequence), MAX_SEQUENCE_LEAD, "team_sequence")):
             return
         if last is not None and message.step <= last.step:
             return  # an older answer arriving late
         self._last_command[robot] = message
+        self.blocked_s.add(robot, stamp_s, float(message.blocked_s))
+        self.given_up[robot].extend(given_up)
         if self.liveness.heard(robot, *self._status_times(), "answers the world again"):
             self.get_logger().info(f"robot {robot} rejoined: it answers the world again "
                                    f"(step {message.step})")
@@ -469,15 +487,32 @@ class EvaluatorNode(Node):
         to what it reported (so the summary holds every decision made before the stop
         step), or after ``estimate_wait_s`` wall seconds, saying what is missing."""
         missing = self._missing_updates()
-        if missing and time.monotonic() < self._stream_wait_deadline_s:
+        silent = self._missing_commands()
+        if (missing or silent) and time.monotonic() < self._stream_wait_deadline_s:
             return
         if missing:
             self.get_logger().warn(
                 "summary written without team updates that never arrived: " + ", ".join(
                     f"robot {g.robot_id} #{g.first_sequence}-{g.last_sequence}"
                     for g in missing))
+        if silent:
+            self.get_logger().warn(
+                "summary written without the motion commands of the step before the stop "
+                "step (their blocked time and targets given up) of robots "
+                + ", ".join(str(robot) for robot in silent))
         self.finish(self.monitor.stop_reason,
                     EXIT_STALLED if self.monitor.stalled else EXIT_OK)
+
+    def _missing_commands(self) -> list[int]:
+        """Robots, neither lost nor gone, whose motion command answering the step before the
+        stop step has not arrived."""
+        final = self.monitor.final_metrics
+        if final is None:
+            return []
+        step = round(final.stamp_s / self.time_step_s)
+        return [robot for robot, last in enumerate(self._last_command)
+                if self.liveness.status(robot) != LOST and not self._gone(robot, step)
+                and (last is None or int(last.step) < step - 1)]
 
     def _finished_by(self, step: int) -> bool:
         return self._all_finished_step is not None and step >= self._all_finished_step
@@ -525,6 +560,7 @@ class EvaluatorNode(Node):
         stamp_s = self._stamp_s(step)
         as_of_s = self._stamp_s(max(step - 1, 0))
         self._evaluated = (self.paths.as_of(as_of_s), self.landmark_estimates.as_of(as_of_s))
+        self.blocked_s.as_of(as_of_s)  # drops the values no later summary needs
         metrics = self.evaluator.evaluate(stamp_s, *self._evaluated)
         decisions = sum(len(self.monitor.decisions_counted(chosen, until=metrics))
                         for chosen in self._decisions())
@@ -588,7 +624,7 @@ class EvaluatorNode(Node):
         status changes and downtime."""
         wall_s = (0.0 if self._first_step_wall_s is None
                   else time.monotonic() - self._first_step_wall_s)
-        summary = self.monitor.summary(self._decisions(), wall_s,
+        summary = self.monitor.summary(self._decisions(), wall_s, progress=self._progress(),
                                        rendezvous_events=self.rendezvous_events)
         until_s = self._status_times()
         for entry in summary.robots:
@@ -596,6 +632,21 @@ class EvaluatorNode(Node):
             entry.status_changes = self.liveness.changes(entry.id)
             entry.downtime_s, entry.downtime_wall_s = self.liveness.downtime_s(entry.id, *until_s)
         return summary
+
+    def _progress(self) -> list[RobotProgressRecord] | None:
+        """Each robot's progress bookkeeping as of the step before the final evaluation
+        (its blocked time NaN if no command of it arrived by then); None before any."""
+        final = self.monitor.final_metrics
+        if final is None:
+            return None
+        blocked = self.blocked_s.as_of(final.stamp_s - self.time_step_s)
+        for robot, last in enumerate(self._last_command):
+            if last is not None and last.given_up_count > len(self.given_up[robot]):
+                self.get_logger().warn(
+                    f"robot {robot} reported {last.given_up_count} targets given up, "
+                    f"{len(self.given_up[robot])} arrived")
+        return [RobotProgressRecord(tuple(self.given_up[robot]), blocked.get(robot, math.nan))
+                for robot in range(self.num_robots)]
 
     def map_layers(self, title: str) -> TeamMapLayers:
         """The final map's layers: the truth and the estimates of the last evaluation."""

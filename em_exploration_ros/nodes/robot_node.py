@@ -66,7 +66,8 @@ from em_exploration_ros.core.node_settings import RobotNodeSettings
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, sim_time_s,
                                                 twist_to_increment_covariance)
 from em_exploration_ros.nodes import tf_publishing, visualization
-from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_array_to_msg,
+from em_exploration_ros.nodes.conversions import (MAP_FRAME, given_up_to_msg,
+                                                  landmark_array_to_msg,
                                                   landmark_reading_from_msg,
                                                   odometry_pose, odometry_twist_covariance,
                                                   path_to_msg, quaternion_to_yaw,
@@ -451,7 +452,7 @@ class RobotNode(Node):
         released = self.inbox.pop_ready(limits)
         agent.apply_team_updates(released)
         self.archive.keep(released)
-        decisions_before = len(agent.decisions)
+        decisions_before, given_up_before = len(agent.decisions), len(agent.given_up)
         command = agent.step(StepInput(
             step, stamp_s, odometry_pose(odometry),
             twist_to_increment_covariance(odometry_twist_covariance(odometry), self.time_step_s),
@@ -465,7 +466,11 @@ class RobotNode(Node):
         linear_x, angular_z = command_to_twist(command.turn_rad, command.forward_m,
                                                self.time_step_s)
         reply = MotionCommand(robot_id=self.robot_id, step=step,
-                              team_sequence=agent.outbox.last_sequence, finished=command.finished)
+                              team_sequence=agent.outbox.last_sequence, finished=command.finished,
+                              blocked_s=float(agent.blocked_s),
+                              given_up_count=len(agent.given_up),
+                              given_up=[given_up_to_msg(g)
+                                        for g in agent.given_up[given_up_before:]])
         reply.header = scan.header
         reply.twist.linear.x, reply.twist.angular.z = linear_x, angular_z
         publish_or_log(self.command_pub, reply, self, f"the command of step {step}")

@@ -202,7 +202,8 @@ class RunMonitor:
         on the requesters' uncertainty (when known); values at the final metrics (NaN where
         nothing was measured). Events and meetings count when stamped before the final
         evaluation, as decisions do. ``progress`` (indexed by robot id), when the watcher
-        knows it, fills each robot's ``given_up`` and ``blocked_s`` (else they stay null)."""
+        knows it, fills each robot's ``given_up`` (those stamped before the final evaluation,
+        as decisions) and ``blocked_s`` (else they stay null)."""
         world = self.params.world
         summary = RunSummary(seed=self.params.run.seed, planner=self.params.planner.name,
                              num_robots=world.num_robots,
@@ -218,15 +219,16 @@ class RunMonitor:
             targets=[d.target_entry() for d in chosen],
             decision_times_s=[d.planning_time_s for d in chosen])
             for robot, chosen in enumerate(counted)]
+        end_s = math.inf if final is None else final.stamp_s
         for robot, record in zip(summary.robots, progress or ()):
-            robot.given_up, robot.blocked_s = list(record.given_up), record.blocked_s
+            robot.given_up = [g for g in record.given_up if g.stamp_s < end_s]
+            robot.blocked_s = record.blocked_s
         times = [d.planning_time_s for chosen in counted for d in chosen]
         summary.decisions = len(times)
         for chosen in counted:
             for decision in chosen:
                 summary.decisions_by_type[frontier_type_name(decision.kind)] += 1
                 summary.planner_failures += decision.planner_failed
-        end_s = math.inf if final is None else final.stamp_s
         summary.rendezvous = count_rendezvous(rendezvous_events, end_s)
         summary.meetings = [m for m in meetings if m.stamp_s < end_s]
         if times:
