@@ -168,13 +168,25 @@ def test_finished_teammate_is_no_candidate_and_ends_the_meeting() -> None:
     assert agent.target.kind != FrontierType.RENDEZVOUS
 
 
-def test_silent_teammate_is_lost() -> None:
+def test_silent_partner_stays_a_candidate_and_the_requester_keeps_going() -> None:
     agent = requester()
     events_of(agent)
     silent_steps = int(PARAMS.frontiers.teammate_silent_after_s / PARAMS.motion.time_step_s)
     sense(agent, silent_steps)
     assert not agent.is_lost(1) and agent.rendezvous.meeting_of(0) is not None
     sense(agent, silent_steps + 1)
-    assert agent.is_lost(1) and 1 not in agent.rendezvous_partners()
-    assert agent.rendezvous.meeting_of(0) is None
+    assert agent.is_lost(1) and 1 in agent.rendezvous_partners()
+    assert agent.rendezvous.meeting_of(0) is not None
+    assert RendezvousState.RELEASE not in [e.state for e in events_of(agent)]
+
+
+def test_partner_stops_waiting_for_a_requester_out_of_contact() -> None:
+    agent = RobotAgent(0, PARAMS, ANCHOR)
+    agent.apply_team_updates([update_from_1(1, 0.0, keyframe=True, events=[
+        event_from_1(RendezvousState.REQUEST, 0.0, ANCHOR[:2] + [4.0, 0.0], timeout_s=1000.0)])])
+    sense(agent, 0, see_robot_1=True)
+    assert agent.rendezvous.is_waiting(0) is not None
+    silent_steps = int(PARAMS.frontiers.teammate_silent_after_s / PARAMS.motion.time_step_s)
+    sense(agent, silent_steps + 1, odom_xy=(4.0, 0.0))
+    assert agent.is_lost(1) and agent.rendezvous.is_waiting(0) is None
     assert RendezvousState.RELEASE in [e.state for e in events_of(agent)]

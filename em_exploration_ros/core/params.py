@@ -209,8 +209,9 @@ class FrontierParams:
     rendezvous_timeout_margin_s: float = _param(
         20.0, "Fixed part of the rendezvous wait limit [s sim time].", 0.0, 1e5)
     teammate_silent_after_s: float = _param(
-        60.0, "A teammate whose latest team update is older than this is treated as lost: "
-        "its meetings end and it is no rendezvous candidate [s sim time].", 0.0, 1e6)
+        60.0, "A teammate whose latest team update is older than this is out of contact "
+        "[s sim time]: a partner stops waiting for it; it stays a rendezvous candidate at "
+        "its last known target (meeting restores the link).", 0.0, 1e6)
     max_candidates: int = _param(
         40, "At most this many candidates are evaluated per decision (nearest first).", 1, 1000)
 
@@ -279,6 +280,31 @@ class PlannerParams:
         (1.0, 10.0), "CE weights (lambda_0 on U_D, lambda_1 on U_T).")
     bsp_lambdas: tuple[float, float] = _param(
         (5.0, 1.0), "BSP weights (lambda_0 on U_D, lambda_1 on U_M = sum trace(sqrt(Sigma_x))).")
+
+
+@dataclass(frozen=True)
+class LinkParams:
+    """The links between robots (``core/sim/links.py``): range, loss, latency, bandwidth.
+    The defaults are perfect links: every update reaches every teammate at the next step."""
+
+    range_m: float = _param(
+        0.0, "Communication range [m]: team data reaches only teammates at most this far "
+        "away (true positions); 0 = unlimited.", 0.0, 1e6)
+    loss_probability: float = _param(
+        0.0, "Probability that one transmission is lost for one receiver (seeded, "
+        "independent per transmission and receiver).", 0.0, 0.99)
+    latency_s: float = _param(
+        0.0, "Delay from the end of a transmission to its arrival [s sim time].", 0.0, 3600.0)
+    bandwidth_bytes_per_s: float = _param(
+        0.0, "Each robot's send budget [bytes per simulated second, CDR on the wire]; "
+        "0 = unlimited.", 0.0, 1e9)
+    queue_frames: int = _param(
+        20, "Most frames waiting for a robot's channel; a frame offered to a full queue is "
+        "dropped (tail drop; the gap repair asks for it again).", 1, 10000)
+    repair_interval_s: float = _param(
+        5.0, "A robot missing records of teammates' streams asks for one gap at most this "
+        "often, and re-sends to one requester at most this often [s sim time] (requests "
+        "cross the links too and cost bandwidth).", 0.0, 3600.0)
 
 
 @dataclass(frozen=True)
@@ -370,6 +396,7 @@ class ExplorationParams:
     frontiers: FrontierParams = field(default_factory=FrontierParams)
     progress: ProgressParams = field(default_factory=ProgressParams)
     planner: PlannerParams = field(default_factory=PlannerParams)
+    links: LinkParams = field(default_factory=LinkParams)
     run: RunParams = field(default_factory=RunParams)
 
 

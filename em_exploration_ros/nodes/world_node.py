@@ -53,6 +53,7 @@ from em_exploration_ros.core.agent.input_checks import command_problem, sequence
 from em_exploration_ros.core.agent.team_data import MAX_SEQUENCE_LEAD
 from em_exploration_ros.core.node_settings import LOCKSTEP, REALTIME, WorldNodeSettings
 from em_exploration_ros.core.evaluation.run_monitor import final_step
+from em_exploration_ros.core.sim.links import perfect_links
 from em_exploration_ros.core.sim.lockstep import STAND_STILL, LockstepBarrier, StepAnswer
 from em_exploration_ros.core.sim.simulation import WorldSimulation
 from em_exploration_ros.core.agent.team_data import LandmarkEstimate
@@ -126,6 +127,10 @@ class WorldNode(Node):
         step_resend_s = self.settings.step_resend_s
         self.wait_for_recorder = self.settings.wait_for_recorder
         self.params = declare_exploration_params(self)
+        if not perfect_links(self.params.links):
+            raise ValueError("links: the ROS system has no link relay yet and runs with "
+                             "perfect links only (every links.* parameter at its default); "
+                             "em-sim and em-bench apply the link model")
         refuse_unknown_overrides(self)
         self.num_robots = self.params.world.num_robots
         self.final_step = final_step(self.params, max_sim_time_s)

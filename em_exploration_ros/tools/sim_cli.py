@@ -55,6 +55,14 @@ def add_run_arguments(parser: argparse.ArgumentParser, sweep_map_sizes: bool = F
     parser.add_argument("--until-explored", type=float, metavar="RATIO",
                         help="stop at this team explored ratio (default 0.85)")
     parser.add_argument("--max-steps", type=int, help="stop after this many steps (default 20000)")
+    parser.add_argument("--comm-range", type=float, metavar="M",
+                        help="links: communication range [m] (default 0 = unlimited)")
+    parser.add_argument("--comm-loss", type=float, metavar="P",
+                        help="links: loss probability per transmission and receiver (default 0)")
+    parser.add_argument("--comm-latency", type=float, metavar="S",
+                        help="links: latency [s] (default 0)")
+    parser.add_argument("--comm-bandwidth", type=float, metavar="B",
+                        help="links: each robot's budget [bytes/s] (default 0 = unlimited)")
 
 
 def params_from_args(args: argparse.Namespace, seed: int | None = None) -> ExplorationParams:
@@ -76,6 +84,10 @@ def params_from_args(args: argparse.Namespace, seed: int | None = None) -> Explo
     put("run", "until_explored", args.until_explored)
     put("run", "max_steps", args.max_steps)
     put("run", "seed", seed)
+    put("links", "range_m", args.comm_range)
+    put("links", "loss_probability", args.comm_loss)
+    put("links", "latency_s", args.comm_latency)
+    put("links", "bandwidth_bytes_per_s", args.comm_bandwidth)
     return params.replace(**overrides) if overrides else params
 
 

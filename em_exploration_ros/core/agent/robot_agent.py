@@ -20,9 +20,13 @@ Rendezvous: a robot that chooses a RENDEZVOUS target sends REQUEST with a wait l
 scales with its travel to the meeting point; the partner goes to the meeting point and
 waits until both arrived or the limit passed. The requester sends RELEASE when it gives the
 meeting up (new target, its wait limit passed, finished, partner lost); a finished robot
-answers a request with RELEASE and tells the team it finished (``TeamUpdate.finished``); a
-teammate silent for ``teammate_silent_after_s`` is lost: its meetings end. Finished and
-lost teammates are no rendezvous candidates. For each meeting it requested, the robot
+answers a request with RELEASE and tells the team it finished (``TeamUpdate.finished``);
+finished teammates are no rendezvous candidates. A teammate silent for
+``teammate_silent_after_s`` is *out of contact* (lost, or out of range of an imperfect
+link): a partner stops waiting for such a requester (RELEASE), but the teammate stays a
+rendezvous candidate at its last known target, and a requester keeps going to such a
+partner until its wait limit, because meeting is what restores the link. Until then the
+robot plans with what it has: the teammate's last keyframes and targets. For each meeting it requested, the robot
 records the trace of its own latest pose covariance just before and after the SLAM update
 that added the first inter-robot factor with the partner (``meeting_effects``).
 """
@@ -318,9 +322,11 @@ class RobotAgent:
                 and self._stamp_s - heard > self.params.frontiers.teammate_silent_after_s)
 
     def rendezvous_partners(self) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
-        """``teammate_states`` of the teammates that can still meet: not finished, not lost."""
+        """``teammate_states`` of the teammates that can still meet: every teammate that has
+        not finished. A teammate out of contact (``is_lost``) stays one, at its last known
+        target: going there is how the link comes back (range-limited links)."""
         return {robot: state for robot, state in self.teammate_states().items()
-                if robot not in self.finished_teammates and not self.is_lost(robot)}
+                if robot not in self.finished_teammates}
 
     # -- decisions -----------------------------------------------------------------------
 
@@ -465,16 +471,22 @@ class RobotAgent:
 
     def _handle_rendezvous(self, pose: np.ndarray) -> None:
         """Report own arrivals at meeting points; end meetings past their deadline (the
-        requester sends RELEASE) or with a lost teammate."""
+        requester sends RELEASE) and stop waiting for a requester out of contact (a
+        requester keeps going to a silent partner until its wait limit: meeting restores
+        the link)."""
         for meeting in self.rendezvous.expire(self._stamp_s):
             if meeting.requester_id == self.robot_id:
                 _LOG.info("robot %d: rendezvous %d with robot %d timed out", self.robot_id,
                           meeting.rendezvous_id, meeting.partner_id)
                 self._send_rendezvous(RendezvousState.RELEASE, meeting)
                 self._drop_meeting_target(meeting)
-        for teammate in range(self.num_robots):
-            if teammate != self.robot_id and self.is_lost(teammate):
-                self._end_meetings_with(teammate, "lost (silent)")
+        for meeting in self.rendezvous.open_meetings():
+            if meeting.partner_id == self.robot_id and self.is_lost(meeting.requester_id):
+                _LOG.info("robot %d: rendezvous %d of robot %d ended, robot %d out of contact",
+                          self.robot_id, meeting.rendezvous_id, meeting.requester_id,
+                          meeting.requester_id)
+                self.rendezvous.release_meeting(meeting.requester_id, meeting.rendezvous_id)
+                self._send_rendezvous(RendezvousState.RELEASE, meeting)
         for meeting in self.rendezvous.open_meetings():
             involved = self.robot_id in (meeting.requester_id, meeting.partner_id)
             announced = (meeting.requester_id, meeting.rendezvous_id) in self._arrivals_sent

@@ -170,3 +170,16 @@ def cdr_size(update: TeamUpdate) -> int:
         cdr.add(1)  # state
         cdr.add(8, 3)  # x, y, timeout
     return CDR_ENCAPSULATION_BYTES + cdr.offset
+
+
+def request_cdr_size() -> int:
+    """Bytes of a serialized em_exploration_msgs/TeamUpdateRequest as robots send it (empty
+    ``header.frame_id``), encapsulation header included: what one gap request costs a
+    link's budget (``core/sim/links.py``)."""
+    cdr = _CdrLayout()
+    cdr.add(4, 2)  # header.stamp (sec, nanosec)
+    cdr.add(4)  # header.frame_id length
+    cdr.add(1)  # its terminating NUL
+    cdr.add(4, 2)  # requester_id, robot_id
+    cdr.add(8, 2)  # first_sequence, last_sequence
+    return CDR_ENCAPSULATION_BYTES + cdr.offset

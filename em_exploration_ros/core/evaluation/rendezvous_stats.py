@@ -81,9 +81,11 @@ def count_rendezvous(events: Iterable[RendezvousEvent], end_s: float) -> Rendezv
 def activity_totals(summaries: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
     """Sums over run summaries (``RunSummary.to_dict`` data): ``decisions_by_type``,
     ``planner_failures`` and ``rendezvous`` (same keys as in one summary), and ``meetings``
-    (how many meetings recorded an inter-robot factor). Summaries written before these
+    (how many meetings recorded an inter-robot factor), ``team_updates`` (teammate updates
+    sent, delivered on time / late / never, over the links). Summaries written before these
     fields existed count as zero."""
     by_type: dict[str, int] = {}
+    team_updates = {"sent": 0, "on_time": 0, "late": 0, "never": 0}
     rendezvous = asdict(RendezvousCounts())
     failures = meetings = 0
     for summary in summaries:
@@ -94,5 +96,8 @@ def activity_totals(summaries: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
                 rendezvous[key] += int(count)
         failures += int(summary.get("planner_failures") or 0)
         meetings += len(summary.get("meetings") or ())
+        for key, count in (summary.get("team_updates") or {}).items():
+            if key in team_updates:
+                team_updates[key] += int(count)
     return {"decisions_by_type": by_type, "planner_failures": failures,
-            "rendezvous": rendezvous, "meetings": meetings}
+            "rendezvous": rendezvous, "meetings": meetings, "team_updates": team_updates}

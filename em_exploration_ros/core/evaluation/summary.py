@@ -17,7 +17,9 @@ plus ``seed``,
 (decisions per frontier type), ``planner_failures`` (decisions where the planner failed and
 the nearest frontier rule chose), ``rendezvous`` (requested / met / timed_out / open, see
 ``rendezvous_stats``) and ``meetings`` (em-sim only: per rendezvous with an inter-robot
-factor, the requester's pose-covariance trace just before and after it).
+factor, the requester's pose-covariance trace just before and after it), ``team_updates``
+(em-sim and the benchmark: how many teammate updates the links delivered on time, late or
+never).
 """
 from __future__ import annotations
 
@@ -133,6 +135,9 @@ class RunSummary:
     planner_failures: int = 0
     rendezvous: RendezvousCounts = field(default_factory=RendezvousCounts)
     meetings: list[MeetingEntry] = field(default_factory=list)
+    #: Over every (team update, teammate) pair: ``sent``, delivered ``on_time`` / ``late``,
+    #: ``never`` delivered (``core/sim/links.py``); None where the writer cannot know.
+    team_updates: dict[str, int] | None = None
     robots: list[RobotSummary] = field(default_factory=list)
     history: list[HistorySample] = field(default_factory=list)
 

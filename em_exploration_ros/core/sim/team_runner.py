@@ -2,14 +2,22 @@
 
 The runner plays the roles of the ROS system without ROS: ``WorldSimulation`` is the
 world node, one ``RobotAgent`` per robot is each robot process, and team updates travel
-through one ``TeamUpdateInbox`` per robot. Message timing follows the lockstep protocol
-of the ROS system: an update a robot publishes while processing step k is applied by
-every teammate before it processes step k+1 (the world's barrier), and commands and
-odometry go through the same wire conversions. A seeded em-sim run therefore chooses
+through the link model (``core/sim/links.py``, the relay) into one ``TeamUpdateInbox`` per
+robot. Message timing follows the lockstep protocol of the ROS system: an update a robot
+publishes while processing step k is applied by a teammate before it processes the step
+at which the link delivers it (k+1 over perfect links: the world's barrier), and commands
+and odometry go through the same wire conversions. A seeded em-sim run therefore chooses
 the same targets as the ROS system in lockstep mode.
+
+Gap repair is driven by steps: a robot whose inbox has gaps sends a request for one of
+them (through the link, to the stream's owner) at most every ``links.repair_interval_s``
+(``GapRequests``); the
+owner re-sends at most ``ResendScheduler``'s records per requester and interval (never
+more than half its queue), also through the link.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -18,7 +26,11 @@ from typing import Callable
 import numpy as np
 
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.agent.team_data import RendezvousEvent, TeamUpdateInbox
+from em_exploration_ros.core.agent.gap_requests import GapRequests
+from em_exploration_ros.core.agent.resend import MAX_RESEND_RECORDS, ResendScheduler
+from em_exploration_ros.core.agent.team_wire import cdr_size, request_cdr_size
+from em_exploration_ros.core.agent.team_data import (MissingRange, RendezvousEvent,
+                                                     TeamUpdate, TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
 from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, evaluation_layers
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
@@ -26,6 +38,7 @@ from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, Robot
                                                             RunMonitor)
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, RunSummary
 from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.sim.links import DeliveryLedger, Frame, FrameKind, TeamLinks
 from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
                                                     twist_to_increment_covariance)
@@ -61,7 +74,14 @@ class TeamRunner:
         self.agents = [RobotAgent(i, params, world.start_poses[0]) for i in range(n)]
         self.evaluator = TeamEvaluator(world, params)
         self._inboxes = [TeamUpdateInbox(i, n) for i in range(n)]
-        self._barrier = {i: 0 for i in range(n)}
+        time_step = params.motion.time_step_s
+        self.links = TeamLinks(params.links, n, time_step, params.run.seed)
+        self.ledger = DeliveryLedger(n)
+        resend_records = min(MAX_RESEND_RECORDS, max(1, params.links.queue_frames // 2))
+        self._resends = [ResendScheduler(params.links.repair_interval_s, resend_records)
+                         for _ in range(n)]
+        repair_steps = max(1, round(params.links.repair_interval_s / time_step))
+        self._gap_requests = [GapRequests(i, n, repair_steps) for i in range(n)]
         self.monitor = RunMonitor(params)
         self.rendezvous_events: list[RendezvousEvent] = []
 
@@ -80,31 +100,64 @@ class TeamRunner:
         return self.summary(time.perf_counter() - started)
 
     def step_once(self) -> None:
-        """One lockstep cycle: sense, deliver team data, decide, move."""
+        """One lockstep cycle: deliver what the links bring, sense, decide, send, move."""
         sim = self.simulation
+        step = sim.step
         time_step = self.params.motion.time_step_s
+        self._deliver(step)
         commands = []
-        published = []
         for agent, inbox in zip(self.agents, self._inboxes):
             frame = sim.sense(agent.robot_id)
             self.evaluator.record_truth(agent.robot_id, frame.stamp_s,
                                         sim.true_pose(agent.robot_id))
-            limits = {r: s for r, s in self._barrier.items() if r != agent.robot_id}
-            agent.apply_team_updates(inbox.pop_ready(limits))
+            agent.apply_team_updates(inbox.pop_ready())
             command = agent.step(step_input(frame, time_step))
-            update = agent.take_outgoing()
-            if update is not None:
-                published.append(update)
+            self._send(agent, step)
             commands.append(command_to_twist(command.turn_rad, command.forward_m, time_step))
-        for update in published:
-            self.rendezvous_events.extend(update.rendezvous)
-            for inbox in self._inboxes:
-                if inbox is not self._inboxes[update.robot_id]:
-                    inbox.receive(update)
-        self._barrier = {agent.robot_id: agent.outbox.last_sequence for agent in self.agents}
+        positions = np.array([sim.true_pose(agent.robot_id)[:2] for agent in self.agents])
+        self.links.transmit(step, positions)
         for robot_id, (linear_x, angular_z) in enumerate(commands):
             sim.apply_command(robot_id, linear_x, angular_z)
         sim.advance()
+
+    def _deliver(self, step: int) -> None:
+        """Hand every frame the links bring before ``step`` to its receiver: records into
+        its inbox, requests to its re-send scheduler."""
+        for delivery in self.links.deliveries(step):
+            frame, receiver = delivery.frame, delivery.receiver
+            if frame.kind == FrameKind.REQUEST:
+                gap: MissingRange = frame.payload
+                self._resends[receiver].request(
+                    frame.sender, gap.first_sequence, gap.last_sequence,
+                    self.agents[receiver].outbox.last_sequence)
+                continue
+            update: TeamUpdate = frame.payload
+            self.ledger.delivered(update.robot_id, receiver, update.sequence, step)
+            self._inboxes[receiver].receive(update)
+
+    def _send(self, agent: RobotAgent, step: int) -> None:
+        """Offer what ``agent`` sends at ``step`` to its channel: a request for a gap of its
+        inbox (``GapRequests``), re-sends asked of it, then its new update."""
+        robot = agent.robot_id
+        n = len(self.agents)
+        gap = self._gap_requests[robot].due(step, self._inboxes[robot])
+        if gap is not None:
+            self.links.offer(Frame(FrameKind.REQUEST, robot, (gap.robot_id,),
+                                   gap.first_sequence, request_cdr_size(), step, gap))
+        now_s = step * self.params.motion.time_step_s
+        for due in self._resends[robot].due(now_s):
+            for record in agent.outbox.resend(due.first_sequence, due.last_sequence):
+                self.links.offer(Frame(FrameKind.RESEND, robot, (due.requester_id,),
+                                       record.sequence, cdr_size(record),
+                                       step, record))
+        update = agent.take_outgoing()
+        if update is None:
+            return
+        self.rendezvous_events.extend(update.rendezvous)
+        self.ledger.sent(robot, update.sequence, step)
+        self.links.offer(Frame(FrameKind.UPDATE, robot,
+                               tuple(r for r in range(n) if r != robot), update.sequence,
+                               cdr_size(update), step, update))
 
     @property
     def num_decisions(self) -> int:
@@ -163,5 +216,8 @@ class TeamRunner:
                                         e.trace_after_m2)
                            for agent in self.agents for e in agent.meeting_effects),
                           key=lambda m: (m.stamp_s, m.requester_id))
-        return self.monitor.summary(decisions, wall_s, progress=progress,
-                                    rendezvous_events=self.rendezvous_events, meetings=meetings)
+        summary = self.monitor.summary(decisions, wall_s, progress=progress,
+                                       rendezvous_events=self.rendezvous_events,
+                                       meetings=meetings)
+        summary.team_updates = dataclasses.asdict(self.ledger.counts(self.simulation.step))
+        return summary
