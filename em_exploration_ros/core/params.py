@@ -23,8 +23,8 @@ from typing import Any, Iterable, Mapping
 BOUND_95_TO_SIGMA = 1.96
 
 
-def _param(default: Any, description: str, low: float | None = None,
-           high: float | None = None, choices: tuple[str, ...] | None = None) -> Any:
+def param_field(default: Any, description: str, low: float | None = None,
+                high: float | None = None, choices: tuple[str, ...] | None = None) -> Any:
     """A dataclass field with its documentation and range kept in metadata."""
     metadata = {"description": description, "low": low, "high": high, "choices": choices}
     return field(default=default, metadata=metadata)
@@ -34,32 +34,32 @@ def _param(default: Any, description: str, low: float | None = None,
 class WorldParams:
     """The simulated environment: a rectangle [0, width] x [0, height] in the world frame."""
 
-    width_m: float = _param(100.0, "Environment width along world x [m].", 10.0, 2000.0)
-    height_m: float = _param(100.0, "Environment height along world y [m].", 10.0, 2000.0)
-    num_robots: int = _param(3, "Number of robots in the team.", 1, 26)
-    num_landmarks: int = _param(20, "Number of point landmarks placed at random.", 0, 1000)
-    landmark_radius_m: float = _param(1.0, "Physical radius of a landmark [m].", 0.0, 10.0)
-    landmark_min_separation_m: float = _param(
+    width_m: float = param_field(100.0, "Environment width along world x [m].", 10.0, 2000.0)
+    height_m: float = param_field(100.0, "Environment height along world y [m].", 10.0, 2000.0)
+    num_robots: int = param_field(3, "Number of robots in the team.", 1, 26)
+    num_landmarks: int = param_field(20, "Number of point landmarks placed at random.", 0, 1000)
+    landmark_radius_m: float = param_field(1.0, "Physical radius of a landmark [m].", 0.0, 10.0)
+    landmark_min_separation_m: float = param_field(
         10.0, "Minimum distance between two landmark centres [m].", 0.0, 100.0)
-    robot_radius_m: float = _param(0.8, "Collision radius of a robot [m].", 0.0, 5.0)
-    start_region_x_fraction: tuple[float, float] = _param(
+    robot_radius_m: float = param_field(0.8, "Collision radius of a robot [m].", 0.0, 5.0)
+    start_region_x_fraction: tuple[float, float] = param_field(
         (0.1, 0.2), "Start region along x, as fractions of width (middle-left of the map).")
-    start_region_y_fraction: tuple[float, float] = _param(
+    start_region_y_fraction: tuple[float, float] = param_field(
         (0.45, 0.55), "Start region along y, as fractions of height (middle-left of the map).")
-    start_min_separation_m: float = _param(
+    start_min_separation_m: float = param_field(
         2.0, "Minimum distance between two robots' start positions [m].", 0.0, 10.0)
-    start_max_separation_m: float = _param(
+    start_max_separation_m: float = param_field(
         6.0, "Maximum distance between two robots' start positions [m]; must stay below "
         "the sonar range so a robot senses those teammates at the start.", 0.0, 100.0)
-    start_group_robots: int = _param(
+    start_group_robots: int = param_field(
         5, "Largest team whose robots all start within start_max_separation_m of each other "
         "in the start region. A larger team's start region grows with the team (sides "
         "scaled by sqrt(num_robots / start_group_robots) about the same centre, clipped to "
         "the map) and each robot starts within that distance of the start_group_robots - 1 "
         "robots placed before it (a chain of readings anchors every robot).", 2, 26)
-    landmark_clearance_from_start_m: float = _param(
+    landmark_clearance_from_start_m: float = param_field(
         3.0, "Minimum distance between a landmark and a robot's start position [m].", 0.0, 50.0)
-    landmark_edge_margin_m: float = _param(
+    landmark_edge_margin_m: float = param_field(
         2.0, "Minimum distance between a landmark centre and the map edge [m] (project "
         "choice; the paper does not state one).", 0.0, 100.0)
 
@@ -68,27 +68,27 @@ class WorldParams:
 class SensorParams:
     """Simulated sonar, teammate detection and dead reckoning; errors are 95% bounds."""
 
-    sonar_max_range_m: float = _param(7.5, "Maximum sonar range [m].", 0.1, 100.0)
-    sonar_range_bound_m: float = _param(0.002, "Sonar range error, 95% bound [m].", 0.0, 10.0)
-    sonar_bearing_bound_rad: float = _param(
+    sonar_max_range_m: float = param_field(7.5, "Maximum sonar range [m].", 0.1, 100.0)
+    sonar_range_bound_m: float = param_field(0.002, "Sonar range error, 95% bound [m].", 0.0, 10.0)
+    sonar_bearing_bound_rad: float = param_field(
         math.radians(0.5), "Sonar bearing error, 95% bound [rad] (0.5 deg).", 0.0, 1.0)
-    robot_obs_xy_bound_m: float = _param(
+    robot_obs_xy_bound_m: float = param_field(
         0.002, "Teammate relative-position error per axis, 95% bound [m].", 0.0, 10.0)
-    robot_obs_theta_bound_rad: float = _param(
+    robot_obs_theta_bound_rad: float = param_field(
         math.radians(0.2), "Teammate relative-heading error, 95% bound [rad] (0.2 deg).", 0.0, 1.0)
-    gyro_bound_rad: float = _param(
+    gyro_bound_rad: float = param_field(
         math.radians(0.5), "Gyro heading error accumulated over one odometry interval, "
         "95% bound [rad] (0.5 deg).", 0.0, 1.0)
-    accel_bound_m: float = _param(
+    accel_bound_m: float = param_field(
         0.05, "Accelerometer translation error over one odometry interval, 95% bound [m]; "
         "capped by accel_bound_fraction of the distance moved.", 0.0, 10.0)
-    accel_bound_fraction: float = _param(
+    accel_bound_fraction: float = param_field(
         0.05, "Translation error bound as a fraction of the distance moved in the interval.",
         0.0, 1.0)
-    odometry_interval_steps: int = _param(
+    odometry_interval_steps: int = param_field(
         10, "Number of simulation steps over which the gyro/accelerometer bounds apply; "
         "noise is drawn every step with variance bound^2 / 1.96^2 / interval.", 1, 1000)
-    noise_enabled: bool = _param(True, "False makes every sensor output noise-free.")
+    noise_enabled: bool = param_field(True, "False makes every sensor output noise-free.")
 
     @property
     def sonar_range_sigma_m(self) -> float:
@@ -105,24 +105,24 @@ class SensorParams:
 class MotionParams:
     """Robot kinematics and the artificial potential field local planner."""
 
-    time_step_s: float = _param(0.2, "Simulation time step [s].", 0.001, 10.0)
-    speed_mps: float = _param(1.0, "Constant forward speed while moving [m/s].", 0.01, 10.0)
-    max_turn_per_step_rad: float = _param(
+    time_step_s: float = param_field(0.2, "Simulation time step [s].", 0.001, 10.0)
+    speed_mps: float = param_field(1.0, "Constant forward speed while moving [m/s].", 0.01, 10.0)
+    max_turn_per_step_rad: float = param_field(
         math.radians(15.0), "Largest heading change in one step (one action) [rad].", 0.0, math.pi)
-    goal_tolerance_m: float = _param(1.0, "A target counts as reached within this distance [m].",
-                                     0.01, 50.0)
-    apf_attractive_gain: float = _param(1.0, "Gain of the attractive potential (unitless).",
-                                        0.0, 100.0)
-    apf_repulsive_gain: float = _param(
+    goal_tolerance_m: float = param_field(
+        1.0, "A target counts as reached within this distance [m].", 0.01, 50.0)
+    apf_attractive_gain: float = param_field(1.0, "Gain of the attractive potential (unitless).",
+                                             0.0, 100.0)
+    apf_repulsive_gain: float = param_field(
         8.0, "Gain of the repulsive potential of a landmark [m^3].", 0.0, 1000.0)
-    apf_influence_m: float = _param(
+    apf_influence_m: float = param_field(
         3.0, "Distance from a landmark's surface beyond which it does not repel [m].", 0.0, 50.0)
-    safety_margin_m: float = _param(
+    safety_margin_m: float = param_field(
         0.3, "Extra clearance kept between robot and landmark surfaces [m].", 0.0, 10.0)
-    target_timeout_factor: float = _param(
+    target_timeout_factor: float = param_field(
         3.0, "A target not reached within this many times its straight-line travel time "
         "(plus target_timeout_margin_s) is given up and a new one chosen.", 1.0, 100.0)
-    target_timeout_margin_s: float = _param(
+    target_timeout_margin_s: float = param_field(
         30.0, "Extra time allowed to reach a target [s].", 0.0, 1e5)
 
 
@@ -130,28 +130,28 @@ class MotionParams:
 class SlamParams:
     """Per-robot team factor graph (iSAM2)."""
 
-    keyframe_interval_steps: int = _param(
+    keyframe_interval_steps: int = param_field(
         10, "A keyframe (graph pose) every this many simulation steps; the SLAM update rate.",
         1, 1000)
-    prior_sigmas: tuple[float, float, float] = _param(
+    prior_sigmas: tuple[float, float, float] = param_field(
         (1e-4, 1e-4, 1e-6), "Prior on robot 0's first pose: sigma of (x [m], y [m], theta [rad]).")
-    use_fixed_sigmas: bool = _param(
+    use_fixed_sigmas: bool = param_field(
         False, "Reference behaviour: use the fixed hand-set sigmas below instead of the "
         "covariances derived from the sensor noise (paper default: derived).")
-    fixed_odometry_sigmas: tuple[float, float, float] = _param(
+    fixed_odometry_sigmas: tuple[float, float, float] = param_field(
         (0.03, 0.03, 0.004), "Reference odometry factor sigmas (x [m], y [m], theta [rad]).")
-    fixed_bearing_range_sigmas: tuple[float, float] = _param(
+    fixed_bearing_range_sigmas: tuple[float, float] = param_field(
         (0.004, 0.001), "Reference bearing-range factor sigmas (bearing [rad], range [m]).")
-    fixed_robot_obs_sigmas: tuple[float, float, float] = _param(
+    fixed_robot_obs_sigmas: tuple[float, float, float] = param_field(
         (0.1, 0.1, 0.004), "Reference inter-robot factor sigmas (x [m], y [m], theta [rad]).")
-    virtual_robot_obs_sigmas: tuple[float, float, float] = _param(
+    virtual_robot_obs_sigmas: tuple[float, float, float] = param_field(
         (0.01, 0.01, 0.004), "Sigmas of virtual inter-robot observations in the EM step "
         "(x [m], y [m], theta [rad]).")
-    relinearize_threshold: float = _param(0.01, "iSAM2 relinearization threshold.", 0.0, 10.0)
-    extra_update_iterations: int = _param(
+    relinearize_threshold: float = param_field(0.01, "iSAM2 relinearization threshold.", 0.0, 10.0)
+    extra_update_iterations: int = param_field(
         2, "At most this many extra iSAM2 update() calls after adding new measurements, "
         "stopping as soon as no variable needs relinearization.", 0, 100)
-    covariance_floor_sigma: float = _param(
+    covariance_floor_sigma: float = param_field(
         1e-4, "Sigma added in quadrature to every sensor-derived noise model [m or rad], so "
         "degenerate covariances (robot at rest, noise-free sensors) stay invertible; 1e-6 "
         "made the graph too ill-conditioned for Cholesky once robots waited.", 0.0, 1.0)
@@ -161,18 +161,18 @@ class SlamParams:
 class MapParams:
     """The virtual map: occupancy (explored area) and per-cell uncertainty."""
 
-    cell_size_m: float = _param(2.0, "Virtual map cell size [m] (paper: 2 m small, 4 m large map).",
-                                0.1, 50.0)
-    prob_free: float = _param(0.3, "Occupancy probability of an observed free cell.", 0.0, 1.0)
-    prob_occupied: float = _param(0.7, "Occupancy probability of an observed landmark cell.",
-                                  0.0, 1.0)
-    prob_min: float = _param(0.05, "Lower clamp of cell occupancy probability.", 0.0, 1.0)
-    prob_max: float = _param(0.95, "Upper clamp of cell occupancy probability.", 0.0, 1.0)
-    explored_free_below: float = _param(0.45, "A cell is explored (free) below this probability.",
-                                        0.0, 1.0)
-    explored_occupied_above: float = _param(
+    cell_size_m: float = param_field(
+        2.0, "Virtual map cell size [m] (paper: 2 m small, 4 m large map).", 0.1, 50.0)
+    prob_free: float = param_field(0.3, "Occupancy probability of an observed free cell.", 0.0, 1.0)
+    prob_occupied: float = param_field(0.7, "Occupancy probability of an observed landmark cell.",
+                                       0.0, 1.0)
+    prob_min: float = param_field(0.05, "Lower clamp of cell occupancy probability.", 0.0, 1.0)
+    prob_max: float = param_field(0.95, "Upper clamp of cell occupancy probability.", 0.0, 1.0)
+    explored_free_below: float = param_field(
+        0.45, "A cell is explored (free) below this probability.", 0.0, 1.0)
+    explored_occupied_above: float = param_field(
         0.55, "A cell is explored (occupied) above this probability.", 0.0, 1.0)
-    virtual_landmark_prior_sigma_m: float = _param(
+    virtual_landmark_prior_sigma_m: float = param_field(
         1.2, "Prior sigma per axis of a never-observed virtual landmark [m].", 0.0, 100.0)
 
 
@@ -180,39 +180,39 @@ class MapParams:
 class FrontierParams:
     """Candidate targets: exploration, revisiting and rendezvous frontiers."""
 
-    boundary_distance_m: float = _param(
+    boundary_distance_m: float = param_field(
         4.0, "Cells closer than this to the map edge are never frontiers [m].", 0.0, 100.0)
-    explored_neighbors_below: int = _param(
+    explored_neighbors_below: int = param_field(
         3, "A frontier cell has fewer than this many explored 4-neighbours. The reference code "
         "tests (count - 1) < 2, i.e. fewer than 3; fewer than 2 leaves no frontier at all on "
         "a single sensing disc.", 1, 5)
-    exploration_radius_m: float = _param(
+    exploration_radius_m: float = param_field(
         10.0, "Exploration frontiers are those within this distance of the robot [m].", 0.0, 500.0)
-    all_frontiers_below_ratio: float = _param(
+    all_frontiers_below_ratio: float = param_field(
         0.2, "While the explored ratio is below this, every exploration frontier is a candidate.",
         0.0, 1.0)
-    revisit_radius_m: float = _param(
+    revisit_radius_m: float = param_field(
         10.0, "Revisiting frontiers lie within this distance of a known landmark [m].", 0.0, 500.0)
-    min_revisiting: int = _param(
+    min_revisiting: int = param_field(
         5, "If fewer revisiting frontiers exist, add frontiers whose straight path passes near "
         "a landmark.", 0, 1000)
-    rendezvous_min_distance_m: float = _param(
+    rendezvous_min_distance_m: float = param_field(
         10.0, "A teammate's target is a rendezvous candidate only farther than this [m].",
         0.0, 500.0)
-    rendezvous_waiting_penalty: bool = _param(
+    rendezvous_waiting_penalty: bool = param_field(
         False, "Add |d_self - d_teammate| (expected waiting as distance) to a rendezvous "
         "candidate's U_D, as the reference code does; the paper's U_D is the distance alone.")
-    rendezvous_timeout_factor: float = _param(
+    rendezvous_timeout_factor: float = param_field(
         2.0, "A rendezvous partner waits at most this factor times the requester's travel "
         "time to the meeting point (straight line at cruise speed), plus "
         "rendezvous_timeout_margin_s.", 0.0, 100.0)
-    rendezvous_timeout_margin_s: float = _param(
+    rendezvous_timeout_margin_s: float = param_field(
         20.0, "Fixed part of the rendezvous wait limit [s sim time].", 0.0, 1e5)
-    teammate_silent_after_s: float = _param(
+    teammate_silent_after_s: float = param_field(
         60.0, "A teammate whose latest team update is older than this is out of contact "
         "[s sim time]: a partner stops waiting for it; it stays a rendezvous candidate at "
         "its last known target (meeting restores the link).", 0.0, 1e6)
-    max_candidates: int = _param(
+    max_candidates: int = param_field(
         40, "At most this many candidates are evaluated per decision (nearest first).", 1, 1000)
 
 
@@ -225,19 +225,19 @@ class ProgressParams:
     estimated target distance shrinking by ``min_progress_m``.
     """
 
-    window_s: float = _param(
+    window_s: float = param_field(
         20.0, "Progress window [s sim time]: a target is given up when, for this long, the "
         "odometry showed less than min_progress_m of translation although forward motion "
         "was commanded at every step (blocked), or the estimated distance to the target "
         "did not shrink by min_progress_m (no progress).", 0.1, 1e5)
-    min_progress_m: float = _param(
+    min_progress_m: float = param_field(
         1.0, "Minimum progress within the progress window [m]: odometry translation while "
         "driving, and shrinking of the estimated distance to the target.", 0.0, 1000.0)
-    blacklist_radius_m: float = _param(
+    blacklist_radius_m: float = param_field(
         8.0, "After a target is given up (blocked, no progress or deadline), no candidate "
         "within this distance of it is chosen again by that robot [m]; 0 excludes only the "
         "target itself.", 0.0, 1000.0)
-    blacklist_duration_s: float = _param(
+    blacklist_duration_s: float = param_field(
         600.0, "How long a given-up target excludes candidates [s sim time]; 1e9: the rest "
         "of the run.", 0.0, 1e9)
 
@@ -247,38 +247,38 @@ class PlannerParams:
     """Utility-based target selection: EM_2, EM_3, CE, BSP and the nearest frontier rule
     (NEAREST)."""
 
-    name: str = _param("EM_3", "Planner to use.",
-                       choices=("EM_2", "EM_3", "CE", "BSP", "NEAREST"))
-    virtual_waypoint_spacing_m: float = _param(
+    name: str = param_field("EM_3", "Planner to use.",
+                            choices=("EM_2", "EM_3", "CE", "BSP", "NEAREST"))
+    virtual_waypoint_spacing_m: float = param_field(
         2.0, "Spacing of virtual waypoints along a candidate path in the EM step [m].", 0.1, 100.0)
-    allocation_d_max_m: float = _param(
+    allocation_d_max_m: float = param_field(
         30.0, "Task allocation h(d) = 1 - d / d_max below d_max [m].", 0.1, 1000.0)
-    allocation_history: int = _param(
+    allocation_history: int = param_field(
         0, "Number of each teammate's latest targets used by task allocation; 0: all of them "
         "(the paper's set A of all historical targets; the reference code uses 5).", 0, 100000)
-    allocation_counts_meeting_point: bool = _param(
+    allocation_counts_meeting_point: bool = param_field(
         False, "Count a rendezvous candidate's meeting point (the partner's current target) "
         "in its own U_T, as a literal reading of Eq. (11) does; by default a rendezvous is "
         "not duplicated exploration of the partner's target.")
-    q_min: float = _param(
+    q_min: float = param_field(
         0.55, "Algorithm 2: minimum probability of being observed for a cell to count "
         "(the explored threshold as a probability of observation).", 0.0, 1.0)
-    history_change_tolerance: float = _param(
+    history_change_tolerance: float = param_field(
         1e-12, "U_M: a history pose whose covariance trace a candidate reduces by at most "
         "this fraction keeps its current virtual-map contribution. The default is round-off "
         "(exact U_M); a larger value (e.g. 1e-3) is an approximation that recomputes only the "
         "cells of materially changed poses (error measured by em-bench latency).", 0.0, 1.0)
-    utility_variant: str = _param(
+    utility_variant: str = param_field(
         "paper", "'paper': Eq. (13) with U_M over cells observed in both maps; 'reference': "
         "the reference implementation's weights (U_M over all cells, U_T * 100 max(1-r, 0), "
         "U_D * 10 r).", choices=("paper", "reference"))
-    em2_lambdas: tuple[float, float, float] = _param(
+    em2_lambdas: tuple[float, float, float] = param_field(
         (1.0, 0.0, 10.0), "EM_2 weights (lambda_0 on U_M, lambda_1 on U_T, lambda_2 on U_D).")
-    em3_lambdas: tuple[float, float, float] = _param(
+    em3_lambdas: tuple[float, float, float] = param_field(
         (1.0, 20.0, 10.0), "EM_3 weights; lambda_1 is multiplied by (1 - explored ratio).")
-    ce_lambdas: tuple[float, float] = _param(
+    ce_lambdas: tuple[float, float] = param_field(
         (1.0, 10.0), "CE weights (lambda_0 on U_D, lambda_1 on U_T).")
-    bsp_lambdas: tuple[float, float] = _param(
+    bsp_lambdas: tuple[float, float] = param_field(
         (5.0, 1.0), "BSP weights (lambda_0 on U_D, lambda_1 on U_M = sum trace(sqrt(Sigma_x))).")
 
 
@@ -287,21 +287,21 @@ class LinkParams:
     """The links between robots (``core/sim/links.py``): range, loss, latency, bandwidth.
     The defaults are perfect links: every update reaches every teammate at the next step."""
 
-    range_m: float = _param(
+    range_m: float = param_field(
         0.0, "Communication range [m]: team data reaches only teammates at most this far "
         "away (true positions); 0 = unlimited.", 0.0, 1e6)
-    loss_probability: float = _param(
+    loss_probability: float = param_field(
         0.0, "Probability that one transmission is lost for one receiver (seeded, "
         "independent per transmission and receiver).", 0.0, 0.99)
-    latency_s: float = _param(
+    latency_s: float = param_field(
         0.0, "Delay from the end of a transmission to its arrival [s sim time].", 0.0, 3600.0)
-    bandwidth_bytes_per_s: float = _param(
+    bandwidth_bytes_per_s: float = param_field(
         0.0, "Each robot's send budget [bytes per simulated second, CDR on the wire]; "
         "0 = unlimited.", 0.0, 1e9)
-    queue_frames: int = _param(
+    queue_frames: int = param_field(
         20, "Most frames waiting for a robot's channel; a frame offered to a full queue is "
         "dropped (tail drop; the gap repair asks for it again).", 1, 10000)
-    repair_interval_s: float = _param(
+    repair_interval_s: float = param_field(
         5.0, "A robot missing records of teammates' streams asks for one gap at most this "
         "often, and re-sends to one requester at most this often [s sim time] (requests "
         "cross the links too and cost bandwidth).", 0.0, 3600.0)
@@ -311,14 +311,14 @@ class LinkParams:
 class RunParams:
     """When an exploration run stops, and its seed."""
 
-    seed: int = _param(0, "Seed of the world and of every noise draw.", 0, 2**31 - 1)
-    until_explored: float = _param(0.85, "Stop when the team's explored ratio reaches this.",
-                                   0.0, 1.0)
-    max_steps: int = _param(20000, "Stop after this many simulation steps.", 1, 10**8)
-    max_distance_m: float = _param(
+    seed: int = param_field(0, "Seed of the world and of every noise draw.", 0, 2**31 - 1)
+    until_explored: float = param_field(0.85, "Stop when the team's explored ratio reaches this.",
+                                        0.0, 1.0)
+    max_steps: int = param_field(20000, "Stop after this many simulation steps.", 1, 10**8)
+    max_distance_m: float = param_field(
         1e9, "Stop when the team has travelled this far in total [m] (reference: 1400 m).",
         0.0, 1e9)
-    stall_timeout_s: float = _param(
+    stall_timeout_s: float = param_field(
         300.0, "End the run as stalled when, for this long [s sim time], the team neither "
         "travelled nor explored new area (exit code 4); 0 disables the rule.", 0.0, 1e9)
 
