@@ -9,7 +9,7 @@ import pytest
 
 from em_exploration_ros.core.params import ExplorationParams, LinkParams
 from em_exploration_ros.core.sim.links import (DeliveryLedger, Frame, FrameKind, TeamLinks,
-                                               loss_draw)
+                                               loss_draw, perfect_links)
 from em_exploration_ros.core.sim.team_runner import TeamRunner
 from em_exploration_ros.core.agent.team_wire import cdr_size, request_cdr_size
 
@@ -42,7 +42,7 @@ def _arrivals(links: TeamLinks, steps: int, positions=CLOSE) -> dict[tuple, int]
 
 def test_perfect_links_deliver_everything_at_the_next_step():
     links = _links()
-    assert links.perfect
+    assert perfect_links(links.params)
     links.offer(_update(0, 1, 0))
     links.offer(_update(1, 1, 0))
     links.transmit(0, CLOSE)

@@ -85,7 +85,8 @@ class Delivery:
 class LinkCounts:
     """What the links did with the frames offered so far (one count per frame and
     addressed receiver): ``delivered``, ``lost`` (loss draw), ``out_of_range``, ``dropped``
-    (queue full, the oldest frame went), and the bytes transmitted."""
+    (offered to a full queue: tail drop, the queued frames stay), and the bytes
+    transmitted."""
 
     delivered: int = 0
     lost: int = 0
@@ -122,8 +123,8 @@ class TeamLinks:
 
     Per step ``k``: ``deliveries(k)`` hands out what arrives before step ``k`` is processed;
     robots ``offer`` the frames they produce while processing it (in any order);
-    ``transmit(k, positions)`` then queues them and starts every transmission the channels allow, with the true positions of step
-    ``k``. Memory: the queues (bounded) and the frames in flight (bounded by what the
+    ``transmit(k, positions)`` then queues them and starts every transmission the channels
+    allow, with the true positions of step ``k``. Memory: the queues (bounded) and the frames in flight (bounded by what the
     channels can carry within the latency).
     """
 
@@ -137,11 +138,6 @@ class TeamLinks:
         self._channels = [_Channel() for _ in range(num_robots)]
         self._in_flight: dict[int, list[Delivery]] = {}
         self._offered: list[Frame] = []
-
-    @property
-    def perfect(self) -> bool:
-        """True when every frame reaches every addressee at the next step."""
-        return perfect_links(self.params)
 
     def offer(self, frame: Frame) -> None:
         """Hand a frame to its sender's channel. It joins the queue at the next

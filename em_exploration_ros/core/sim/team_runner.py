@@ -11,9 +11,8 @@ the same targets as the ROS system in lockstep mode.
 
 Gap repair is driven by steps: a robot whose inbox has gaps sends a request for one of
 them (through the link, to the stream's owner) at most every ``links.repair_interval_s``
-(``GapRequests``); the
-owner re-sends at most ``ResendScheduler``'s records per requester and interval (never
-more than half its queue), also through the link.
+(``GapRequests``); the owner re-sends at most ``ResendScheduler``'s records per requester
+and interval (never more than half its queue), also through the link.
 """
 from __future__ import annotations
 
