@@ -355,13 +355,19 @@ start evaluator -m "$NODES.evaluator_node" "${COMMON[@]}" -p use_sim_time:=true 
     -p "summary_path:=$SUMMARY" -p "map_png_path:=$MAP_PNG" "${SIM_LIMIT[@]}"
 EVALUATOR_PID=${PIDS[-1]}
 WAIT_FOR=(-p wait_for_evaluator:=true)
-[[ -n $RECORD ]] && WAIT_FOR+=(-p wait_for_recorder:=true)
+# The robots wait for the recorder too: /tf keeps nothing for a listener that matches late.
+ROBOT_WAIT_FOR=()
+if [[ -n $RECORD ]]; then
+    WAIT_FOR+=(-p wait_for_recorder:=true)
+    ROBOT_WAIT_FOR=(-p tf_listeners:=1)
+fi
 start world -m "$NODES.world_node" "${COMMON[@]}" "${CLOCK[@]}" "${WAIT_FOR[@]}" \
     "${SIM_LIMIT[@]}"
 # start_robot ID: robot ID's process; a restart (--respawn) uses the same command line.
 start_robot() {
     start "robot_$1" -m "$NODES.robot_node" --ros-args -r "__ns:=/robot_$1" \
-        -p "robot_id:=$1" -p use_sim_time:=true --params-file "$PARAMS_FILE" "${OVERRIDES[@]}"
+        -p "robot_id:=$1" -p use_sim_time:=true --params-file "$PARAMS_FILE" "${OVERRIDES[@]}" \
+        "${ROBOT_WAIT_FOR[@]}"
 }
 for (( robot = 0; robot < NUM_ROBOTS; robot++ )); do
     start_robot "$robot"

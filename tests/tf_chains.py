@@ -38,7 +38,7 @@ def recorded_transforms(bag: Path) -> tuple[Edges, Edges]:
 
 
 def assert_frame_chains(bag: Path, num_robots: int, max_error_m: float) -> None:
-    """Every robot's estimate chain exists at (nearly) every step and lies within
+    """Every robot's estimate chain exists at every step (but the first) and lies within
     ``max_error_m`` of its true pose; the static world -> map is there."""
     tf, static = recorded_transforms(bag)
     [map_in_world] = static[("world", "map")].values()
@@ -49,7 +49,10 @@ def assert_frame_chains(bag: Path, num_robots: int, max_error_m: float) -> None:
         true_poses = tf[("world", truth)]
         assert corrections.keys() == dead_reckoning.keys(), robot  # published together
         common = sorted(corrections.keys() & true_poses.keys())
-        assert len(common) >= 0.9 * len(true_poses) > 10, (robot, len(common), len(true_poses))
+        # Every step but possibly the first (a teammate of robot 0 has no map pose before
+        # its first step is processed): the robots answer their first step only once the
+        # recorder listens to /tf (run_team.sh --record sets tf_listeners).
+        assert len(common) >= len(true_poses) - 1 > 10, (robot, len(common), len(true_poses))
         errors = [np.hypot(*(compose(compose(map_in_world, corrections[t]),
                                      dead_reckoning[t])[:2] - true_poses[t][:2]))
                   for t in common]

@@ -127,6 +127,8 @@ class RobotNode(Node):
         self._last_request = 0.0
         self._barrier: dict[int, int] = {}
         self._world_watch = WorldWatch(self.settings.world_lost_timeout_s)
+        self._tf_wait_since: float | None = None
+        self._tf_listened = self.settings.tf_listeners == 0
         self._next_world_check_s = 0.0
         self._create_interfaces()
         self.get_logger().info(
@@ -334,6 +336,8 @@ class RobotNode(Node):
         world that left the graph."""
         self._send_due_resends()
         self._watch_world()
+        if self._tf_wait_since is not None and not self._tf_listened:
+            self._process_ready_steps()
         now = time.monotonic()
         if self._recovery is not None:
             if self._recovery.complete(now):
@@ -432,6 +436,8 @@ class RobotNode(Node):
             step = self._next_step
             if step is None or step not in self._scans or step not in self._odometry:
                 return
+            if not self._tf_listened and not self._tf_listeners_matched():
+                return
             scan = self._scans[step]
             limits = {robot: int(seq) for robot, seq in enumerate(scan.team_sequences)
                       if robot != self.robot_id}
@@ -444,6 +450,29 @@ class RobotNode(Node):
             self._step(scan, self._odometry.pop(step), limits or None)
             del self._scans[step]
             self._next_step = step + 1
+
+    def _tf_listeners_matched(self) -> bool:
+        """Before the first step: True once ``tf_listeners`` listeners (the recorder) have
+        matched /tf, or ``tf_listener_wait_s`` passed (logged). /tf is volatile: a transform
+        published before a listener matched never reaches it. Until then the step waits
+        (``_maintain`` looks again; the world re-sends the step)."""
+        matched = self.tf_pub.get_subscription_count()
+        now = time.monotonic()
+        if self._tf_wait_since is None:
+            self._tf_wait_since = now
+        waited = now - self._tf_wait_since
+        if matched >= self.settings.tf_listeners:
+            self.get_logger().info(f"/tf has {matched} listener(s) after {waited:.1f} s: "
+                                   "answering the first step")
+        elif waited >= self.settings.tf_listener_wait_s:
+            self.get_logger().warn(
+                f"/tf has {matched} of {self.settings.tf_listeners} listener(s) after "
+                f"{waited:.1f} s; answering the first step anyway (a recording misses the "
+                "transforms published before its listener matched)")
+        else:
+            return False
+        self._tf_listened = True
+        return True
 
     def _step(self, scan: SonarScan, odometry: Odometry, limits: dict[int, int] | None) -> None:
         agent = self.agent
