@@ -7,9 +7,10 @@ missing records - is a *frame* offered to the sender's channel while it processe
 
 - **Bandwidth** (``links.bandwidth_bytes_per_s`` B, 0 = unlimited): a frame of S bytes
   occupies the sender's channel for S / B seconds; frames wait in a FIFO queue of at most
-  ``links.queue_frames`` frames per sender. When a frame is offered to a full queue the
-  **oldest waiting frame is dropped** (its data is the stalest; the stream's gap repair
-  asks for it again). A frame whose transmission starts is no longer in the queue.
+  ``links.queue_frames`` frames per sender. A frame offered to a full queue **is dropped**
+  (tail drop: the frames already waiting keep their places; the stream's gap repair asks
+  for the dropped record again). A frame whose transmission starts is no longer in the
+  queue.
 - **Range** (``links.range_m``, 0 = unlimited): a frame reaches a receiver only if the two
   robots' TRUE positions at the step the transmission starts are at most this far apart.
 - **Loss** (``links.loss_probability``): each (frame, receiver) is lost independently with
