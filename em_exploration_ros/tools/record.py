@@ -116,10 +116,18 @@ class Recorder(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(options.poll_interval_s, self._discover, clock=steady)
         self.create_timer(options.chunk_interval_s, self._writer.flush, clock=steady)
-        self.get_logger().info(f"recording to {writer.directory} ({options.compression}, "
-                               f"chunks of {options.chunk_size} B or "
-                               f"{options.chunk_interval_s:g} s)")
         self._discover()
+        # Announced from the first turn of the spin: a user (or a test) that reacts to the
+        # line finds the recorder spinning, where SIGINT/SIGTERM close the bag cleanly (a
+        # signal between rclpy.init and the spin can end the process without it).
+        self._announcement = self.create_timer(0.0, self._announce, clock=steady)
+
+    def _announce(self) -> None:
+        self._announcement.cancel()
+        self.get_logger().info(f"recording to {self._writer.directory} "
+                               f"({self._options.compression}, chunks of "
+                               f"{self._options.chunk_size} B or "
+                               f"{self._options.chunk_interval_s:g} s)")
 
     def _discover(self) -> None:
         """Subscribe to every selected topic that has publishers and is not recorded yet."""
