@@ -9,10 +9,10 @@ at which the link delivers it (k+1 over perfect links: the world's barrier), and
 and odometry go through the same wire conversions. A seeded em-sim run therefore chooses
 the same targets as the ROS system in lockstep mode.
 
-Gap repair is driven by steps: a robot whose inbox has gaps sends a request for one of
-them (through the link, to the stream's owner) at most every ``links.repair_interval_s``
-(``GapRequests``); the owner re-sends at most ``ResendScheduler``'s records per requester
-and interval (never more than half its queue), also through the link.
+Gap repair is driven by steps (``core/agent/link_sender.py``, shared with the ROS robot in
+relay mode): a robot whose inbox has gaps sends a request for one of them (through the
+link, to the stream's owner) at most every ``links.repair_interval_s``; the owner
+re-sends the records, as broadcasts, through the link.
 """
 from __future__ import annotations
 
@@ -25,9 +25,7 @@ from typing import Callable
 import numpy as np
 
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.agent.gap_requests import GapRequests
-from em_exploration_ros.core.agent.resend import MAX_RESEND_RECORDS, ResendScheduler
-from em_exploration_ros.core.agent.team_wire import cdr_size, request_cdr_size
+from em_exploration_ros.core.agent.link_sender import LinkSender
 from em_exploration_ros.core.agent.team_data import (MissingRange, RendezvousEvent,
                                                      TeamUpdate, TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
@@ -37,7 +35,7 @@ from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, Robot
                                                             RunMonitor)
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, RunSummary
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sim.links import DeliveryLedger, Frame, FrameKind, TeamLinks
+from em_exploration_ros.core.sim.links import DeliveryLedger, FrameKind, TeamLinks
 from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
                                                     twist_to_increment_covariance)
@@ -76,11 +74,7 @@ class TeamRunner:
         time_step = params.motion.time_step_s
         self.links = TeamLinks(params.links, n, time_step, params.run.seed)
         self.ledger = DeliveryLedger(n)
-        resend_records = min(MAX_RESEND_RECORDS, max(1, params.links.queue_frames // 2))
-        self._resends = [ResendScheduler(params.links.repair_interval_s, resend_records)
-                         for _ in range(n)]
-        repair_steps = max(1, round(params.links.repair_interval_s / time_step))
-        self._gap_requests = [GapRequests(i, n, repair_steps) for i in range(n)]
+        self._senders = [LinkSender(i, params) for i in range(n)]
         self.monitor = RunMonitor(params)
         self.rendezvous_events: list[RendezvousEvent] = []
 
@@ -126,7 +120,7 @@ class TeamRunner:
             frame, receiver = delivery.frame, delivery.receiver
             if frame.kind == FrameKind.REQUEST:
                 gap: MissingRange = frame.payload
-                self._resends[receiver].request(
+                self._senders[receiver].file_request(
                     frame.sender, gap.first_sequence, gap.last_sequence,
                     self.agents[receiver].outbox.last_sequence)
                 continue
@@ -135,28 +129,16 @@ class TeamRunner:
             self._inboxes[receiver].receive(update)
 
     def _send(self, agent: RobotAgent, step: int) -> None:
-        """Offer what ``agent`` sends at ``step`` to its channel: a request for a gap of its
-        inbox (``GapRequests``), re-sends asked of it, then its new update."""
+        """Offer what ``agent`` sends at ``step`` to its channel (``LinkSender``): a request
+        for a gap of its inbox, re-sends asked of it, then its new update."""
         robot = agent.robot_id
-        n = len(self.agents)
-        gap = self._gap_requests[robot].due(step, self._inboxes[robot])
-        if gap is not None:
-            self.links.offer(Frame(FrameKind.REQUEST, robot, (gap.robot_id,),
-                                   gap.first_sequence, request_cdr_size(), step, gap))
-        now_s = step * self.params.motion.time_step_s
-        for due in self._resends[robot].due(now_s):
-            for record in agent.outbox.resend(due.first_sequence, due.last_sequence):
-                self.links.offer(Frame(FrameKind.RESEND, robot, (due.requester_id,),
-                                       record.sequence, cdr_size(record),
-                                       step, record))
         update = agent.take_outgoing()
-        if update is None:
-            return
-        self.rendezvous_events.extend(update.rendezvous)
-        self.ledger.sent(robot, update.sequence, step)
-        self.links.offer(Frame(FrameKind.UPDATE, robot,
-                               tuple(r for r in range(n) if r != robot), update.sequence,
-                               cdr_size(update), step, update))
+        if update is not None:
+            self.rendezvous_events.extend(update.rendezvous)
+            self.ledger.sent(robot, update.sequence, step)
+        for frame in self._senders[robot].frames(step, self._inboxes[robot], agent.outbox,
+                                                 update):
+            self.links.offer(frame)
 
     @property
     def num_decisions(self) -> int:
