@@ -48,6 +48,12 @@ options:
   --landmarks K           number of landmarks, 0..1000 (default: 20)
   --until-explored R      stop at this team explored ratio, 0..1 (default: 0.85)
   --max-sim-time S        stop after S seconds of simulation time (default: no limit)
+  --comm-range M          links: communication range [m] (default 0 = unlimited)
+  --comm-loss P           links: loss probability per transmission and receiver, 0..0.99
+  --comm-latency S        links: latency [s sim time] (default 0)
+  --comm-bandwidth B      links: each robot's send budget [bytes/s] (default 0 = unlimited)
+                          (any of these set: the world relays all team data through the
+                          link model, as em-sim does with the same flags)
   --params FILE           ROS 2 parameter YAML (default: config/exploration.yaml)
   --realtime [FACTOR]     step on a wall timer, FACTOR sim seconds per wall second
                           (default 1.0) instead of lockstep
@@ -98,7 +104,7 @@ needs_value() {  # needs_value REST...: the flag in $arg must be followed by a v
 as_double() { if [[ $1 =~ [.eE] ]]; then printf '%s' "$1"; else printf '%s.0' "$1"; fi; }
 
 # -- arguments -------------------------------------------------------------------------------
-ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME=""
+ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME="" COMM_RANGE="" COMM_LOSS="" COMM_LATENCY="" COMM_BANDWIDTH=""
 PARAMS_FILE="$EM_REPO_ROOT/config/exploration.yaml"
 REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH="" FOXGLOVE_PORT="" RESPAWN="" NETNS=""
 
@@ -130,6 +136,11 @@ while (( $# )); do
         --landmarks) needs_value "$@"; check_number "$arg" "$1" 0 1000 int; LANDMARKS=$1; shift ;;
         --until-explored) needs_value "$@"; check_number "$arg" "$1" 0 1; UNTIL=$1; shift ;;
         --max-sim-time) needs_value "$@"; check_number "$arg" "$1" 0 1e9; MAX_SIM_TIME=$1; shift ;;
+        --comm-range) needs_value "$@"; check_number "$arg" "$1" 0 1000000; COMM_RANGE=$1; shift ;;
+        --comm-loss) needs_value "$@"; check_number "$arg" "$1" 0 0.99; COMM_LOSS=$1; shift ;;
+        --comm-latency) needs_value "$@"; check_number "$arg" "$1" 0 3600; COMM_LATENCY=$1; shift ;;
+        --comm-bandwidth)
+            needs_value "$@"; check_number "$arg" "$1" 0 1000000000; COMM_BANDWIDTH=$1; shift ;;
         --params)
             needs_value "$@"
             [[ -f $1 && -r $1 ]] || usage_error "--params: no readable file '$1'"
@@ -176,6 +187,11 @@ OVERRIDES=()
                                   -p "world.height_m:=$(as_double "$MAP_SIZE")")
 [[ -n $LANDMARKS ]] && OVERRIDES+=(-p "world.num_landmarks:=$LANDMARKS")
 [[ -n $UNTIL ]] && OVERRIDES+=(-p "run.until_explored:=$(as_double "$UNTIL")")
+[[ -n $COMM_RANGE ]] && OVERRIDES+=(-p "links.range_m:=$(as_double "$COMM_RANGE")")
+[[ -n $COMM_LOSS ]] && OVERRIDES+=(-p "links.loss_probability:=$(as_double "$COMM_LOSS")")
+[[ -n $COMM_LATENCY ]] && OVERRIDES+=(-p "links.latency_s:=$(as_double "$COMM_LATENCY")")
+[[ -n $COMM_BANDWIDTH ]] && OVERRIDES+=(
+    -p "links.bandwidth_bytes_per_s:=$(as_double "$COMM_BANDWIDTH")")
 
 # Check the file with the overrides as the nodes will read them (and that the world can be
 # built), and learn the values the run's names need: "<robots> <seed> <planner>". Errors are

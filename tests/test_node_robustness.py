@@ -49,7 +49,7 @@ def test_integers_are_taken_where_floats_are_expected(tmp_path):
      "unknown parameter 'robot_timout_s' (did you mean 'robot_timeout_s'?)"),
     ("/**:\n  ros__parameters:\n    world.num_robots: 0\n", "outside [1, 26]"),
     ("/**:\n  ros__parameters:\n    planner.name: EM_9\n", "must be one of"),
-    ("/**:\n  ros__parameters:\n    links.range_m: 30.0\n", "perfect links only"),
+    ("/**:\n  ros__parameters:\n    links.loss_probability: 1.0\n", "outside [0.0, 0.99]"),
 ])
 def test_bad_parameters_end_the_node_with_exit_code_2_and_no_traceback(tmp_path, text, message):
     params = write_params(tmp_path, text)

@@ -56,6 +56,7 @@ from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, barrier_p
                                                         landmark_reading_problem, request_problem,
                                                         size_problem, stamp_step_problem,
                                                         step_problem)
+from em_exploration_ros.core.agent.link_sender import LinkSender
 from em_exploration_ros.core.agent.resend import ResendScheduler
 from em_exploration_ros.core.agent.team_data import (MAX_READINGS_PER_KEYFRAME,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
@@ -63,6 +64,7 @@ from em_exploration_ros.core.agent.team_data import (MAX_READINGS_PER_KEYFRAME,
 from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.node_settings import RobotNodeSettings
+from em_exploration_ros.core.sim.links import FrameKind, perfect_links
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, sim_time_s,
                                                 twist_to_increment_covariance)
 from em_exploration_ros.nodes import tf_publishing, visualization
@@ -83,6 +85,8 @@ from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
+from em_exploration_ros.nodes.team_relay import (delivered_requests_topic,
+                                                 delivered_updates_topic, history_copies_topic)
 
 EXIT_OK, EXIT_WORLD_GONE = 0, 4
 
@@ -113,6 +117,11 @@ class RobotNode(Node):
         self.agent: RobotAgent | None = None
         self.inbox = TeamUpdateInbox(self.robot_id, self.num_robots)
         self.resends = ResendScheduler(self.settings.resend_interval_s)
+        self.relay_mode = not perfect_links(self.params.links)
+        self.link_sender = LinkSender(self.robot_id, self.params)
+        self.team_messages = self.team_requests = 0
+        self.received_deliveries = [0, 0]  # records, requests (relay mode)
+        self._delivery_offset: list[int] | None = None
         self.archive = StreamArchive(self.robot_id, self.num_robots)
         self._recovery: OwnHistoryRecovery | None = None
         self._served_history: dict[int, float] = {}
@@ -155,16 +164,25 @@ class RobotNode(Node):
         self.create_subscription(Odometry, f"/{ns}/odom", self._on_odometry, SENSOR_QOS)
         self.create_subscription(TeamUpdateRequest, "/team/update_requests",
                                  self._on_update_request, TEAM_QOS)
-        self.create_subscription(TeamUpdate, f"/{ns}/team/history", self._on_own_history,
-                                 TEAM_QOS)
         teammates = [r for r in range(self.num_robots) if r != self.robot_id]
-        self.history_pubs = {r: self.create_publisher(
-            TeamUpdate, f"/{robot_namespace(r)}/team/history", TEAM_QOS) for r in teammates}
-        for teammate in teammates:
-            self.create_subscription(
-                TeamUpdate, f"/{robot_namespace(teammate)}/team/updates",
-                lambda message, sender=teammate: self._on_team_update(sender, message),
-                TEAM_QOS)
+        if self.relay_mode:
+            self.history_copies_pub = self.create_publisher(
+                TeamUpdate, history_copies_topic(self.robot_id), TEAM_QOS)
+            self.create_subscription(TeamUpdate, delivered_updates_topic(self.robot_id),
+                                     self._on_delivered_update, TEAM_QOS)
+            self.create_subscription(TeamUpdateRequest, delivered_requests_topic(self.robot_id),
+                                     self._on_delivered_request, TEAM_QOS)
+        else:
+            self.create_subscription(TeamUpdate, f"/{ns}/team/history", self._on_own_history,
+                                     TEAM_QOS)
+            self.history_pubs = {r: self.create_publisher(
+                TeamUpdate, f"/{robot_namespace(r)}/team/history", TEAM_QOS)
+                for r in teammates}
+            for teammate in teammates:
+                self.create_subscription(
+                    TeamUpdate, f"/{robot_namespace(teammate)}/team/updates",
+                    lambda message, sender=teammate: self._on_team_update(sender, message),
+                    TEAM_QOS)
         self.alive_pub = offer_liveliness(self, self.robot_id)
         watch_liveliness(self, teammates, self._on_teammate_liveliness)
         # Wall (steady) time: in lockstep the sim clock stands still while the world waits.
@@ -265,14 +283,48 @@ class RobotNode(Node):
         self._process_ready_steps()
 
     def _on_team_update(self, sender: int, message: TeamUpdate) -> None:
-        topic = f"/{robot_namespace(sender)}/team/updates"
+        self._file_team_update(f"/{robot_namespace(sender)}/team/updates", message, sender)
+        self._process_ready_steps()
+
+    def _file_team_update(self, topic: str, message: TeamUpdate, sender: int | None) -> None:
+        """Check a teammate's record and file it in the inbox (dropped with a WARN if bad)."""
         try:
             self.inbox.receive(checked_team_update(message, self.wire), sender)
         except InvalidTeamUpdate as error:
             self.rejected_updates += 1
             self.inputs.drop(topic, f"rejected a team update: {error}")
-            return
+
+    def _on_delivered_update(self, message: TeamUpdate) -> None:
+        """Relay mode: a record the links delivered (a teammate's, or a copy of this robot's
+        own after a restart)."""
+        self.received_deliveries[0] += 1
+        if message.robot_id == self.robot_id:
+            self._on_own_history(message)
+        else:
+            self._file_team_update(delivered_updates_topic(self.robot_id), message, None)
         self._process_ready_steps()
+
+    def _on_delivered_request(self, message: TeamUpdateRequest) -> None:
+        """Relay mode: a request the links delivered: a teammate's for this robot's records
+        (re-sent at a coming step, ``LinkSender``) or a restarted teammate's for its own."""
+        self.received_deliveries[1] += 1
+        asker, owner = int(message.requester_id), int(message.robot_id)
+        topic = delivered_requests_topic(self.robot_id)
+        if asker == owner and asker != self.robot_id and 0 <= asker < self.num_robots:
+            self._serve_history(asker)
+        elif self.inputs.check(topic, f"request for robot {owner}'s records"
+                               if owner != self.robot_id else None,
+                               request_problem(asker, message.first_sequence,
+                                               message.last_sequence, self.robot_id,
+                                               self.num_robots, TeamUpdateRequest.OBSERVER)):
+            self._file_link_request(asker, message)
+        self._process_ready_steps()
+
+    def _file_link_request(self, asker: int, message: TeamUpdateRequest) -> None:
+        if self.agent is not None:
+            self.link_sender.file_request(asker, int(message.first_sequence),
+                                          int(message.last_sequence),
+                                          self.agent.outbox.last_sequence)
 
     def _on_own_history(self, message: TeamUpdate) -> None:
         """A teammate's copy of one of this robot's earlier records (after a restart)."""
@@ -292,8 +344,10 @@ class RobotNode(Node):
             return
         self._served_history[requester] = now
         held = self.archive.held(requester)
+        publisher = (self.history_copies_pub if self.relay_mode
+                     else self.history_pubs[requester])
         for update in held:
-            publish_or_log(self.history_pubs[requester], team_update_to_msg(update, self.wire), self,
+            publish_or_log(publisher, team_update_to_msg(update, self.wire), self,
                            f"robot {requester}'s record {update.sequence}")
         self.get_logger().info(f"robot {requester} restarted: re-sent the {len(held)} records "
                                f"of its stream this robot holds")
@@ -303,6 +357,8 @@ class RobotNode(Node):
         they are re-sent by ``_send_due_resends``, rate-limited per requester. A restarted
         teammate asking for its own stream gets what this robot holds of it."""
         asker, owner = int(message.requester_id), int(message.robot_id)
+        if self.relay_mode and asker != TeamUpdateRequest.OBSERVER:
+            return  # a teammate's request reaches this robot through the links
         if asker == owner and asker in self.history_pubs:
             self._serve_history(asker)
             return
@@ -313,6 +369,9 @@ class RobotNode(Node):
                                   TeamUpdateRequest.OBSERVER)
         if not self.inputs.check("/team/update_requests", problem) or self.agent is None:
             return
+        if self.relay_mode:  # re-sent at a coming step, through the links
+            self._file_link_request(asker, message)
+            return
         self.resends.request(message.requester_id, int(message.first_sequence),
                              int(message.last_sequence), self.agent.outbox.last_sequence)
         self._send_due_resends()
@@ -322,8 +381,8 @@ class RobotNode(Node):
             return
         for due in self.resends.due(time.monotonic()):
             resent = self.agent.outbox.resend(due.first_sequence, due.last_sequence)
-            sent = sum(publish_or_log(self.update_pub, team_update_to_msg(update, self.wire), self,
-                                      f"re-sent update {update.sequence}") for update in resent)
+            sent = sum(self._publish_update(update, f"re-sent update {update.sequence}")
+                       for update in resent)
             if resent:
                 self.get_logger().info(
                     f"re-sent {sent} of updates {resent[0].sequence}..{resent[-1].sequence} "
@@ -334,7 +393,8 @@ class RobotNode(Node):
         """Re-send what was asked for; ask again for missing team updates (or, after a
         restart, for this robot's own stream); give up waiting on silent teammates; notice a
         world that left the graph."""
-        self._send_due_resends()
+        if not self.relay_mode:  # relay mode: re-sends go at steps (LinkSender)
+            self._send_due_resends()
         self._watch_world()
         if self._tf_wait_since is not None and not self._tf_listened:
             self._process_ready_steps()
@@ -349,18 +409,17 @@ class RobotNode(Node):
             return
         if self._waiting_since is None:
             return
-        if now - self._last_request >= self.settings.request_period_s:
+        if not self.relay_mode and now - self._last_request >= self.settings.request_period_s:
             self._last_request = now
             for gap in self.inbox.missing(self._barrier):
-                request = TeamUpdateRequest(requester_id=self.robot_id, robot_id=gap.robot_id,
-                                            first_sequence=gap.first_sequence,
-                                            last_sequence=gap.last_sequence)
-                request.header.stamp = self.get_clock().now().to_msg()
-                publish_or_log(self.request_pub, request, self, "a request for updates")
+                self._publish_request(gap.robot_id, gap.first_sequence, gap.last_sequence)
         if now - self._waiting_since > self.settings.barrier_timeout_s:
+            missing = (f"deliveries of the link relay (held {self.received_deliveries}, "
+                       f"offset {self._delivery_offset})" if self.relay_mode
+                       else f"teammates' updates {self._barrier}")
             self.get_logger().warn(
-                f"step {self._next_step}: teammates' updates {self._barrier} still missing "
-                f"after {self.settings.barrier_timeout_s} s; going on without them")
+                f"step {self._next_step}: {missing} still missing after "
+                f"{self.settings.barrier_timeout_s} s; going on without them")
             self._barrier = {}
             self._process_ready_steps(ignore_barrier=True)
 
@@ -388,10 +447,21 @@ class RobotNode(Node):
     # -- stepping ------------------------------------------------------------------------
 
     def _request_own_history(self) -> None:
-        request = TeamUpdateRequest(requester_id=self.robot_id, robot_id=self.robot_id,
-                                    first_sequence=1, last_sequence=0)
+        self._publish_request(self.robot_id, 1, 0)
+
+    def _publish_request(self, owner: int, first_sequence: int, last_sequence: int) -> None:
+        """Ask robot ``owner`` for records ``first..last`` of its stream (counted)."""
+        request = TeamUpdateRequest(requester_id=self.robot_id, robot_id=owner,
+                                    first_sequence=first_sequence, last_sequence=last_sequence)
         request.header.stamp = self.get_clock().now().to_msg()
-        self.request_pub.publish(request)
+        if publish_or_log(self.request_pub, request, self, "a request for team updates"):
+            self.team_requests += 1
+
+    def _publish_update(self, update: TeamUpdate, what: str) -> bool:
+        """Publish a record of this robot's stream on its update topic (counted)."""
+        sent = publish_or_log(self.update_pub, team_update_to_msg(update, self.wire), self, what)
+        self.team_messages += sent
+        return sent
 
     def _start_recovery(self, scan: SonarScan) -> None:
         """This process starts in the middle of a run: it was restarted after a crash."""
@@ -427,8 +497,14 @@ class RobotNode(Node):
         while self.agent is not None:
             if self._next_step is None and self._scans:
                 self._next_step = min(self._scans)
+                first = self._scans[self._next_step]
+                self._delivery_offset = [0, 0]
                 if self._next_step > 0:
-                    self._start_recovery(self._scans[self._next_step])
+                    # Restarted: the deliveries before this process subscribed are not its own.
+                    self._delivery_offset = [
+                        int(first.delivered_updates) - self.received_deliveries[0],
+                        int(first.delivered_requests) - self.received_deliveries[1]]
+                    self._start_recovery(first)
             if self._recovery is not None:
                 if not self._recovery.complete(time.monotonic()):
                     return
@@ -440,8 +516,9 @@ class RobotNode(Node):
                 return
             scan = self._scans[step]
             limits = {robot: int(seq) for robot, seq in enumerate(scan.team_sequences)
-                      if robot != self.robot_id}
-            if limits and not ignore_barrier and not self.inbox.holds_up_to(limits):
+                      if robot != self.robot_id and not self.relay_mode}
+            if not ignore_barrier and (not self._deliveries_held(scan) if self.relay_mode
+                                       else limits and not self.inbox.holds_up_to(limits)):
                 if self._waiting_since is None:
                     self._waiting_since = time.monotonic()
                 self._barrier = limits
@@ -450,6 +527,13 @@ class RobotNode(Node):
             self._step(scan, self._odometry.pop(step), limits or None)
             del self._scans[step]
             self._next_step = step + 1
+
+    def _deliveries_held(self, scan: SonarScan) -> bool:
+        """Relay mode: True when this robot holds everything the links delivered before the
+        scan's step (``SonarScan.delivered_*``)."""
+        needed = (int(scan.delivered_updates), int(scan.delivered_requests))
+        return all(received + offset >= count for received, offset, count in
+                   zip(self.received_deliveries, self._delivery_offset, needed))
 
     def _tf_listeners_matched(self) -> bool:
         """Before the first step: True once ``tf_listeners`` listeners (the recorder) have
@@ -488,14 +572,18 @@ class RobotNode(Node):
             tuple(landmark_reading_from_msg(r) for r in scan.landmarks),
             tuple(teammate_reading_from_msg(r) for r in scan.teammates)))
         update = agent.take_outgoing()
-        if update is not None:
-            publish_or_log(self.update_pub, team_update_to_msg(update, self.wire), self,
-                           f"team update {update.sequence} (teammates will ask for it again)")
+        if self.relay_mode:
+            self._send_frames(step, update)
+        elif update is not None:
+            self._publish_update(update, f"team update {update.sequence} (teammates will ask "
+                                         f"for it again)")
         self._publish_transforms(stamp_s, odometry)
         linear_x, angular_z = command_to_twist(command.turn_rad, command.forward_m,
                                                self.time_step_s)
         reply = MotionCommand(robot_id=self.robot_id, step=step,
-                              team_sequence=agent.outbox.last_sequence, finished=command.finished,
+                              team_sequence=agent.outbox.last_sequence,
+                              team_messages=self.team_messages, team_requests=self.team_requests,
+                              finished=command.finished,
                               blocked_s=float(agent.blocked_s),
                               given_up_count=len(agent.given_up),
                               given_up=[given_up_to_msg(g)
@@ -508,6 +596,17 @@ class RobotNode(Node):
             self._publish_estimates(stamp_s)
         if len(agent.decisions) != decisions_before:
             self._publish_decision(stamp_s)
+
+    def _send_frames(self, step: int, update: TeamUpdate | None) -> None:
+        """Relay mode: publish what this robot sends at ``step`` (``LinkSender``, as em-sim):
+        a gap request, the due re-sends, its new update."""
+        for frame in self.link_sender.frames(step, self.inbox, self.agent.outbox, update):
+            if frame.kind == FrameKind.REQUEST:
+                gap = frame.payload
+                self._publish_request(gap.robot_id, gap.first_sequence, gap.last_sequence)
+            else:
+                self._publish_update(frame.payload, f"team record {frame.payload.sequence} "
+                                                    f"(teammates will ask for it again)")
 
     # -- what users see --------------------------------------------------------------------
 

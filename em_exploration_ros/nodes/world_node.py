@@ -71,6 +71,7 @@ from em_exploration_ros.nodes.input_guard import InputGuard, content_problem, he
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
+from em_exploration_ros.nodes.team_relay import TeamRelay
 
 #: Wall period of the timer that checks start-up connections and robot timeouts [s].
 _POLL_PERIOD_S = 0.05
@@ -127,10 +128,6 @@ class WorldNode(Node):
         step_resend_s = self.settings.step_resend_s
         self.wait_for_recorder = self.settings.wait_for_recorder
         self.params = declare_exploration_params(self)
-        if not perfect_links(self.params.links):
-            raise ValueError("links: the ROS system has no link relay yet and runs with "
-                             "perfect links only (every links.* parameter at its default); "
-                             "em-sim and em-bench apply the link model")
         refuse_unknown_overrides(self)
         self.num_robots = self.params.world.num_robots
         self.final_step = final_step(self.params, max_sim_time_s)
@@ -143,6 +140,10 @@ class WorldNode(Node):
         self.stepping_over = False
         self._started_wall_s = time.monotonic()
         self._ready_since_s: float | None = None
+        self._frames_wait_since_s: float | None = None
+        self.relay = (None if perfect_links(self.params.links) else
+                      TeamRelay(self, self.params, self.inputs, lambda: self.sim.step,
+                                self._check_step_complete))
         self._create_interfaces()
         self._publish_mission()
         self._poll_timer = self.create_timer(_POLL_PERIOD_S, self._poll)
@@ -150,7 +151,10 @@ class WorldNode(Node):
         self.get_logger().info(
             f"world ready: {self.num_robots} robots, {self.sim.world.num_landmarks} landmarks, "
             f"{self.params.world.width_m:g} m x {self.params.world.height_m:g} m, seed "
-            f"{self.params.run.seed}, {self.clock_mode}; waiting for the robots to connect")
+            f"{self.params.run.seed}, {self.clock_mode}"
+            + ("" if self.relay is None else f", team data relayed through the link model "
+               f"({self.params.links})")
+            + "; waiting for the robots to connect")
 
     def _create_interfaces(self) -> None:
         self.clock_pub = self.create_publisher(Clock, "/clock", CLOCK_QOS)
@@ -197,9 +201,11 @@ class WorldNode(Node):
     def robot_connected(self, robot: int) -> bool:
         """True when robot ``robot``'s node listens to its sensors, commands, and its team
         updates have their listeners (the teammates, plus the evaluator if required)."""
-        listeners = self.num_robots - 1 + (1 if self.wait_for_evaluator else 0)
+        teammates = self.num_robots - 1 if self.relay is None else 1  # relay: the world hears
+        listeners = teammates + (1 if self.wait_for_evaluator else 0)
         ns = robot_namespace(robot)
-        return (self.sonar_pubs[robot].get_subscription_count() >= 1
+        return ((self.relay is None or self.relay.robot_listens(robot))
+                and self.sonar_pubs[robot].get_subscription_count() >= 1
                 and self.odom_pubs[robot].get_subscription_count() >= 1
                 and self.command_subs[robot].get_publisher_count() >= 1
                 and self.count_subscribers(f"/{ns}/team/updates") >= listeners)
@@ -308,7 +314,8 @@ class WorldNode(Node):
         if not self.inputs.check(topic, self.command_problem(robot, message)):
             return
         answer = StepAnswer(float(message.twist.linear.x), float(message.twist.angular.z),
-                            int(message.team_sequence), bool(message.finished))
+                            int(message.team_sequence), bool(message.finished),
+                            int(message.team_messages), int(message.team_requests))
         if self.clock_mode == REALTIME:
             self._latest[robot] = answer
             return
@@ -328,9 +335,30 @@ class WorldNode(Node):
 
     def _check_step_complete(self) -> None:
         """Lockstep: advance as long as every live robot has answered the current step."""
-        while self.running and not self.stepping_over and self.barrier.complete:
+        while (self.running and not self.stepping_over and self.barrier.complete
+               and self._relay_heard_step()):
             answers = self.barrier.close()
             self._advance(answers, self.barrier.all_done)
+
+    def _relay_heard_step(self) -> bool:
+        """Relay mode: True once the relay heard every team message the step's answers count
+        (they travel on other topics than the answers, so they may come later), or
+        ``robot_timeout_s`` passed (logged: the step goes on without them)."""
+        if self.relay is None:
+            return True
+        missing = self.relay.missing_from(self.barrier.answers())
+        now = time.monotonic()
+        if not missing:
+            self._frames_wait_since_s = None
+            return True
+        if self._frames_wait_since_s is None:
+            self._frames_wait_since_s = now
+        if now - self._frames_wait_since_s < self.barrier.robot_timeout_s:
+            return False
+        self.get_logger().warn(f"step {self.barrier.step}: team messages of robots {missing} "
+                               f"counted in their answers never reached the relay; going on")
+        self._frames_wait_since_s = None
+        return True
 
     def _realtime_tick(self) -> None:
         self._advance(self._latest, all(answer.finished for answer in self._latest))
@@ -344,13 +372,22 @@ class WorldNode(Node):
         if everyone_done:
             self._end_stepping("every robot finished or stopped")
             return
+        if self.relay is not None:
+            self.relay.transmit(self.sim.step, np.array(
+                [self.sim.true_pose(robot)[:2] for robot in range(self.num_robots)]))
         for robot, answer in enumerate(answers):
             self.sim.apply_command(robot, answer.linear_x, answer.angular_z)
         self.sim.advance()
         self._publish_step()
 
+    def log_links(self) -> None:
+        """Relay mode: one line with what the links did so far."""
+        if self.relay is not None:
+            self.get_logger().info(self.relay.summary_line(self.sim.step))
+
     def _end_stepping(self, reason: str) -> None:
         self.stepping_over = True
+        self.log_links()
         self.get_logger().info(f"stepping over at step {self.sim.step} (t = {self.sim.stamp_s:g}"
                                f" s): {reason}; still serving the latched topics until stopped")
 
@@ -361,8 +398,11 @@ class WorldNode(Node):
         self.odom_pubs[robot].publish(odometry)
 
     def _publish_step(self) -> None:
-        """/clock, then every robot's sensors and ground truth for the current step."""
+        """/clock, what the links deliver before the step (relay mode), then every robot's
+        sensors and ground truth for the current step."""
         sim = self.sim
+        if self.relay is not None:
+            self.relay.deliver(sim.step)
         stamp = seconds_to_time(sim.stamp_s)
         self.clock_pub.publish(Clock(clock=stamp))
         lockstep = self.clock_mode == LOCKSTEP
@@ -370,8 +410,11 @@ class WorldNode(Node):
         max_range = self.params.sensors.sonar_max_range_m
         for robot in range(self.num_robots):
             frame = sim.sense(robot)
-            self._step_messages[robot] = (sonar_scan_to_msg(frame, max_range, sequences),
-                                          dead_reckoning_to_msg(frame))
+            scan = sonar_scan_to_msg(frame, max_range, sequences)
+            if self.relay is not None:
+                scan.delivered_updates, scan.delivered_requests = \
+                    self.relay.delivered_counts(robot)
+            self._step_messages[robot] = (scan, dead_reckoning_to_msg(frame))
             self._send_step_messages(robot)
             self.truth_pubs[robot].publish(odometry_to_msg(
                 robot, sim.stamp_s, sim.true_pose(robot), WORLD_FRAME,
@@ -379,7 +422,8 @@ class WorldNode(Node):
         self.tf_pub.publish(tf_publishing.tf_message(sim.stamp_s, tf_publishing.truth_transforms(
             [sim.true_pose(robot) for robot in range(self.num_robots)])))
         if sim.step % _LOG_EVERY_STEPS == 0:
-            self.get_logger().info(f"step {sim.step} (t = {sim.stamp_s:g} s)")
+            self.get_logger().info(f"step {sim.step} (t = {sim.stamp_s:g} s)" + (
+                "" if self.relay is None else f"; {self.relay.summary_line(sim.step)}"))
         if sim.step >= self.final_step:
             self._end_stepping(f"final step {self.final_step} reached")
         elif lockstep:
@@ -388,7 +432,13 @@ class WorldNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of em-world; returns the exit code (2 for invalid parameters)."""
-    return run_node(WorldNode, "em_world", args)
+    return run_node(WorldNode, "em_world", args, wrap_up=_log_links)
+
+
+def _log_links(node: WorldNode) -> int:
+    """At the end (Ctrl-C, SIGTERM): what the links did, for the run's logs."""
+    node.log_links()
+    return 0
 
 
 if __name__ == "__main__":

@@ -29,12 +29,16 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class StepAnswer:
-    """A robot's MotionCommand for one step: velocity (m/s, rad/s), barrier entry, finished."""
+    """A robot's MotionCommand for one step: velocity (m/s, rad/s), barrier entry, finished,
+    and how many team messages (update-topic records, requests) it has published in all
+    (the link relay's hand-over, ``core/sim/link_relay.py``)."""
 
     linear_x: float
     angular_z: float
     team_sequence: int
     finished: bool
+    team_messages: int = 0
+    team_requests: int = 0
 
 
 #: What a robot that does not move answers.
@@ -113,6 +117,10 @@ class LockstepBarrier:
             return self.STALE
         self._answers[robot_id] = answer
         return self.REJOINED if rejoined else self.ACCEPTED
+
+    def answers(self) -> dict[int, StepAnswer]:
+        """The answers to the open step received so far, by robot id."""
+        return dict(self._answers)
 
     def waiting_for(self) -> list[int]:
         """Live robots that have not answered the open step, in id order."""

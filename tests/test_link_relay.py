@@ -1,0 +1,133 @@
+"""The links in the ROS system: what a robot sends at a step (core/agent/link_sender.py), the
+world's relay bookkeeping (core/sim/link_relay.py), and a whole ROS team under poor links
+choosing em-sim's targets (launch_scripts/run_team.sh --comm-*)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from em_exploration_ros.core.agent.link_sender import LinkSender
+from em_exploration_ros.core.agent.team_data import (MissingRange, TeamUpdate, TeamUpdateInbox,
+                                                     TeamUpdateOutbox)
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.params_yaml import load_params
+from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
+from em_exploration_ros.core.sim.links import FrameKind
+from em_exploration_ros.core.sim.team_runner import TeamRunner
+from ros_process import REPO_ROOT, RUN_PROCESS_PATTERN, processes_in_domain, start_team_run
+
+#: Steps between two gap requests at the default repair interval (5 s at 0.2 s).
+REPAIR_STEPS = 25
+
+
+def _sender(robot: int = 0) -> LinkSender:
+    return LinkSender(robot, ExplorationParams())
+
+
+def _outbox(robot: int, records: int) -> TeamUpdateOutbox:
+    outbox = TeamUpdateOutbox(robot)
+    for step in range(records):
+        outbox.publish(step * 0.2)
+    return outbox
+
+
+def test_a_step_sends_the_gap_request_then_broadcast_resends_then_the_update():
+    sender = _sender(0)
+    inbox = TeamUpdateInbox(0, 3)
+    inbox.receive(TeamUpdate(2, 1, 0.0))
+    inbox.receive(TeamUpdate(2, 4, 0.6))  # 2..3 of robot 2 missing
+    inbox.pop_ready()
+    outbox = _outbox(0, 5)
+    sender.file_request(1, 2, 3, outbox.last_sequence)
+    update = outbox.publish(1.2)
+    frames = sender.frames(6, inbox, outbox, update)
+    assert [(f.kind, f.receivers, f.key) for f in frames] == [
+        (FrameKind.REQUEST, (2,), 2),
+        (FrameKind.RESEND, (1, 2), 2), (FrameKind.RESEND, (1, 2), 3),
+        (FrameKind.UPDATE, (1, 2), 6)]
+    assert frames[0].payload == MissingRange(2, 2, 3)
+    assert all(f.sent_step == 6 and f.sender == 0 and f.size_bytes > 0 for f in frames)
+    # The next request waits a repair interval; the re-send went out once.
+    assert sender.frames(6 + REPAIR_STEPS - 1, inbox, outbox, None) == []
+    assert [f.kind for f in sender.frames(6 + REPAIR_STEPS, inbox, outbox, None)] == [
+        FrameKind.REQUEST]
+
+
+def test_relay_tells_new_updates_from_resends_and_addresses_requests():
+    relay = LinkRelay(ExplorationParams())
+    assert relay.update_heard(0, 1, 60, 0, "u1") == FrameKind.UPDATE
+    assert relay.update_heard(0, 2, 60, 1, "u2") == FrameKind.UPDATE
+    assert relay.update_heard(0, 1, 60, 2, "u1 again") == FrameKind.RESEND
+    relay.request_heard(1, 0, 1, 40, 2, "1 asks 0")
+    relay.request_heard(2, 2, 1, 40, 2, "2 asks for its own stream")
+    assert relay.received == [SentCounts(3, 0), SentCounts(0, 1), SentCounts(0, 1)]
+    positions = np.zeros((3, 2))
+    delivered = []
+    for step in range(4):
+        for delivery in relay.deliveries(step):
+            delivered.append((step, delivery.receiver, delivery.frame.payload))
+        relay.transmit(step, positions)
+    delivered += [(4, d.receiver, d.frame.payload) for d in relay.deliveries(4)]
+    assert delivered == [(1, 1, "u1"), (1, 2, "u1"), (2, 1, "u2"), (2, 2, "u2"),
+                         (3, 1, "u1 again"), (3, 2, "u1 again"), (3, 0, "1 asks 0"),
+                         (3, 0, "2 asks for its own stream"), (3, 1, "2 asks for its own stream")]
+    assert relay.delivered_updates == [0, 3, 3]
+    assert relay.delivered_requests == [2, 1, 0]
+    counts = relay.ledger.counts(4)
+    assert (counts.sent, counts.on_time, counts.late, counts.never) == (4, 4, 0, 0)
+
+
+def test_relay_waits_only_for_messages_an_answer_counts_and_not_yet_heard():
+    relay = LinkRelay(ExplorationParams())
+    relay.update_heard(1, 1, 60, 0, "u")
+    assert relay.holds({1: SentCounts(1, 0)}) == []
+    assert relay.holds({0: SentCounts(0, 0), 1: SentCounts(2, 0), 2: SentCounts(0, 1)}) == [1, 2]
+    relay.request_heard(2, 0, 1, 40, 0, "r")
+    assert relay.holds({2: SentCounts(0, 1)}) == []
+    # A restarted process counts from zero again: never waited for.
+    assert relay.holds({1: SentCounts(0, 0)}) == []
+
+
+#: A small mission whose links lose, delay, cut and queue team data.
+POOR_LINKS = {"range_m": 20.0, "loss_probability": 0.3, "latency_s": 0.6,
+              "bandwidth_bytes_per_s": 60.0}
+RUN_TIMEOUT_S = 150.0
+
+
+def test_ros_team_under_poor_links_chooses_em_sims_targets(tmp_path):
+    summary_path = tmp_path / "run" / "summary.json"
+    run, domain = start_team_run(
+        tmp_path, "--robots", "3", "--planner", "NEAREST", "--map-size", "40",
+        "--landmarks", "4", "--seed", "2", "--until-explored", "0.85", "--max-sim-time", "600",
+        "--comm-range", "20", "--comm-loss", "0.3", "--comm-latency", "0.6",
+        "--comm-bandwidth", "60", "--summary", str(summary_path))
+    with run:
+        try:
+            code = run.wait(RUN_TIMEOUT_S)
+        except TimeoutError:
+            pytest.fail(f"run_team.sh did not finish in {RUN_TIMEOUT_S} s:\n"
+                        f"{run.output()[-3000:]}")
+    assert code == 0, run.output()[-3000:]
+    summary = json.loads(summary_path.read_text())
+    reference = TeamRunner(load_params(REPO_ROOT / "config" / "exploration.yaml").replace(
+        world={"num_robots": 3, "width_m": 40.0, "height_m": 40.0, "num_landmarks": 4},
+        planner={"name": "NEAREST"}, run={"seed": 2, "until_explored": 0.85},
+        links=POOR_LINKS)).run().to_dict()
+    # The links did cut the team apart: updates arrived late or never.
+    counts = reference["team_updates"]
+    assert counts["late"] > 0 and counts["never"] > 0, counts
+    assert [r["targets"] for r in summary["robots"]] == [r["targets"] for r in
+                                                         reference["robots"]]
+    assert (summary["stop_reason"], summary["sim_time_s"]) == (reference["stop_reason"],
+                                                               reference["sim_time_s"])
+    assert summary["loc_rmse_m"] == pytest.approx(reference["loc_rmse_m"], abs=1e-6)
+    logs = summary_path.parent / "logs"
+    world_log = (logs / "world.log").read_text()
+    assert "team data relayed through the link model" in world_log
+    assert "links:" in world_log and " lost, " in world_log
+    for robot in range(3):
+        robot_log = (logs / f"robot_{robot}.log").read_text()
+        assert "still missing" not in robot_log and "Traceback" not in robot_log
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
