@@ -13,6 +13,14 @@ for missing ones again (TeamUpdateRequest) while it waits; a teammate silent pas
 and steps are processed as they come. A step the world sends again (its barrier repair) is
 answered again with the same command.
 
+Relay mode (``links.*`` not perfect): the robot hears no teammate directly. The world's
+link relay (``nodes/team_relay.py``) delivers teammates' records and requests on
+``/robot_<i>/team/delivered_updates`` and ``/robot_<i>/team/delivered_requests``; each
+SonarScan says how many it has delivered in all, and the step waits for those instead of
+the barrier's sequence numbers. The robot sends at steps only, as em-sim
+(``core.agent.link_sender.LinkSender``: gap request, broadcast re-sends, new update), and
+its MotionCommand counts what it has published (``team_messages``, ``team_requests``).
+
 Liveliness (``nodes/liveliness.py``): the node offers its own and logs a warning when a
 teammate's is lost. Rejoin: a node whose first step is not step 0 was restarted after a
 crash. It asks its teammates for its own earlier stream (``/team/update_requests`` with
@@ -166,6 +174,7 @@ class RobotNode(Node):
                                  self._on_update_request, TEAM_QOS)
         teammates = [r for r in range(self.num_robots) if r != self.robot_id]
         if self.relay_mode:
+            self.history_pubs = {}  # copies of a teammate's records go through the relay
             self.history_copies_pub = self.create_publisher(
                 TeamUpdate, history_copies_topic(self.robot_id), TEAM_QOS)
             self.create_subscription(TeamUpdate, delivered_updates_topic(self.robot_id),

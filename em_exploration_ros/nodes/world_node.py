@@ -26,6 +26,12 @@ pose where its vehicle stopped. The commands are applied in robot id order and t
 advances: the same order as ``core.sim.team_runner.TeamRunner.step_once``, so em-sim and the
 ROS system draw the same noise.
 
+Relay mode (``links.*`` not perfect): the world is also the link relay between the robots
+(``nodes/team_relay.py``): it hears their team data, closes step k only once it heard
+every team message the answers count, transmits step k's frames with the true positions
+of step k, and delivers what arrives before publishing step k+1 (whose SonarScan carries
+the delivery counts).
+
 Real-time mode: a wall timer advances the world every ``time_step_s / realtime_factor``
 seconds with each robot's latest command (none yet: stand still); no barrier.
 
