@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
+import pytest
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -218,3 +220,14 @@ def start_team_run(tmp_path: Path, *args: str) -> tuple[NodeProcess, str]:
         run.stop()
         raise
     return run, domain
+
+
+def finish_team_run(run: NodeProcess, timeout_s: float) -> int:
+    """The exit code of a run_team.sh run (``start_team_run``); fails the test with the
+    run's last output if it does not end within ``timeout_s``."""
+    with run:
+        try:
+            return run.wait(timeout_s)
+        except TimeoutError:
+            pytest.fail(f"run_team.sh did not finish in {timeout_s} s:\n"
+                        f"{run.output()[-3000:]}")

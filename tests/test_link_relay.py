@@ -16,7 +16,8 @@ from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
 from em_exploration_ros.core.sim.links import FrameKind
 from em_exploration_ros.core.sim.team_runner import TeamRunner
-from ros_process import REPO_ROOT, RUN_PROCESS_PATTERN, processes_in_domain, start_team_run
+from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, finish_team_run, processes_in_domain,
+                         start_team_run)
 
 #: Steps between two gap requests at the default repair interval (5 s at 0.2 s).
 REPAIR_STEPS = 25
@@ -103,12 +104,7 @@ def test_ros_team_under_poor_links_chooses_em_sims_targets(tmp_path):
         "--landmarks", "4", "--seed", "2", "--until-explored", "0.85", "--max-sim-time", "600",
         "--comm-range", "20", "--comm-loss", "0.3", "--comm-latency", "0.6",
         "--comm-bandwidth", "60", "--summary", str(summary_path))
-    with run:
-        try:
-            code = run.wait(RUN_TIMEOUT_S)
-        except TimeoutError:
-            pytest.fail(f"run_team.sh did not finish in {RUN_TIMEOUT_S} s:\n"
-                        f"{run.output()[-3000:]}")
+    code = finish_team_run(run, RUN_TIMEOUT_S)
     assert code == 0, run.output()[-3000:]
     summary = json.loads(summary_path.read_text())
     reference = TeamRunner(load_params(REPO_ROOT / "config" / "exploration.yaml").replace(

@@ -19,8 +19,8 @@ import pytest
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.evaluation.summary import check_summary
 from em_exploration_ros.core.sim.team_runner import TeamRunner
-from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, processes_in_domain,
-                         start_team_run)
+from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, finish_team_run,
+                         processes_in_domain, start_team_run)
 from rosbags.rosbag2 import Reader as RosbagsReader
 from websockets.sync.client import connect
 
@@ -106,12 +106,7 @@ def test_three_robots_explore_end_to_end(tmp_path):
                             "--until-explored", str(until), "--max-sim-time", "600",
                             "--params", str(params),
                             "--summary", str(summary_path), "--record", str(bag))
-    with run:
-        try:
-            code = run.wait(RUN_TIMEOUT_S)
-        except TimeoutError:
-            pytest.fail(f"run_team.sh did not finish in {RUN_TIMEOUT_S} s:\n"
-                        f"{run.output()[-3000:]}")
+    code = finish_team_run(run, RUN_TIMEOUT_S)
     output = run.output()
     assert code == 0, output[-3000:]
     assert f"summary: {summary_path}" in output and "explored" in output
