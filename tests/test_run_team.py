@@ -52,6 +52,8 @@ def run_team(*args: str, timeout_s: float = 20.0) -> subprocess.CompletedProcess
     (["--domain-id", "500"], "--domain-id must be in [0, 232]"),
     (["--robots"], "--robots needs a value"),
     (["--foxglove", "70000"], "--foxglove must be in [1, 65535]"),
+    (["--comm-loss", "1.5"], "--comm-loss must be in [0, 0.99]"),
+    (["--comm-range", "far"], "--comm-range expects a number"),
     (["--netns", "em_absent_"], "cannot run in network namespace 'em_absent_world'"),
 ])
 def test_refuses_bad_arguments(args, message):
@@ -84,7 +86,8 @@ def test_help_lists_the_options():
     assert result.returncode == 0
     for flag in ("--robots", "--seed", "--planner", "--map-size", "--landmarks",
                  "--until-explored", "--max-sim-time", "--params", "--realtime", "--summary",
-                 "--domain-id", "--record", "--foxglove"):
+                 "--domain-id", "--record", "--foxglove", "--comm-range", "--comm-loss",
+                 "--comm-latency", "--comm-bandwidth"):
         assert flag in result.stdout
 
 
