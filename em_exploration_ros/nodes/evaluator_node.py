@@ -54,7 +54,6 @@ from em_exploration_msgs.msg import (ExplorationMetrics, LandmarkArray, MotionCo
 from nav_msgs.msg import Odometry, Path as PathMsg
 from builtin_interfaces.msg import Time
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.task import Future
 
 from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
@@ -86,6 +85,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, given_
                                                   robot_namespace,
                                                   seconds_to_time,
                                                   time_to_seconds)
+from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import (ESTIMATE_READER_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
@@ -136,7 +136,7 @@ class StampedEstimates:
         return chosen
 
 
-class EvaluatorNode(Node):
+class EvaluatorNode(LeanNode):
     """Team metrics, the run's stop rule and its summary (see module docstring)."""
 
     def __init__(self) -> None:

@@ -163,6 +163,12 @@ def checked_team_update(message: Any, wire: TeamWireFormat) -> TeamUpdate:
     return update
 
 
+def listened(publisher: Publisher) -> bool:
+    """True when some subscription matches ``publisher``: messages only users look at
+    (markers, maps, transforms) are built only then."""
+    return publisher.get_subscription_count() > 0
+
+
 def publish_or_log(publisher: Publisher, message: Any, node: Node, what: str) -> bool:
     """Publish ``message``; if the middleware refuses, log an ERROR and return False."""
     try:

@@ -51,10 +51,10 @@ from em_exploration_msgs.msg import (LandmarkArray, MotionCommand, SonarScan, Te
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import OccupancyGrid, Odometry, Path
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.task import Future
 from visualization_msgs.msg import MarkerArray
 
+from em_exploration_ros.core.planning.frontiers import Frontier
 from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariances_from_poses
 from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
                                                   keyframe_ranges)
@@ -84,12 +84,13 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, given_up_to_msg,
                                                   robot_namespace, seconds_to_time,
                                                   team_update_to_msg,
                                                   teammate_reading_from_msg, time_to_seconds)
+from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import ESTIMATE_QOS, LATCHED_QOS, SENSOR_QOS, TEAM_QOS
 from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
                                                   checked_team_update, content_problem,
-                                                  header_problem, publish_or_log)
+                                                  header_problem, listened, publish_or_log)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
@@ -106,7 +107,7 @@ def requester_name(requester_id: int) -> str:
     return f"robot {requester_id}"
 
 
-class RobotNode(Node):
+class RobotNode(LeanNode):
     """One robot of the team (see module docstring)."""
 
     def __init__(self) -> None:
@@ -622,7 +623,7 @@ class RobotNode(Node):
     def _publish_transforms(self, stamp_s: float, odometry: Odometry) -> None:
         """/tf ``map`` -> ``odom`` -> ``base_link`` of this step, once the robot is anchored."""
         pose = self.agent.current_pose()
-        if pose is not None:
+        if pose is not None and listened(self.tf_pub):
             transforms = tf_publishing.robot_transforms(self.robot_id, pose,
                                                         odometry_pose(odometry))
             publish_or_log(self.tf_pub, tf_publishing.tf_message(stamp_s, transforms), self,
@@ -641,15 +642,25 @@ class RobotNode(Node):
             stamp_s, MAP_FRAME, landmarks, self.params.world.landmark_radius_m))
 
     def _publish_decision(self, stamp_s: float) -> None:
+        """The target, the virtual map and the markers of a new decision, each only if
+        someone subscribes (the markers cost a robot more CPU than its decision; a viewer
+        that subscribes later gets the next decision's)."""
         agent = self.agent
         target = agent.target
-        if target is not None:
+        if target is not None and listened(self.target_pub):
             point = PointStamped()
             point.header.stamp = seconds_to_time(stamp_s)
             point.header.frame_id = MAP_FRAME
             point.point.x, point.point.y = float(target.position[0]), float(target.position[1])
             self.target_pub.publish(point)
-        self.grid_pub.publish(visualization.occupancy_grid_to_msg(agent.grid, stamp_s))
+        if listened(self.grid_pub):
+            self.grid_pub.publish(visualization.occupancy_grid_to_msg(agent.grid, stamp_s))
+        if listened(self.markers_pub):
+            self._publish_markers(stamp_s, target)
+
+    def _publish_markers(self, stamp_s: float, target: Frontier | None) -> None:
+        """Covariance ellipses of the virtual map's cells, frontiers and landmarks."""
+        agent = self.agent
         slam = agent.slam
         robots = range(self.num_robots)
         poses = np.concatenate([slam.trajectory(robot)[1] for robot in robots])

@@ -50,7 +50,6 @@ import numpy as np
 from em_exploration_msgs.msg import LandmarkArray, MotionCommand, SonarScan
 from geometry_msgs.msg import Point, PoseStamped
 from nav_msgs.msg import Odometry
-from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
@@ -70,10 +69,12 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
                                                   seconds_to_time, sonar_scan_to_msg,
                                                   yaw_to_quaternion)
 from em_exploration_ros.nodes import tf_publishing
+from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.qos import CLOCK_QOS, GROUND_TRUTH_QOS, LATCHED_QOS, SENSOR_QOS
-from em_exploration_ros.nodes.input_guard import InputGuard, content_problem, header_problem
+from em_exploration_ros.nodes.input_guard import (InputGuard, content_problem, header_problem,
+                                                  listened)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
@@ -115,7 +116,7 @@ def world_markers(world: World, stamp_s: float) -> MarkerArray:
     return MarkerArray(markers=markers)
 
 
-class WorldNode(Node):
+class WorldNode(LeanNode):
     """The world simulator (see module docstring)."""
 
     def __init__(self) -> None:
@@ -425,8 +426,10 @@ class WorldNode(Node):
             self.truth_pubs[robot].publish(odometry_to_msg(
                 robot, sim.stamp_s, sim.true_pose(robot), WORLD_FRAME,
                 f"{robot_namespace(robot)}/base_link"))
-        self.tf_pub.publish(tf_publishing.tf_message(sim.stamp_s, tf_publishing.truth_transforms(
-            [sim.true_pose(robot) for robot in range(self.num_robots)])))
+        if listened(self.tf_pub):
+            self.tf_pub.publish(tf_publishing.tf_message(
+                sim.stamp_s, tf_publishing.truth_transforms(
+                    [sim.true_pose(robot) for robot in range(self.num_robots)])))
         if sim.step % _LOG_EVERY_STEPS == 0:
             self.get_logger().info(f"step {sim.step} (t = {sim.stamp_s:g} s)" + (
                 "" if self.relay is None else f"; {self.relay.summary_line(sim.step)}"))
