@@ -209,6 +209,7 @@ class RobotNode(LeanNode):
                                  content_problem(message)):
             return
         self.agent = RobotAgent(self.robot_id, self.params, anchor)
+        self._world_heard()  # the anchor is the world's
         self.get_logger().info(f"map anchored at robot 0's launch pose {anchor.round(3).tolist()}")
         self._process_ready_steps()
 
@@ -279,6 +280,7 @@ class RobotNode(LeanNode):
                                  self.scan_problem(message)):
             return
         self._scans[int(message.step)] = message
+        self._world_heard()
         self._process_ready_steps()
 
     def _on_odometry(self, message: Odometry) -> None:
@@ -441,7 +443,16 @@ class RobotNode(LeanNode):
             return
         self._next_world_check_s = now + 1.0
         topic = f"/{robot_namespace(self.robot_id)}/sonar"
-        event = self._world_watch.update(self.count_publishers(topic) > 0, now)
+        self._log_world_event(self._world_watch.update(self.count_publishers(topic) > 0, now),
+                              topic)
+
+    def _world_heard(self) -> None:
+        """A message of the world arrived, so it is there: a world that leaves before the
+        once-a-second graph check first saw it is still noticed when it leaves."""
+        self._log_world_event(self._world_watch.update(True, time.monotonic()),
+                              f"/{robot_namespace(self.robot_id)}/sonar")
+
+    def _log_world_event(self, event: WorldEvent | None, topic: str) -> None:
         log = self.get_logger()
         if event == WorldEvent.LOST:
             log.warn(f"the world left the ROS graph (no publisher of {topic}); waiting up to "
