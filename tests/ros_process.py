@@ -222,11 +222,22 @@ def start_team_run(tmp_path: Path, *args: str) -> tuple[NodeProcess, str]:
     return run, domain
 
 
-def finish_team_run(run: NodeProcess, timeout_s: float) -> int:
-    """The exit code of a run_team.sh run (``start_team_run``); fails the test with the
-    run's last output if it does not end within ``timeout_s``."""
+def robot_pid(domain: str, robot_id: int) -> int:
+    """The PID of robot ``robot_id``'s process in this test run's domain (exactly one)."""
+    pids = processes_in_domain(rf"robot_node.*robot_id:={robot_id}( |$)", domain)
+    assert len(pids) == 1, f"robot {robot_id}: processes {pids}"
+    return pids[0]
+
+
+def finish_team_run(run: NodeProcess, timeout_s: float,
+                    meanwhile: Callable[[], None] | None = None) -> int:
+    """The exit code of a run_team.sh run (``start_team_run``), after ``meanwhile()`` (e.g.
+    killing a robot); fails the test with the run's last output if it does not end within
+    ``timeout_s``. The run is stopped whatever happens."""
     with run:
         try:
+            if meanwhile is not None:
+                meanwhile()
             return run.wait(timeout_s)
         except TimeoutError:
             pytest.fail(f"run_team.sh did not finish in {timeout_s} s:\n"

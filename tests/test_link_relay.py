@@ -4,6 +4,9 @@ choosing em-sim's targets (launch_scripts/run_team.sh --comm-*)."""
 from __future__ import annotations
 
 import json
+import os
+import re
+import signal
 
 import numpy as np
 import pytest
@@ -17,7 +20,7 @@ from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
 from em_exploration_ros.core.sim.links import FrameKind
 from em_exploration_ros.core.sim.team_runner import TeamRunner
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, finish_team_run, processes_in_domain,
-                         start_team_run)
+                         robot_pid, start_team_run, wait_until)
 
 #: Steps between two gap requests at the default repair interval (5 s at 0.2 s).
 REPAIR_STEPS = 25
@@ -126,4 +129,35 @@ def test_ros_team_under_poor_links_chooses_em_sims_targets(tmp_path):
     for robot in range(3):
         robot_log = (logs / f"robot_{robot}.log").read_text()
         assert "still missing" not in robot_log and "Traceback" not in robot_log
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+
+
+def test_a_robot_restarted_under_poor_links_resumes_at_the_worlds_open_step(tmp_path):
+    """--respawn in relay mode: robot 1 is SIGKILLed mid-run. Its teammates are mostly out of
+    range, so its recovery runs into ``rejoin_timeout_s`` while the world goes on without it
+    for hundreds of steps; it must resume at the world's open step (not replay the stale
+    ones it could never catch up with) and the team must finish."""
+    params = tmp_path / "params.yaml"
+    params.write_text((REPO_ROOT / "config" / "exploration.yaml").read_text()
+                      + "/**/em_robot:\n  ros__parameters:\n    rejoin_timeout_s: 4.0\n")
+    summary_path = tmp_path / "run" / "summary.json"
+    run, domain = start_team_run(
+        tmp_path, "--robots", "3", "--map-size", "60", "--landmarks", "6", "--seed", "2",
+        "--max-sim-time", "900", "--respawn", "--comm-range", "15", "--comm-loss", "0.1",
+        "--params", str(params), "--summary", str(summary_path))
+    def kill_robot_1_mid_run() -> None:
+        wait_until(lambda: "t=   20.0 s" in run.output(), RUN_TIMEOUT_S, "mid-run")
+        os.kill(robot_pid(domain, 1), signal.SIGKILL)
+
+    code = finish_team_run(run, RUN_TIMEOUT_S, kill_robot_1_mid_run)
+    assert code == 0, run.output()[-3000:]
+    logs = summary_path.parent / "logs"
+    world_log = (logs / "world.log").read_text()
+    rejoined = re.findall(r"robot 1 rejoined at step (\d+) \(answered step (\d+)\)", world_log)
+    assert rejoined, world_log[-2000:]
+    open_step, answered = map(int, rejoined[0])
+    assert answered == open_step, rejoined
+    assert "first step is" in (logs / "robot_1.log").read_text()
+    summary = json.loads(summary_path.read_text())
+    assert summary["explored_ratio"] >= 0.85, summary["stop_reason"]
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []

@@ -24,7 +24,7 @@ from rclpy.node import Node
 from em_exploration_ros.nodes.qos import TEAM_QOS
 
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
-                         start_team_run, wait_until)
+                         robot_pid, start_team_run, wait_until)
 
 #: Bound of one team run in these tests [s].
 RUN_TIMEOUT_S = 180.0
@@ -48,12 +48,6 @@ def graph_node():
 def robot_nodes(node: Node) -> set[str]:
     return {f"{ns.rstrip('/')}/{name}" for name, ns in node.get_node_names_and_namespaces()
             if name == "em_robot"}
-
-
-def robot_pid(domain: str, robot_id: int) -> int:
-    pids = processes_in_domain(rf"robot_node.*robot_id:={robot_id}( |$)", domain)
-    assert len(pids) == 1, f"robot {robot_id}: processes {pids}"
-    return pids[0]
 
 
 def test_robots_are_separate_processes_blind_to_ground_truth_and_survive_a_dead_teammate(

@@ -280,6 +280,7 @@ class RobotNode(LeanNode):
                                  self.scan_problem(message)):
             return
         self._scans[int(message.step)] = message
+        self._drop_stale_while_recovering(int(message.step))
         self._world_heard()
         self._process_ready_steps()
 
@@ -292,7 +293,20 @@ class RobotNode(LeanNode):
                                  self.odometry_problem(message, step)):
             return
         self._odometry[step] = message
+        self._drop_stale_while_recovering(step)
         self._process_ready_steps()
+
+    def _drop_stale_while_recovering(self, step: int) -> None:
+        """While a restarted robot recovers its stream, the world goes on without it (its
+        vehicle stands still) and may run thousands of steps ahead: keep only the newest
+        step's sensor data, so that it resumes at the world's open step instead of
+        replaying stale steps it could never catch up with."""
+        if self._recovery is None or self._next_step is None or step <= self._next_step:
+            return
+        for pending in (self._scans, self._odometry):
+            for old in [k for k in pending if k < step]:
+                del pending[old]
+        self._next_step = step
 
     def _on_team_update(self, sender: int, message: TeamUpdate) -> None:
         self._file_team_update(f"/{robot_namespace(sender)}/team/updates", message, sender)
