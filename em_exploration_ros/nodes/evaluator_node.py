@@ -49,8 +49,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from em_exploration_msgs.msg import (ExplorationMetrics, LandmarkArray, MotionCommand, TeamUpdate,
-                                     TeamUpdateRequest)
+from em_exploration_msgs.msg import (ExplorationMetrics, LandmarkArray, MotionCommand,
+                                     TeamLinkCounts, TeamUpdate, TeamUpdateRequest)
 from nav_msgs.msg import Odometry, Path as PathMsg
 from builtin_interfaces.msg import Time
 from rclpy.clock import Clock, ClockType
@@ -77,6 +77,7 @@ from em_exploration_ros.core.evaluation.run_monitor import (EXIT_STALLED, Decisi
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, RunSummary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.output_paths import output_path_problem
+from em_exploration_ros.core.sim.links import perfect_links
 from em_exploration_ros.core.sim.wire_model import sim_time_s
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, given_up_from_msg,
                                                   landmark_array_to_msg,
@@ -98,10 +99,13 @@ from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_updat
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
+from em_exploration_ros.nodes.team_relay import LINK_COUNTS_TOPIC
 
 EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
 #: Wall period of the silence check [s].
 _WATCH_PERIOD_S = 1.0
+#: Relay mode: the link counts of this many evaluation steps before the newest are kept.
+_LINK_COUNTS_KEPT = 100
 
 
 class StampedEstimates:
@@ -172,6 +176,8 @@ class EvaluatorNode(LeanNode):
         self.targets: list[dict[int, TargetRecord]] = [{} for _ in range(self.num_robots)]
         self.rendezvous_events: list[RendezvousEvent] = []
         self.team_updates = TeamUpdateInbox(None, self.num_robots)
+        #: Relay mode: the link relay's update counts by step (``/world/link_counts``).
+        self.link_counts: dict[int, dict[str, int]] = {}
         self.exit_code: int | None = None
         self.done = Future()
         self.recorded_step = -1
@@ -197,6 +203,9 @@ class EvaluatorNode(LeanNode):
             f"summary -> {self.summary_path}")
 
     def _create_interfaces(self) -> None:
+        if not perfect_links(self.params.links):  # first: taken before a step's ground truth
+            self.create_subscription(TeamLinkCounts, LINK_COUNTS_TOPIC, self._on_link_counts,
+                                     GROUND_TRUTH_QOS)
         self.metrics_pub = self.create_publisher(ExplorationMetrics, "/evaluation/metrics",
                                                  STREAM_QOS)
         self.request_pub = self.create_publisher(TeamUpdateRequest, "/team/update_requests",
@@ -342,6 +351,24 @@ class EvaluatorNode(LeanNode):
         history.add(robot, time_to_seconds(stamp), value)
         self._overdue.discard(robot)
         self._process()
+
+    def _on_link_counts(self, message: TeamLinkCounts) -> None:
+        """The relay's update counts of one step (the first copy of a step counts). Kept for
+        the steps of the last ``_LINK_COUNTS_KEPT`` evaluations, so the memory is bounded."""
+        step = int(message.step)
+        counts = {"sent": int(message.sent), "on_time": int(message.on_time),
+                  "late": int(message.late), "never": int(message.never)}
+        oldest = self.recorded_step - _LINK_COUNTS_KEPT * self.interval_steps
+        problem = (step_problem(step, max(oldest, 0), self.monitor.final_step,
+                                EVALUATOR_STEP_LEAD)
+                   or (f"counts {counts} do not add up"
+                       if counts["on_time"] + counts["late"] + counts["never"] != counts["sent"]
+                       else None))
+        if not self.inputs.check(LINK_COUNTS_TOPIC, problem):
+            return
+        self.link_counts.setdefault(step, counts)
+        for old in [s for s in self.link_counts if s < oldest]:
+            del self.link_counts[old]
 
     def _on_team_update(self, robot: int, message: TeamUpdate) -> None:
         """Targets from the robots' update streams, validated and in sequence order exactly
@@ -648,6 +675,13 @@ class EvaluatorNode(LeanNode):
                   else time.monotonic() - self._first_step_wall_s)
         summary = self.monitor.summary(self._decisions(), wall_s, progress=self._progress(),
                                        rendezvous_events=self.rendezvous_events)
+        final = self.monitor.final_metrics
+        if final is not None and self.link_counts:
+            step = round(final.stamp_s / self.time_step_s)
+            summary.team_updates = self.link_counts.get(step)
+            if summary.team_updates is None:
+                self.get_logger().warn(f"no link counts of step {step} arrived: the summary "
+                                       f"has no team_updates")
         until_s = self._status_times()
         for entry in summary.robots:
             entry.status = self.liveness.status(entry.id)

@@ -11,7 +11,10 @@ topics. Topics (QoS ``TEAM_QOS``):
   ``/robot_<s>/team/history_copies`` (robot s's copies of a restarted teammate's records,
   relay mode's form of ``/robot_<i>/team/history``, which does not say who sent a copy);
 - delivers on ``/robot_<i>/team/delivered_updates`` (TeamUpdate) and
-  ``/robot_<i>/team/delivered_requests`` (TeamUpdateRequest).
+  ``/robot_<i>/team/delivered_requests`` (TeamUpdateRequest);
+- publishes ``/world/link_counts`` (TeamLinkCounts, ``GROUND_TRUTH_QOS``: the evaluator may
+  lag) before the deliveries of every ``METRICS_INTERVAL_STEPS``-th step and of the final
+  step: the on-time / late / never counts em-sim's summary holds, for the evaluator's.
 
 A real deployment replaces this relay (and the delivered topics) with a modem bridge that
 carries the three heard topics between vehicles.
@@ -21,7 +24,7 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-from em_exploration_msgs.msg import TeamUpdate, TeamUpdateRequest
+from em_exploration_msgs.msg import TeamLinkCounts, TeamUpdate, TeamUpdateRequest
 from rclpy.node import Node
 
 from em_exploration_ros.core.agent.input_checks import request_problem
@@ -30,12 +33,14 @@ from em_exploration_ros.core.agent.team_wire import TeamWireFormat, cdr_size, re
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
 from em_exploration_ros.core.sim.links import FrameKind
+from em_exploration_ros.core.sim.team_runner import METRICS_INTERVAL_STEPS
 from em_exploration_ros.nodes.conversions import robot_namespace
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   publish_or_log)
-from em_exploration_ros.nodes.qos import TEAM_QOS
+from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, TEAM_QOS
 
 REQUESTS_TOPIC = "/team/update_requests"
+LINK_COUNTS_TOPIC = "/world/link_counts"
 
 
 def delivered_updates_topic(robot: int) -> str:
@@ -72,6 +77,8 @@ class TeamRelay:
                                                   TEAM_QOS) for r in robots]
         self.request_pubs = [node.create_publisher(
             TeamUpdateRequest, delivered_requests_topic(r), TEAM_QOS) for r in robots]
+        self.counts_pub = node.create_publisher(TeamLinkCounts, LINK_COUNTS_TOPIC,
+                                                GROUND_TRUTH_QOS)
         for robot in robots:
             ns = robot_namespace(robot)
             node.create_subscription(
@@ -146,8 +153,14 @@ class TeamRelay:
         """Start the transmissions of ``step`` (true positions ``(N, 2)`` [m], world frame)."""
         self.relay.transmit(step, true_positions)
 
-    def deliver(self, step: int) -> None:
-        """Publish what reaches each receiver before ``step``."""
+    def deliver(self, step: int, final: bool) -> None:
+        """Publish what reaches each receiver before ``step`` (``final``: the run's last
+        step), after the update counts of the step if it is one the evaluator evaluates."""
+        if final or step % METRICS_INTERVAL_STEPS == 0:
+            counts = self.relay.ledger.counts(step)
+            publish_or_log(self.counts_pub, TeamLinkCounts(
+                step=step, sent=counts.sent, on_time=counts.on_time, late=counts.late,
+                never=counts.never), self.node, f"the link counts of step {step}")
         for delivery in self.relay.deliveries(step):
             frame, receiver = delivery.frame, delivery.receiver
             if frame.kind == FrameKind.REQUEST:

@@ -409,7 +409,7 @@ class WorldNode(LeanNode):
         sensors and ground truth for the current step."""
         sim = self.sim
         if self.relay is not None:
-            self.relay.deliver(sim.step)
+            self.relay.deliver(sim.step, sim.step >= self.final_step)
         stamp = seconds_to_time(sim.stamp_s)
         self.clock_pub.publish(Clock(clock=stamp))
         lockstep = self.clock_mode == LOCKSTEP
