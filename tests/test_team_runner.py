@@ -64,6 +64,23 @@ def test_em_sim_command_writes_summary(tmp_path):
     assert data["num_robots"] == 3 and math.isfinite(data["explored_ratio"])
 
 
+def test_em_sim_whose_reader_goes_away_still_writes_its_summary(tmp_path):
+    """``em-sim ... | head -1``: the reader closes the pipe after the first progress line;
+    em-sim goes on quietly, writes the summary, exits 0, prints no traceback."""
+    out = tmp_path / "run.json"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "em_exploration_ros.tools.sim_cli", "--planner", "NEAREST",
+         "--map-size", "60", "--landmarks", "5", "--seed", "2", "--max-steps", "900",
+         "--summary", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = process.stdout.readline()
+    process.stdout.close()  # as head does after its line
+    code = process.wait(timeout=120)
+    stderr = process.stderr.read()
+    assert first.startswith("t=") and code == 0, stderr
+    assert "Traceback" not in stderr and "BrokenPipe" not in stderr, stderr
+    assert check_summary(json.loads(out.read_text())) == []
+
+
 @pytest.mark.parametrize("args, message", [
     (["--robots", "0"], "num_robots"), (["--planner", "XX"], "invalid choice"),
     (["--params", "/nonexistent.yaml"], "cannot read"), (["--map-size", "-5"], "width_m")])

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -132,25 +133,37 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     def report(progress: Progress) -> None:
         if not args.quiet and progress.step % PROGRESS_EVERY_STEPS == 0:
-            print(_format_progress(progress), flush=True)
+            say(_format_progress(progress))
 
     try:
         summary = runner.run(report)
     except KeyboardInterrupt:
         log.warning("interrupted")
         return 130
-    print(f"done ({summary.stop_reason}): explored {summary.explored_ratio:.3f}, "
-          f"distance {summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, "
-          f"landmark RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, "
-          f"wall {summary.wall_s:.1f} s, sim {summary.sim_time_s:.1f} s")
-    print(activity_line(summary.to_dict()))
+    # The files first: a reader that closes stdout early (| head) must not cost them.
     if args.summary:
         summary.write(args.summary)
-        print(f"summary: {args.summary}")
     if args.map:
         render_team_map(runner.map_layers(), args.map)
-        print(f"map: {args.map}")
+    say(f"done ({summary.stop_reason}): explored {summary.explored_ratio:.3f}, "
+        f"distance {summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, "
+        f"landmark RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, "
+        f"wall {summary.wall_s:.1f} s, sim {summary.sim_time_s:.1f} s")
+    say(activity_line(summary.to_dict()))
+    if args.summary:
+        say(f"summary: {args.summary}")
+    if args.map:
+        say(f"map: {args.map}")
     return EXIT_STALLED if summary.stop_reason.startswith(STALLED_PREFIX) else 0
+
+
+def say(line: str) -> None:
+    """Print a line to stdout at once; once its reader has gone (``em-sim ... | head``),
+    stdout goes to /dev/null and the run goes on to write its files."""
+    try:
+        print(line, flush=True)
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 if __name__ == "__main__":
