@@ -28,11 +28,13 @@ from em_exploration_msgs.msg import TeamLinkCounts, TeamUpdate, TeamUpdateReques
 from rclpy.node import Node
 
 from em_exploration_ros.core.agent.input_checks import request_problem
+from em_exploration_ros.core.agent import team_data
 from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate
 from em_exploration_ros.core.agent.team_wire import TeamWireFormat, cdr_size, request_cdr_size
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
 from em_exploration_ros.core.sim.links import FrameKind
+from em_exploration_ros.core.sim.lockstep import StepAnswer
 from em_exploration_ros.core.sim.team_runner import METRICS_INTERVAL_STEPS
 from em_exploration_ros.nodes.conversions import robot_namespace
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
@@ -94,7 +96,8 @@ class TeamRelay:
         return (self.update_pubs[robot].get_subscription_count() >= 1
                 and self.request_pubs[robot].get_subscription_count() >= 1)
 
-    def _checked(self, topic: str, message: TeamUpdate, robot_id: int):
+    def _checked(self, topic: str, message: TeamUpdate,
+                 robot_id: int) -> team_data.TeamUpdate | None:
         """The message as core data if it is a valid record of ``robot_id``'s stream."""
         try:
             update = checked_team_update(message, self.wire)
@@ -144,7 +147,7 @@ class TeamRelay:
                                      request_cdr_size(), self._open_step(), message)
             self._on_heard()
 
-    def missing_from(self, answers: dict) -> list[int]:
+    def missing_from(self, answers: dict[int, StepAnswer]) -> list[int]:
         """Robots whose answers (robot -> StepAnswer) count team messages not heard yet."""
         return self.relay.holds({robot: SentCounts(a.team_messages, a.team_requests)
                                  for robot, a in answers.items()})
