@@ -85,8 +85,12 @@ def test_client_sees_the_team_live(tmp_path: Path) -> None:
         bridge = processes.start_module(
             "em_exploration_ros.tools.foxglove_bridge",
             ["--port", "0", *ros_args({"use_sim_time": True})], tmp_path / "bridge.log")
-        world = processes.start_module("em_exploration_ros.nodes.world_node",
-                                       ros_args(PARAMS), tmp_path / "world.log")
+        # Real time (5x): in lockstep this one-robot mission is over in about a second,
+        # before the client has subscribed to anything.
+        world = processes.start_module(
+            "em_exploration_ros.nodes.world_node",
+            ros_args({**PARAMS, "clock_mode": "realtime", "realtime_factor": 5.0}),
+            tmp_path / "world.log")
         processes.start_module(
             "em_exploration_ros.nodes.robot_node",
             ros_args({**PARAMS, "robot_id": 0, "use_sim_time": True}, "/robot_0"),
