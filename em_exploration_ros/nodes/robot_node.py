@@ -552,8 +552,7 @@ class RobotNode(LeanNode):
             scan = self._scans[step]
             limits = {robot: int(seq) for robot, seq in enumerate(scan.team_sequences)
                       if robot != self.robot_id and not self.relay_mode}
-            if not ignore_barrier and (not self._deliveries_held(scan) if self.relay_mode
-                                       else limits and not self.inbox.holds_up_to(limits)):
+            if not ignore_barrier and not self._team_data_held(scan, limits):
                 if self._waiting_since is None:
                     self._waiting_since = time.monotonic()
                 self._barrier = limits
@@ -563,9 +562,12 @@ class RobotNode(LeanNode):
             del self._scans[step]
             self._next_step = step + 1
 
-    def _deliveries_held(self, scan: SonarScan) -> bool:
-        """Relay mode: True when this robot holds everything the links delivered before the
-        scan's step (``SonarScan.delivered_*``)."""
+    def _team_data_held(self, scan: SonarScan, limits: dict[int, int]) -> bool:
+        """True when this robot holds the team data it must apply before the scan's step:
+        in relay mode everything the links delivered (``SonarScan.delivered_*``), otherwise
+        every teammate's records up to the barrier ``limits``."""
+        if not self.relay_mode:
+            return not limits or self.inbox.holds_up_to(limits)
         needed = (int(scan.delivered_updates), int(scan.delivered_requests))
         return all(received + offset >= count for received, offset, count in
                    zip(self.received_deliveries, self._delivery_offset, needed))

@@ -380,8 +380,7 @@ class WorldNode(LeanNode):
             self._end_stepping("every robot finished or stopped")
             return
         if self.relay is not None:
-            self.relay.transmit(self.sim.step, np.array(
-                [self.sim.true_pose(robot)[:2] for robot in range(self.num_robots)]))
+            self.relay.transmit(self.sim.step, self.sim.true_positions())
         for robot, answer in enumerate(answers):
             self.sim.apply_command(robot, answer.linear_x, answer.angular_z)
         self.sim.advance()

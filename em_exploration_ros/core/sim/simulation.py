@@ -63,6 +63,10 @@ class WorldSimulation:
         """True world-frame pose (3,) of a robot at the current step."""
         return self._true_poses[robot_id].copy()
 
+    def true_positions(self) -> np.ndarray:
+        """True world-frame positions (N, 2) [m] of every robot at the current step."""
+        return self._true_poses[:, :2].copy()
+
     def sense(self, robot_id: int) -> SensorFrame:
         """What robot ``robot_id``'s sensors report at the current step."""
         pose = self._true_poses[robot_id]

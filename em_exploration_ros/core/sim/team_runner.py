@@ -107,8 +107,7 @@ class TeamRunner:
             command = agent.step(step_input(frame, time_step))
             self._send(agent, step)
             commands.append(command_to_twist(command.turn_rad, command.forward_m, time_step))
-        positions = np.array([sim.true_pose(agent.robot_id)[:2] for agent in self.agents])
-        self.links.transmit(step, positions)
+        self.links.transmit(step, sim.true_positions())
         for robot_id, (linear_x, angular_z) in enumerate(commands):
             sim.apply_command(robot_id, linear_x, angular_z)
         sim.advance()
