@@ -6,6 +6,8 @@ Frames follow REP-103/105: sensor data in ``robot_<i>/base_link``, dead reckonin
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from builtin_interfaces.msg import Time
 from em_exploration_msgs import msg as em_msg
@@ -27,6 +29,7 @@ from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, Landmark
                                                      TargetRecord, TeamUpdate, check_record_sizes)
 from em_exploration_ros.core.agent.team_wire import (TeamWireFormat, covariance_from_upper,
                                                      covariance_upper)
+from em_exploration_ros.nodes.path_cdr import DecodedPath, encode_path
 
 MAP_FRAME = "map"
 WORLD_FRAME = "world"
@@ -308,6 +311,30 @@ def path_to_msg(stamp_s: float, stamps_s: np.ndarray, poses: np.ndarray,
         entry.pose.orientation = yaw_to_quaternion(float(pose[2]))
         message.poses.append(entry)
     return message
+
+
+def serialized_path(stamp_s: float, stamps_s: np.ndarray, poses: np.ndarray,
+                    frame_id: str = MAP_FRAME) -> bytes:
+    """``path_to_msg`` already serialized (CDR), built with NumPy (``nodes.path_cdr``):
+    what a robot publishes at every keyframe."""
+    poses = np.asarray(poses, dtype=float).reshape(-1, 3)
+    spatial = np.zeros((len(poses), 7))
+    spatial[:, :2] = poses[:, :2]
+    spatial[:, 5], spatial[:, 6] = np.sin(poses[:, 2] / 2.0), np.cos(poses[:, 2] / 2.0)
+    nanoseconds = np.round(np.asarray(stamps_s, dtype=float) * NANOSECONDS_PER_SECOND)
+    stamps = np.column_stack(np.divmod(nanoseconds.astype(np.int64), NANOSECONDS_PER_SECOND))
+    stamp = divmod(seconds_to_nanoseconds(stamp_s), NANOSECONDS_PER_SECOND)
+    return encode_path(stamp, frame_id, stamps, spatial)
+
+
+def planar_path(decoded: DecodedPath) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps [s] (K,), poses (K, 3)) of a path read by ``path_cdr.decode_path``, as
+    ``path_from_msg`` gives them."""
+    stamps = decoded.pose_stamps[:, 0] + decoded.pose_stamps[:, 1] * 1e-9
+    z, w = decoded.poses[:, 5], decoded.poses[:, 6]
+    # math.atan2, as planar_yaw: NumPy's arctan2 may differ in the last bit.
+    yaw = list(map(math.atan2, (2.0 * w * z).tolist(), (1.0 - 2.0 * z * z).tolist()))
+    return stamps, np.column_stack([decoded.poses[:, :2], np.array(yaw).reshape(-1)])
 
 
 def path_from_msg(message: Path) -> tuple[np.ndarray, np.ndarray]:

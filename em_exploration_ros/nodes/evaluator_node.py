@@ -82,19 +82,20 @@ from em_exploration_ros.core.sim.wire_model import sim_time_s
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, given_up_from_msg,
                                                   landmark_array_to_msg,
                                                   landmark_positions_from_msg,
-                                                  odometry_pose, path_from_msg, path_to_msg,
-                                                  robot_namespace,
+                                                  odometry_pose, planar_path,
+                                                  robot_namespace, serialized_path,
                                                   seconds_to_time,
                                                   time_to_seconds)
 from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
+from em_exploration_ros.nodes.path_cdr import PathDecodeError, decode_path
 from em_exploration_ros.nodes.qos import (ESTIMATE_READER_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
                                           SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   content_problem, header_problem,
-                                                  publish_or_log, serialized_size,
+                                                  path_problem, publish_or_log, serialized_size,
                                                   size_limited)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
@@ -214,8 +215,8 @@ class EvaluatorNode(LeanNode):
                                  LATCHED_QOS)
         # The largest valid estimates: a path with a pose per keyframe of the run, a
         # landmark set of the most landmarks an update may hold.
-        path_bytes = serialized_size(path_to_msg(
-            0.0, np.zeros(self._keyframes()), np.zeros((self._keyframes(), 3))))
+        path_bytes = len(serialized_path(0.0, np.zeros(self._keyframes()),
+                                         np.zeros((self._keyframes(), 3))))
         landmarks_bytes = serialized_size(landmark_array_to_msg(0.0, MAP_FRAME, [
             LandmarkEstimate(0, np.zeros(2), np.eye(2))] * MAX_LANDMARKS_PER_UPDATE))
         for robot in range(self.num_robots):
@@ -226,7 +227,8 @@ class EvaluatorNode(LeanNode):
             self.create_subscription(
                 PathMsg, path_topic, size_limited(
                     self.inputs, path_topic, PathMsg, path_bytes,
-                    lambda m, r=robot: self._on_path(r, m)), ESTIMATE_READER_QOS, raw=True)
+                    lambda data, r=robot: self._on_path(r, data), raw=True),
+                ESTIMATE_READER_QOS, raw=True)
             self.create_subscription(
                 LandmarkArray, landmarks_topic, size_limited(
                     self.inputs, landmarks_topic, LandmarkArray, landmarks_bytes,
@@ -305,19 +307,25 @@ class EvaluatorNode(LeanNode):
                 self._first_step_wall_s = time.monotonic()
             self._process()
 
-    def _on_path(self, robot: int, message: PathMsg) -> None:
-        step, problem = self._stamp_problem(message.header.stamp, keyframes_only=True)
-        keyframes = self._keyframes()
-        if not self.inputs.check(
-                f"/{robot_namespace(robot)}/estimated_path", problem,
-                header_problem(message.header, MAP_FRAME),
-                self._stale_problem(self.paths, robot, message.header.stamp),
-                size_problem(len(message.poses), keyframes, "poses"),
-                first_problem(frame_problem(pose.header.frame_id, MAP_FRAME, "pose frame_id")
-                              for pose in message.poses),
-                content_problem(message)):
+    def _on_path(self, robot: int, data: bytes) -> None:
+        """A robot's serialized trajectory, read with NumPy (``nodes.path_cdr``)."""
+        topic = f"/{robot_namespace(robot)}/estimated_path"
+        try:
+            path = decode_path(data)
+        except PathDecodeError as error:
+            self.inputs.drop(topic, f"malformed path: {error}")
             return
-        self._on_estimate(self.paths, robot, message.header.stamp, path_from_msg(message))
+        if path is None:
+            self.inputs.drop(topic, "pose frame_ids differ from the path's")
+            return
+        stamp = Time(sec=path.stamp[0], nanosec=path.stamp[1])
+        _, problem = self._stamp_problem(stamp, keyframes_only=True)
+        if not self.inputs.check(
+                topic, problem, path_problem(path, MAP_FRAME),
+                self._stale_problem(self.paths, robot, stamp),
+                size_problem(len(path.poses), self._keyframes(), "poses")):
+            return
+        self._on_estimate(self.paths, robot, stamp, planar_path(path))
 
     def _keyframes(self) -> int:
         """Keyframes of the whole run (a robot's path has at most as many poses)."""

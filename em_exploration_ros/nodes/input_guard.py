@@ -27,7 +27,9 @@ from em_exploration_ros.core.agent.input_checks import (RejectionLog, array_prob
                                                         stamp_problem)
 from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TeamUpdate
 from em_exploration_ros.core.agent.team_wire import TeamWireFormat
+from em_exploration_ros.core.sim.wire_model import NANOSECONDS_PER_SECOND
 from em_exploration_ros.nodes.conversions import team_update_from_msg
+from em_exploration_ros.nodes.path_cdr import DecodedPath
 
 #: Wall seconds between two log lines about the same topic's dropped input.
 LOG_PERIOD_S = 5.0
@@ -64,19 +66,20 @@ class InputGuard:
 
 
 def size_limited(guard: InputGuard, topic: str, message_class: type, max_bytes: int,
-                 callback: Callable[[Any], None]) -> Callable[[bytes], None]:
+                 callback: Callable[[Any], None], raw: bool = False) -> Callable[[bytes], None]:
     """The callback of a raw subscription (``create_subscription(..., raw=True)``) that
     drops a serialized message longer than ``max_bytes`` (the largest valid message of the
     topic) before it is deserialized, and hands the others, deserialized, to ``callback``.
     rclpy takes 30-60 ms to turn a message with thousands of nested messages into Python
     objects; under a flood of them a node fell behind while the middleware's queues held
-    what it had not taken yet (tens of MB)."""
+    what it had not taken yet (tens of MB). With ``raw``, ``callback`` gets the bytes
+    themselves (it reads them its own way)."""
     def on_serialized(data: bytes) -> None:
         if len(data) > max_bytes:
             guard.drop(topic, f"{len(data)} bytes, more than the {max_bytes} of the largest "
                               "valid message")
             return
-        callback(deserialize_message(data, message_class))
+        callback(data if raw else deserialize_message(data, message_class))
     return on_serialized
 
 
@@ -111,6 +114,16 @@ def content_problem(message: Any) -> str | None:
         if problem:
             return problem
     return None
+
+
+def path_problem(path: DecodedPath, frame_id: str) -> str | None:
+    """``header_problem`` and ``content_problem`` of a path read by ``path_cdr.decode_path``
+    (every pose is in the header's frame)."""
+    stamps = path.pose_stamps
+    bad = (stamps[:, 0] < 0) | (stamps[:, 1] >= NANOSECONDS_PER_SECOND)
+    return (stamp_problem(*path.stamp) or frame_problem(path.frame_id, frame_id)
+            or (stamp_problem(*(int(v) for v in stamps[np.argmax(bad)])) if bad.any() else None)
+            or array_problem(path.poses, "a number"))
 
 
 def _collect(message: Any, floats: list[float], arrays: list[Any], times: list[Time]) -> None:

@@ -80,8 +80,8 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, given_up_to_msg,
                                                   landmark_array_to_msg,
                                                   landmark_reading_from_msg,
                                                   odometry_pose, odometry_twist_covariance,
-                                                  path_to_msg, quaternion_to_yaw,
-                                                  robot_namespace, seconds_to_time,
+                                                  quaternion_to_yaw,
+                                                  robot_namespace, seconds_to_time, serialized_path,
                                                   team_update_to_msg,
                                                   teammate_reading_from_msg, time_to_seconds)
 from em_exploration_ros.nodes.lean_node import LeanNode
@@ -662,7 +662,7 @@ class RobotNode(LeanNode):
         indices, poses = slam.trajectory(self.robot_id)
         interval = self.params.slam.keyframe_interval_steps
         stamps = [sim_time_s(int(i) * interval, self.time_step_s) for i in indices]
-        self.path_pub.publish(path_to_msg(stamp_s, np.array(stamps), poses))
+        self.path_pub.publish(serialized_path(stamp_s, np.array(stamps), poses))
         landmarks = [LandmarkEstimate(lid, position, slam.landmark_covariance(lid))
                      for lid, position in sorted(slam.landmark_estimates().items())]
         self.landmarks_pub.publish(landmark_array_to_msg(
