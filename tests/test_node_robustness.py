@@ -96,6 +96,10 @@ def test_a_robot_whose_world_leaves_says_so_and_exits(tmp_path):
                         namespace="/robot_0"), log_path=tmp_path / "robot.log")
     with world, robot:
         world.wait_for_output("stepping", START_S)  # the robot is connected
+        # ... and has heard the world (its latched anchor): a robot that never saw a world
+        # only waits for one, so a world gone before its first message reached the robot
+        # made this test fail now and then
+        robot.wait_for_output("map anchored", START_S)
         world.signal_group(signal.SIGINT)  # a clean exit leaves the graph at once
         assert world.wait(START_S) == 0
         # the graph forgets the world's endpoints a moment later; slower on a loaded machine
