@@ -20,6 +20,7 @@ PLANNERS=(EM_2 EM_3 CE BSP NEAREST)
 declare -A RENAMED_PLANNERS=([NF]=NEAREST)
 NODES=em_exploration_ros.nodes
 RECORD_MODULE=em_exploration_ros.tools.record
+TRACE_MODULE=em_exploration_ros.tools.step_trace
 FOXGLOVE_MODULE=em_exploration_ros.tools.foxglove_bridge
 # Grace periods [s] of a stop: after SIGINT (nodes write their results), after SIGTERM.
 STOP_GRACE_S=10
@@ -67,6 +68,10 @@ options:
   --respawn               restart a robot process that dies, or that the world reports lost
                           (alive but wedged or silent: SIGKILL, then the same command line);
                           it rejoins the team where it stopped
+  --trace-steps DIR       record every publish and subscription callback of the world, the
+                          robots and the evaluator into DIR/<name>.trace (DIR must not hold
+                          traces yet); python -m em_exploration_ros.tools.step_trace report
+                          DIR prints where a lockstep step's time goes
   --netns PREFIX          separate hosts: run robot i in network namespace PREFIXrobot_<i> and
                           every other process in PREFIXworld (they must exist and be joined;
                           needs root; DDS over UDPv4 with multicast discovery on the subnet).
@@ -107,6 +112,7 @@ as_double() { if [[ $1 =~ [.eE] ]]; then printf '%s' "$1"; else printf '%s.0' "$
 ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME="" COMM_RANGE="" COMM_LOSS="" COMM_LATENCY="" COMM_BANDWIDTH=""
 PARAMS_FILE="$EM_REPO_ROOT/config/exploration.yaml"
 REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH="" FOXGLOVE_PORT="" RESPAWN="" NETNS=""
+TRACE_DIR=""
 
 while (( $# )); do
     arg=$1
@@ -162,6 +168,7 @@ while (( $# )); do
             fi ;;
         --respawn) RESPAWN=1 ;;
         --netns) needs_value "$@"; NETNS=$1; shift ;;
+        --trace-steps) needs_value "$@"; TRACE_DIR=$1; shift ;;
         *) usage_error "unknown argument '$arg'" ;;
     esac
 done
@@ -260,6 +267,12 @@ PY
     usage_error "$PROBLEM"
 fi
 mkdir -p "$LOG_DIR" 2>/dev/null || usage_error "--summary: cannot create the log folder '$LOG_DIR'"
+if [[ -n $TRACE_DIR ]]; then
+    mkdir -p "$TRACE_DIR" 2>/dev/null || usage_error "--trace-steps: cannot create '$TRACE_DIR'"
+    compgen -G "$TRACE_DIR/*.trace" >/dev/null \
+        && usage_error "--trace-steps: '$TRACE_DIR' already holds traces of another run"
+    TRACE_DIR=$(cd "$TRACE_DIR" && pwd)
+fi
 rm -f "$SUMMARY" "$MAP_PNG" "$LOG_DIR"/*.log  # logs are appended to (a respawned robot's too)
 
 if [[ -n $DOMAIN_ID ]]; then
@@ -286,7 +299,11 @@ start() {
         [[ $name == robot_* ]] && host=(ip netns exec "$NETNS$name") \
             || host=(ip netns exec "${NETNS}world")
     fi
-    setsid "${host[@]}" "$PYTHON" "$@" >>"$LOG_DIR/$name.log" 2>&1 </dev/null &
+    local command=("$@")
+    if [[ -n $TRACE_DIR && ( $name == world || $name == evaluator || $name == robot_* ) ]]; then
+        command=(-m "$TRACE_MODULE" run --out "$TRACE_DIR/$name.trace" "${@:2}")
+    fi
+    setsid "${host[@]}" "$PYTHON" "${command[@]}" >>"$LOG_DIR/$name.log" 2>&1 </dev/null &
     PIDS+=("$!")
     NAMES+=("$name")
 }

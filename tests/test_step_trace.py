@@ -1,0 +1,71 @@
+"""The step tracer: its stage arithmetic on written traces, and a traced ROS team that
+still chooses em-sim's targets while every step's stages are recorded."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from em_exploration_ros.core.params_yaml import load_params
+from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.tools.step_trace import report, stages
+from ros_process import REPO_ROOT, RUN_TEAM, finish_team_run, start_team_run
+
+
+def write_trace(path, events):
+    path.write_text("".join(f"{int(t * 1e9)} {kind} {topic}\n" for t, kind, topic in events))
+
+
+def test_stages_match_the_nth_events_of_each_process(tmp_path):
+    # Two steps of a one-robot world, 100 ms apart; times in seconds.
+    world, robot = [], []
+    for step, start in enumerate((0.0, 0.1)):
+        world += [(start, "pub", "/clock"), (start + 0.001, "pub", "/robot_0/odom"),
+                  (start + 0.002, "pub", "/world/ground_truth/robot_0"),
+                  (start + 0.010 + step * 0.005, "cb", "/robot_0/motion_command")]
+        robot += [(start + 0.003, "cb", "/robot_0/odom"),
+                  (start + 0.008, "pub", "/robot_0/motion_command")]
+    write_trace(tmp_path / "world.trace", world)
+    write_trace(tmp_path / "robot_0.trace", robot + [(0.5, "cb", "/clock")])
+    by_name = {s.name: s.seconds for s in stages(tmp_path, 1)}
+    np.testing.assert_allclose(by_name["world publishes a step (clock to last ground truth)"],
+                               [0.002, 0.002], atol=1e-9)
+    np.testing.assert_allclose(by_name["robot 0: odometry published to its callback"],
+                               [0.002, 0.002], atol=1e-9)
+    np.testing.assert_allclose(by_name["robot 0: odometry callback to command published"],
+                               [0.005, 0.005], atol=1e-9)
+    np.testing.assert_allclose(by_name["robot 0: command published to the world's callback"],
+                               [0.002, 0.007], atol=1e-9)
+    np.testing.assert_allclose(by_name["whole step (clock to next clock)"], [0.1], atol=1e-9)
+    assert "robot 0: odometry callback to command published" in report(tmp_path, 1)
+
+
+def test_report_refuses_a_directory_without_traces(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.step_trace",
+                             "report", str(tmp_path)], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 2 and "no world.trace" in result.stderr
+
+
+def test_a_traced_team_chooses_em_sims_targets_and_reports_every_step(tmp_path):
+    summary_path, trace_dir = tmp_path / "run" / "summary.json", tmp_path / "trace"
+    run, _ = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST", "--map-size",
+                            "30", "--landmarks", "3", "--seed", "1", "--summary",
+                            str(summary_path), "--trace-steps", str(trace_dir))
+    assert finish_team_run(run, 120.0) == 0, run.output()[-3000:]
+    summary = json.loads(summary_path.read_text())
+    reference = TeamRunner(load_params(REPO_ROOT / "config" / "exploration.yaml").replace(
+        world={"num_robots": 3, "width_m": 30.0, "height_m": 30.0, "num_landmarks": 3},
+        planner={"name": "NEAREST"}, run={"seed": 1})).run().to_dict()
+    assert [r["targets"] for r in summary["robots"]] == [r["targets"] for r in
+                                                         reference["robots"]]
+    steps = round(summary["sim_time_s"] / 0.2)  # the world's steps (0.2 s each)
+    for stage in stages(trace_dir, 3):
+        assert len(stage.seconds) >= steps - 1, stage.name
+        assert np.all(stage.seconds >= 0.0) and np.all(stage.seconds < 30.0), stage.name
+    # A second run may not mix its traces into the first one's.
+    again = subprocess.run(["bash", str(RUN_TEAM), "--trace-steps", str(trace_dir)],
+                           capture_output=True, text=True, timeout=60)
+    assert again.returncode == 2 and "already holds traces" in again.stderr
