@@ -53,3 +53,12 @@ def test_size_limited_drops_a_longer_message_before_deserializing_it():
     on_bytes(serialize_message(long_path(10)))
     assert inputs.dropped == 1 and len(received) == 1 and len(received[0].poses) == 10
     assert received[0].poses[9].header.stamp.sec == 18
+
+
+def test_size_limited_drops_bytes_that_are_not_the_type():
+    received: list[Path] = []
+    inputs = guard()
+    on_bytes = size_limited(inputs, "/robot_0/landmarks", Path, 10_000, received.append)
+    on_bytes(b"\x00\x01\x00\x00" + b"\xff" * 40)  # a count of 2^32 - 1 poses
+    on_bytes(b"\x00\x01")
+    assert received == [] and inputs.dropped == 2

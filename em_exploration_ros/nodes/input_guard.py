@@ -17,7 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from rclpy._rclpy_pybind11 import RCLError
+from rclpy._rclpy_pybind11 import RCLError, RMWError
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.serialization import deserialize_message, serialize_message
@@ -72,14 +72,24 @@ def size_limited(guard: InputGuard, topic: str, message_class: type, max_bytes: 
     topic) before it is deserialized, and hands the others, deserialized, to ``callback``.
     rclpy takes 30-60 ms to turn a message with thousands of nested messages into Python
     objects; under a flood of them a node fell behind while the middleware's queues held
-    what it had not taken yet (tens of MB). With ``raw``, ``callback`` gets the bytes
-    themselves (it reads them its own way)."""
+    what it had not taken yet (tens of MB). Bytes that do not deserialize (a raw writer
+    can send anything) are dropped too. With ``raw``, ``callback`` gets the bytes themselves
+    (it reads them its own way)."""
     def on_serialized(data: bytes) -> None:
         if len(data) > max_bytes:
             guard.drop(topic, f"{len(data)} bytes, more than the {max_bytes} of the largest "
                               "valid message")
             return
-        callback(data if raw else deserialize_message(data, message_class))
+        if raw:
+            callback(data)
+            return
+        try:
+            message = deserialize_message(data, message_class)
+        except RMWError as error:  # a raw writer can send bytes that are not the type
+            guard.drop(topic, f"malformed {message_class.__name__}: "
+                              f"{str(error).splitlines()[0][:80]}")
+            return
+        callback(message)
     return on_serialized
 
 

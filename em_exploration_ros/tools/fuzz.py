@@ -7,12 +7,16 @@ that use the simulation time, and for ``--duration`` seconds publishes on all of
 round robin, at ``--rate`` messages per second. Topics that appear later are picked up
 (the graph is read again every ``REDISCOVER_S``).
 
-Every message is well formed (it deserializes) but carries at least one extreme value:
+Every message but one in ``POOL_SIZE`` is well formed (it deserializes) but carries at
+least one extreme value:
 NaN, +-inf or +-1e308 in a float, the largest (or a negative) value of an integer field
 (ids, steps, sequence numbers, stamps: sec < 0, nanosec >= 1e9), a huge array (10^5
 numbers or ``HUGE_MESSAGE_ARRAY`` nested messages), or a wrong frame_id; the other fields
 hold small plausible values (numbers 0..3, a frame name of the system), so a /clock
-message is negative or goes backwards. Nodes must drop all of it and keep their result.
+message is negative or goes backwards. The remaining one is such a message cut in half:
+bytes that are not the topic's type at all, which the middleware refuses for a typed
+subscription and a raw one must refuse itself. Nodes must drop all of it and keep their
+result.
 Each topic gets ``POOL_SIZE`` different messages, serialized once and then sent again in
 turn, so that the rate holds even for messages with thousands of nested ones.
 
@@ -50,6 +54,8 @@ HUGE_MESSAGE_ARRAY = 3_000
 #: Messages made per topic; after that, those are sent again in turn (serializing a message
 #: with thousands of nested ones takes milliseconds; reusing the bytes keeps up the rate).
 POOL_SIZE = 8
+#: The encapsulation header that starts every serialized message (little-endian CDR).
+CDR_HEADER = b"\x00\x01\x00\x00"
 #: Probability that a field other than the forced one is extreme too.
 EXTRA_EXTREME_PROBABILITY = 0.1
 #: Frame names of the system (plausible values) and wrong ones (extreme values).
@@ -179,7 +185,10 @@ class Target:
         """The next serialized message to send: a new one while the pool is not full, then
         the pool's in turn."""
         if len(self.pool) < POOL_SIZE:
-            self.pool.append(serialize_message(messages.make(self.message_class)))
+            data = serialize_message(messages.make(self.message_class))
+            if len(self.pool) == POOL_SIZE - 1:  # the last one cut short: not the type
+                data = data[:max(len(CDR_HEADER), len(data) // 2)]
+            self.pool.append(data)
         self.turns += 1
         return self.pool[(self.turns - 1) % POOL_SIZE]
 
