@@ -211,7 +211,10 @@ def test_killed_and_wedged_robots_are_restarted_and_rejoin_without_losing_keyfra
                    while_waiting=lambda: executor.spin_once(timeout_sec=0.05))
 
     with run:
-        spin_until(lambda: "t=   20.0 s" in run.output(), "mid-run")
+        # Mid-run, and this observer has heard both robots (a fast lockstep team reaches
+        # 20 simulated seconds within about a second, before discovery may have matched it).
+        spin_until(lambda: "t=   20.0 s" in run.output() and published[1] and published[2],
+                   "mid-run, with team updates of robots 1 and 2 heard")
         os.kill(robot_pid(domain, 1), signal.SIGKILL)
         before_crash = set(published[1])
         spin_until(lambda: "robot 1 rejoined" in evaluator_log.read_text(), "robot 1 rejoining")
