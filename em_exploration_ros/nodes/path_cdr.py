@@ -16,10 +16,10 @@ Wire layout (XCDR1 as rmw_fastrtps writes it; alignment is relative to the byte 
         position x y z, orientation x y z w (float64)
 
 A string is aligned to 4 and a float64 to 8; every element ends at a multiple of 8, so
-all elements but the first have the same size. ``decode_path`` reads only paths whose poses all carry the
-same frame as the path's header (what every robot publishes); it returns None for any
-other valid path, and the caller deserializes that one the ordinary way. Padding bytes are
-not checked: rmw_fastrtps leaves them uninitialized.
+all elements but the first have the same size. ``decode_path`` reads only paths whose
+poses all carry the path's own frame (what every robot publishes) and returns None for
+another; the evaluator drops those. Padding bytes are not checked: rmw_fastrtps leaves
+them uninitialized.
 """
 from __future__ import annotations
 
@@ -30,8 +30,9 @@ from numpy.typing import NDArray
 
 #: The 4-byte encapsulation header of little-endian plain CDR.
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
-_NANOSECONDS = 1_000_000_000
 _POSE_FLOATS = 7  # position x y z, orientation x y z w
+#: Bytes before the pose count of the shortest header (stamp, length, NUL, padding).
+_SMALLEST_HEADER = 16
 #: Bytes of the smallest PoseStamped element (empty frame_id, starting at a multiple of 8).
 _SMALLEST_ELEMENT = 16 + 8 * _POSE_FLOATS
 
@@ -63,10 +64,17 @@ def _string_bytes(text: str) -> bytes:
     return text.encode("utf-8") + b"\x00"
 
 
+def _pose_start(element_start: NDArray[np.int64] | int,
+                frame_length: int) -> NDArray[np.int64] | int:
+    """Body offset of the float64s of PoseStamped elements starting at ``element_start``
+    whose frame_id string (NUL included) is ``frame_length`` bytes."""
+    return (element_start + 12 + frame_length + 7) // 8 * 8
+
+
 def _element_end(start: int, frame_length: int) -> int:
     """Body offset after a PoseStamped element starting at ``start`` whose frame_id string
     (NUL included) is ``frame_length`` bytes; always a multiple of 8 (it ends in float64s)."""
-    return _align(start + 12 + frame_length, 8) + 8 * _POSE_FLOATS
+    return _pose_start(start, frame_length) + 8 * _POSE_FLOATS
 
 
 def _element_starts(first: int, count: int, frame_length: int) -> NDArray[np.int64]:
@@ -106,8 +114,8 @@ def encode_path(stamp: tuple[int, int], frame_id: str, pose_stamps: NDArray[np.i
         prefix[:, 8:12] = np.frombuffer(np.array([len(frame)], "<u4").tobytes(), np.uint8)
         prefix[:, 12:] = np.frombuffer(frame, dtype=np.uint8)
         body[starts[:, None] + np.arange(prefix.shape[1])] = prefix
-        float_starts = (starts + 12 + len(frame) + 7) // 8 * 8
-        body[float_starts[:, None] + np.arange(8 * _POSE_FLOATS)] = poses.view(np.uint8)
+        floats = _pose_start(starts, len(frame))[:, None] + np.arange(8 * _POSE_FLOATS)
+        body[floats] = poses.view(np.uint8)
     return CDR_LE_HEADER + body.tobytes()
 
 
@@ -127,7 +135,8 @@ def decode_path(data: bytes) -> DecodedPath | None:
     Raises:
         PathDecodeError: not little-endian CDR, truncated, or lengths that do not fit.
     """
-    if len(data) < 4 + 16 or data[:2] != CDR_LE_HEADER[:2]:
+    smallest = len(CDR_LE_HEADER) + _SMALLEST_HEADER + 4  # an empty path
+    if len(data) < smallest or data[:2] != CDR_LE_HEADER[:2]:
         raise PathDecodeError("not a little-endian CDR message")
     body = np.frombuffer(data, dtype=np.uint8, offset=4)
     sec, nanosec, length = np.frombuffer(data, dtype="<u4", count=3, offset=4).tolist()
@@ -151,9 +160,9 @@ def decode_path(data: bytes) -> DecodedPath | None:
         frame_id = frame.decode("utf-8")
     except UnicodeDecodeError as error:
         raise PathDecodeError("frame_id is not UTF-8") from error
-    float_starts = (starts + 12 + length + 7) // 8 * 8
     stamps = np.column_stack([_read(body, starts, "<i4")[:, 0],
                               _read(body, starts + 4, "<u4")[:, 0]]).astype(np.int64)
     sec = sec - (1 << 32) if sec >= 1 << 31 else sec  # int32 on the wire
     return DecodedPath((sec, nanosec), frame_id,
-                       stamps.reshape(-1, 2), _read(body, float_starts, "<f8", _POSE_FLOATS))
+                       stamps.reshape(-1, 2),
+                       _read(body, _pose_start(starts, length), "<f8", _POSE_FLOATS))
