@@ -471,7 +471,10 @@ while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
         if [[ -n $RESPAWN && $name == robot_* ]]; then
             robot=${name#robot_}
             lost=$(lost_count "$robot")
-            if (( SECONDS - ${STARTED_AT[$robot]:-0} < RESPAWN_GRACE_S )); then
+            # (A first start has no earlier process: a fast team can lose a robot to a wedge
+            # within RESPAWN_GRACE_S of the run's start, and it must be restarted.)
+            if [[ -n ${STARTED_AT[$robot]:-} ]] \
+                    && (( SECONDS - STARTED_AT[$robot] < RESPAWN_GRACE_S )); then
                 LOST_SEEN[$robot]=$lost
             elif (( lost > ${LOST_SEEN[$robot]:-0} )); then
                 LOST_SEEN[$robot]=$lost

@@ -248,3 +248,22 @@ def test_killed_and_wedged_robots_are_restarted_and_rejoin_without_losing_keyfra
         # The world may have waited for it (no simulated time lost), but it was down.
         assert rejoined["wall_s"] > lost["wall_s"] and entry["downtime_wall_s"] > 0.0
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+
+
+def test_a_robot_wedged_early_in_the_run_is_restarted(tmp_path):
+    """--respawn: a robot SIGSTOPped a few seconds after the run started (a fast lockstep
+    team is 20 simulated seconds in by then) is restarted and rejoins. run_team.sh ignored
+    a robot's "lost" report for 15 s after its start, meant for a restarted robot's previous
+    process, and so left a robot wedged early in the run down for good."""
+    summary_path = tmp_path / "summary.json"
+    run, domain = start_team_run(tmp_path, "--robots", "3", "--map-size", "60", "--landmarks",
+                                 "6", "--seed", "2", "--max-sim-time", "600", "--respawn",
+                                 "--summary", str(summary_path))
+    with run:
+        run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+        os.kill(robot_pid(domain, 2), signal.SIGSTOP)
+        code = run.wait(RUN_TIMEOUT_S)
+    output = run.output()
+    assert code == 0, output[-3000:]
+    assert "robot_2 is alive but lost to the world (wedged or silent); restarting it" in output
+    assert "robot 2 rejoined" in (summary_path.parent / "logs" / "evaluator.log").read_text()
