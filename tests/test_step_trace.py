@@ -10,7 +10,7 @@ import numpy as np
 
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.sim.team_runner import TeamRunner
-from em_exploration_ros.tools.step_trace import report, stages
+from em_exploration_ros.tools.step_trace import read_traces, report, stages
 from ros_process import REPO_ROOT, RUN_TEAM, finish_team_run, start_team_run
 
 
@@ -27,9 +27,12 @@ def test_stages_match_the_nth_events_of_each_process(tmp_path):
                   (start + 0.010 + step * 0.005, "cb", "/robot_0/motion_command")]
         robot += [(start + 0.003, "cb", "/robot_0/odom"),
                   (start + 0.008, "pub", "/robot_0/motion_command")]
-    write_trace(tmp_path / "world.trace", world)
+    write_trace(tmp_path / "world.trace", world + [(0.6, "cpu", "6.5")])
     write_trace(tmp_path / "robot_0.trace", robot + [(0.5, "cb", "/clock")])
-    by_name = {s.name: s.seconds for s in stages(tmp_path, 1)}
+    with open(tmp_path / "robot_0.trace", "a") as trace:  # killed while writing a line
+        trace.write("12345 c")
+    traces = read_traces(tmp_path, 1)
+    by_name = {s.name: s.seconds for s in stages(traces, 1)}
     np.testing.assert_allclose(by_name["world publishes a step (clock to last ground truth)"],
                                [0.002, 0.002], atol=1e-9)
     np.testing.assert_allclose(by_name["robot 0: odometry published to its callback"],
@@ -39,7 +42,10 @@ def test_stages_match_the_nth_events_of_each_process(tmp_path):
     np.testing.assert_allclose(by_name["robot 0: command published to the world's callback"],
                                [0.002, 0.007], atol=1e-9)
     np.testing.assert_allclose(by_name["whole step (clock to next clock)"], [0.1], atol=1e-9)
-    assert "robot 0: odometry callback to command published" in report(tmp_path, 1)
+    table = report(traces, 1)
+    assert "robot 0: odometry callback to command published" in table
+    assert "CPU time [s]: world 6.50, robot_0 ? (no exit line)" in table
+    assert "unreadable lines skipped: {'robot_0': 1}" in table
 
 
 def test_report_refuses_a_directory_without_traces(tmp_path):
@@ -47,6 +53,12 @@ def test_report_refuses_a_directory_without_traces(tmp_path):
                              "report", str(tmp_path)], capture_output=True, text=True,
                             timeout=60)
     assert result.returncode == 2 and "no world.trace" in result.stderr
+    write_trace(tmp_path / "world.trace", [(0.0, "pub", "/clock")])
+    write_trace(tmp_path / "robot_0.trace", [])
+    result = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.step_trace",
+                             "report", str(tmp_path), "--robots", "2"], capture_output=True,
+                            text=True, timeout=60)
+    assert result.returncode == 2 and "robot_1.trace: no such trace" in result.stderr
 
 
 def test_a_traced_team_chooses_em_sims_targets_and_reports_every_step(tmp_path):
@@ -62,10 +74,16 @@ def test_a_traced_team_chooses_em_sims_targets_and_reports_every_step(tmp_path):
     assert [r["targets"] for r in summary["robots"]] == [r["targets"] for r in
                                                          reference["robots"]]
     steps = round(summary["sim_time_s"] / 0.2)  # the world's steps (0.2 s each)
-    for stage in stages(trace_dir, 3):
+    traces = read_traces(trace_dir, 3)
+    for stage in stages(traces, 3):
         assert len(stage.seconds) >= steps - 1, stage.name
         assert np.all(stage.seconds >= 0.0) and np.all(stage.seconds < 30.0), stage.name
+    assert set(traces) == {"world", "evaluator", "robot_0", "robot_1", "robot_2"}
+    for name, trace in traces.items():  # each exited normally and said what it used
+        assert trace.cpu_s is not None and 0.5 < trace.cpu_s < 120.0, name
+        assert trace.unreadable == 0, name
     # A second run may not mix its traces into the first one's.
-    again = subprocess.run(["bash", str(RUN_TEAM), "--trace-steps", str(trace_dir)],
+    again = subprocess.run(["bash", str(RUN_TEAM), "--trace-steps", str(trace_dir),
+                            "--summary", str(tmp_path / "again" / "summary.json")],
                            capture_output=True, text=True, timeout=60)
     assert again.returncode == 2 and "already holds traces" in again.stderr

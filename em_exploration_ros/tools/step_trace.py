@@ -4,15 +4,15 @@
 module runs, rclpy's ``Publisher.publish`` and every subscription callback are wrapped to
 record ``(CLOCK_MONOTONIC time [ns], event, topic)`` into ``DIR/<name>.trace`` as a publish
 starts and as a callback starts (the clock is the host's, so the processes' times
-compare). Nothing else changes; a traced run makes
-the same decisions, a little slower.
+compare); as the process exits, a last line records the CPU time it used. Nothing else
+changes; a traced run makes the same decisions, a little slower.
 
 ``report`` reads such a directory and prints the median time of each stage of a step:
 the world's publish phase (its ``/clock`` to its last ground truth), each sensor message's
 way to its robot's callback, the robot's work up to its command, the command's way to the
-world, and the whole step. Events are matched by order (the n-th ``/clock`` with the n-th
-odometry callback and command of each robot), which holds for a lockstep run without lost
-robots or re-sent steps.
+world, and the whole step; then each process's CPU time. Events are matched by order (the
+n-th ``/clock`` with the n-th odometry callback and command of each robot), which holds
+for a lockstep run without lost robots or re-sent steps.
 
     python -m em_exploration_ros.tools.step_trace report DIR
 """
@@ -20,9 +20,11 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import resource
 import runpy
 import sys
 import time
+from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, TextIO
@@ -32,6 +34,8 @@ import numpy as np
 #: Events buffered before they are written (a killed process loses at most these).
 _FLUSH_EVERY = 500
 PUBLISH, CALLBACK_START = "pub", "cb"
+#: The event of the line a process writes as it exits; its third field is its CPU time [s].
+CPU = "cpu"
 
 
 class _TraceFile:
@@ -50,6 +54,12 @@ class _TraceFile:
         self.stream.writelines(self.lines)
         self.stream.flush()
         self.lines.clear()
+
+    def finish(self) -> None:
+        """At exit: the process's CPU time (user + system, every thread), then flush."""
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        self.lines.append(f"{time.monotonic_ns()} {CPU} {usage.ru_utime + usage.ru_stime:.3f}\n")
+        self.flush()
 
 
 def install(trace: _TraceFile) -> None:
@@ -84,7 +94,7 @@ def run(trace_path: Path, module: str, args: list[str]) -> None:
     """Run ``python -m module args`` in this process with tracing into ``trace_path``."""
     stream = open(trace_path, "a", encoding="ascii")
     trace = _TraceFile(stream)
-    atexit.register(trace.flush)
+    atexit.register(trace.finish)
     install(trace)
     sys.argv = [module, *args]
     runpy.run_module(module, run_name="__main__", alter_sys=True)
@@ -98,30 +108,67 @@ class StageTimes:
     seconds: np.ndarray
 
 
-def _events(path: Path, event: str, topic: str) -> np.ndarray:
-    """Times [s] of one event on one topic in a trace file, in file order."""
-    times = [int(stamp) for stamp, kind, name in
-             (line.split() for line in path.read_text(encoding="ascii").splitlines()
-              if line.count(" ") == 2)
-             if kind == event and name == topic]
-    return np.array(times, dtype=np.int64) * 1e-9
+@dataclass(frozen=True)
+class ProcessTrace:
+    """One process's trace file, read once: event times [s] by (event, topic) in file
+    order, its CPU time [s] (None if it did not exit normally) and how many lines could not
+    be read (a process killed while writing leaves a cut line)."""
+
+    times: dict[tuple[str, str], np.ndarray]
+    cpu_s: float | None
+    unreadable: int
+
+    def of(self, event: str, topic: str) -> np.ndarray:
+        """Times [s] of one event on one topic (empty if none)."""
+        return self.times.get((event, topic), np.zeros(0))
 
 
-def stages(directory: Path, num_robots: int) -> list[StageTimes]:
+def read_trace(path: Path) -> ProcessTrace:
+    """Read a ``.trace`` file written by ``run``."""
+    groups: dict[tuple[str, str], list[int]] = defaultdict(list)
+    cpu_s, unreadable = None, 0
+    for line in path.read_text(encoding="ascii", errors="replace").splitlines():
+        fields = line.split(" ")
+        if len(fields) != 3 or not fields[0].isdigit():
+            unreadable += 1
+        elif fields[1] == CPU:
+            try:
+                cpu_s = float(fields[2])
+            except ValueError:
+                unreadable += 1
+        else:
+            groups[(fields[1], fields[2])].append(int(fields[0]))
+    return ProcessTrace({key: np.array(values, dtype=np.int64) * 1e-9
+                         for key, values in groups.items()}, cpu_s, unreadable)
+
+
+def read_traces(directory: Path, num_robots: int) -> dict[str, ProcessTrace]:
+    """The traces of the world, robots 0..N-1 and the evaluator (if it has one).
+
+    Raises:
+        FileNotFoundError: the world's or a robot's trace is missing.
+    """
+    names = ["world", *(f"robot_{robot}" for robot in range(num_robots))]
+    if (directory / "evaluator.trace").is_file():
+        names.append("evaluator")
+    return {name: read_trace(directory / f"{name}.trace") for name in names}
+
+
+def stages(traces: dict[str, ProcessTrace], num_robots: int) -> list[StageTimes]:
     """The stage durations of a traced lockstep run (see the module docstring)."""
-    world = directory / "world.trace"
-    clock = _events(world, PUBLISH, "/clock")
-    truth_last = _events(world, PUBLISH, f"/world/ground_truth/robot_{num_robots - 1}")
+    world = traces["world"]
+    clock = world.of(PUBLISH, "/clock")
+    truth_last = world.of(PUBLISH, f"/world/ground_truth/robot_{num_robots - 1}")
     result = []
     count = min(len(clock), len(truth_last))
     result.append(StageTimes("world publishes a step (clock to last ground truth)",
                              truth_last[:count] - clock[:count]))
     for robot in range(num_robots):
-        robot_trace = directory / f"robot_{robot}.trace"
-        odometry_sent = _events(world, PUBLISH, f"/robot_{robot}/odom")
-        odometry_heard = _events(robot_trace, CALLBACK_START, f"/robot_{robot}/odom")
-        command_sent = _events(robot_trace, PUBLISH, f"/robot_{robot}/motion_command")
-        command_heard = _events(world, CALLBACK_START, f"/robot_{robot}/motion_command")
+        robot_trace = traces[f"robot_{robot}"]
+        odometry_sent = world.of(PUBLISH, f"/robot_{robot}/odom")
+        odometry_heard = robot_trace.of(CALLBACK_START, f"/robot_{robot}/odom")
+        command_sent = robot_trace.of(PUBLISH, f"/robot_{robot}/motion_command")
+        command_heard = world.of(CALLBACK_START, f"/robot_{robot}/motion_command")
         count = min(len(odometry_sent), len(odometry_heard), len(command_sent),
                     len(command_heard))
         result += [
@@ -135,16 +182,23 @@ def stages(directory: Path, num_robots: int) -> list[StageTimes]:
     return result
 
 
-def report(directory: Path, num_robots: int) -> str:
-    """The stage table of a traced run, as printed by the ``report`` command."""
+def report(traces: dict[str, ProcessTrace], num_robots: int) -> str:
+    """The stage table and the processes' CPU times of a traced run, as printed by the
+    ``report`` command."""
     lines = [f"{'stage':58s} {'steps':>6s} {'median':>9s} {'mean':>9s} {'total':>8s}"]
-    for stage in stages(directory, num_robots):
+    for stage in stages(traces, num_robots):
         seconds = stage.seconds
         if len(seconds) == 0:
             lines.append(f"{stage.name:58s} {0:6d} {'-':>9s} {'-':>9s} {'-':>8s}")
             continue
         lines.append(f"{stage.name:58s} {len(seconds):6d} {1e3 * np.median(seconds):7.2f}ms "
                      f"{1e3 * np.mean(seconds):7.2f}ms {np.sum(seconds):7.2f}s")
+    lines.append("CPU time [s]: " + ", ".join(
+        f"{name} {'? (no exit line)' if trace.cpu_s is None else f'{trace.cpu_s:.2f}'}"
+        for name, trace in traces.items()))
+    unreadable = {name: t.unreadable for name, t in traces.items() if t.unreadable}
+    if unreadable:
+        lines.append(f"unreadable lines skipped: {unreadable}")
     return "\n".join(lines)
 
 
@@ -172,7 +226,11 @@ def main(argv: list[str] | None = None) -> int:
         list(args.directory.glob("robot_*.trace")))
     if robots < 1:
         parser.error(f"no robot_<i>.trace in {args.directory}")
-    print(report(args.directory, robots))
+    try:
+        traces = read_traces(args.directory, robots)
+    except FileNotFoundError as error:
+        parser.error(f"{error.filename}: no such trace (--robots {robots}?)")
+    print(report(traces, robots))
     return 0
 
 
