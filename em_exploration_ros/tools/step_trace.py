@@ -224,6 +224,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"no world.trace in {args.directory} (run run_team.sh --trace-steps DIR)")
     robots = args.robots if args.robots is not None else len(
         list(args.directory.glob("robot_*.trace")))
+    if args.robots is not None and args.robots < 1:
+        parser.error(f"--robots must be at least 1, got {args.robots}")
     if robots < 1:
         parser.error(f"no robot_<i>.trace in {args.directory}")
     try:
