@@ -206,3 +206,28 @@ def test_split_observations_sum_to_observations_of_all_poses() -> None:
 def test_observation_confidence_follows_the_log_odds_update() -> None:
     q = observation_confidence(np.array([0, 1, 2, 50]), MAP)
     np.testing.assert_allclose(q, [0.5, 0.7, 1 - 0.3 ** 2 / (0.3 ** 2 + 0.7 ** 2), 0.95])
+
+
+def test_observations_of_a_subset_of_cells_give_those_cells_sums_bit_for_bit() -> None:
+    rng = np.random.default_rng(11)
+    poses = np.column_stack([rng.uniform(0, 20, (9, 2)), rng.uniform(-3, 3, 9)])
+    roots = rng.normal(scale=0.1, size=(9, 3, 3))
+    covs = roots @ np.swapaxes(roots, 1, 2) + 1e-4 * np.eye(3)
+    cells = GEOMETRY.rows * GEOMETRY.cols
+    kept = rng.random(cells) < 0.4
+    slots = np.full(cells, -1)
+    slots[kept] = np.arange(np.count_nonzero(kept))
+    whole = CellObservations.from_poses(GEOMETRY, poses, SENSORS, "body")
+    subset = CellObservations.from_poses(GEOMETRY, poses, SENSORS, "body", slots)
+    # Only pairs of kept cells, numbered by slot, in the same (pose) order.
+    assert len(subset.flat_cell) == np.count_nonzero(kept[whole.flat_cell]) > 0
+    np.testing.assert_array_equal(subset.flat_cell, slots[whole.flat_cell[kept[whole.flat_cell]]])
+    full_sums = whole.intersection_sums(covs, cells)
+    sums = subset.intersection_sums(covs, int(np.count_nonzero(kept)))
+    np.testing.assert_array_equal(sums.weight, full_sums.weight[kept])
+    np.testing.assert_array_equal(sums.weighted_information, full_sums.weighted_information[kept])
+    np.testing.assert_array_equal(sums.covariance_traces(), full_sums.covariance_traces()[kept])
+    # Poses counted per part still add up (the planner's per-candidate split).
+    part = subset.pose_range(3, 9)
+    assert np.all(part.pose_index < 6) and len(part.pose_index) == np.count_nonzero(
+        subset.pose_index >= 3)

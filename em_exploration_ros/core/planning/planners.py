@@ -293,18 +293,27 @@ class EmPlanner(_PropagationPlanner):
             return np.zeros(len(context.candidates))
         snapshot, scenarios, factorization = prepared
         grid, planner, sensors = context.grid, self.params.planner, self.params.sensors
-        num_cells = grid.geometry.rows * grid.geometry.cols
+        reference = planner.utility_variant == "reference"
+        # The cells U_M sums over: all of them (reference), or those the team has observed
+        # (paper; whether alpha's own counts make a cell local is decided per candidate).
+        # Pairs of other cells are never built and the sums hold only these cells, in
+        # map order, so U_M is the same to the last bit as with whole-map sums.
         team_probability = grid.probability().ravel()
-        team_observed = np.maximum(team_probability, 1.0 - team_probability) > planner.q_min
+        counted = (np.ones(len(team_probability), dtype=bool) if reference else
+                   np.maximum(team_probability, 1.0 - team_probability) > planner.q_min)
+        num_cells = int(np.count_nonzero(counted))
+        slots = np.full(len(counted), -1, dtype=np.int64)
+        slots[counted] = np.arange(num_cells)
         history = CellObservations.from_poses(grid.geometry, snapshot.history_poses, sensors,
-                                              "body")
+                                              "body", slots)
         history_counts = np.bincount(history.flat_cell, minlength=num_cells)
         current = factorization.tracked_covariances
         current_sums = history.intersection_sums(current, num_cells)
         current_traces = np.trace(current, axis1=1, axis2=2)
         bounds = np.cumsum([0] + [len(s.next.waypoints) for s in scenarios])
         new_poses = CellObservations.from_poses(
-            grid.geometry, np.vstack([s.next.waypoints for s in scenarios]), sensors, "body")
+            grid.geometry, np.vstack([s.next.waypoints for s in scenarios]), sensors, "body",
+            slots)
         prior_trace = 2.0 * self.params.map.virtual_landmark_prior_sigma_m ** 2
         u_m = np.empty(len(scenarios))
         for index, scenario in enumerate(scenarios):
@@ -315,12 +324,12 @@ class EmPlanner(_PropagationPlanner):
                                          planner.history_change_tolerance)
             sums = history_sums + new.intersection_sums(result.next_covariances, num_cells)
             traces = sums.covariance_traces()
-            if planner.utility_variant == "reference":
+            if reference:
                 u_m[index] = np.sum(traces) + prior_trace * np.count_nonzero(~sums.observed)
             else:
                 counts = history_counts + np.bincount(new.flat_cell, minlength=num_cells)
                 local = observation_confidence(counts, self.params.map) > planner.q_min
-                u_m[index] = np.sum(traces[local & team_observed])
+                u_m[index] = np.sum(traces[local])
         return u_m
 
 

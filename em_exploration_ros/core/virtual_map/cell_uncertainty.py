@@ -195,8 +195,9 @@ def _intersection_sums(cell_index: IntArray, entries: FloatArray,
 class CellObservations:
     """Pose-independent part of the (pose, cell) observations of a set of poses.
 
-    For pair ``p`` (pose ``pose_index[p]`` observing cell ``flat_cell[p]``, flat index
-    ``row * cols + col``) the virtual landmark covariance ``G Sigma_x G^T + N`` (see
+    For pair ``p`` (pose ``pose_index[p]`` observing cell ``flat_cell[p]``: the cell's flat
+    index ``row * cols + col``, or its slot when the observations were built for a subset of
+    the cells, see :meth:`from_poses`) the virtual landmark covariance ``G Sigma_x G^T + N`` (see
     :func:`inverse_sensor_model`) is stored linearly in the pose covariance entries:
     ``coefficients`` ``(P, 3, 6)`` maps the 6 upper-triangle entries of ``Sigma_x`` to the 3
     entries (xx, xy, yy) of the cell covariance, ``noise`` ``(P, 3)`` holds those of ``N``
@@ -212,7 +213,8 @@ class CellObservations:
 
     @classmethod
     def from_poses(cls, geometry: GridGeometry, poses: ArrayLike, sensor_params: SensorParams,
-                   covariance_frame: CovarianceFrame = "map") -> "CellObservations":
+                   covariance_frame: CovarianceFrame = "map",
+                   cell_slots: IntArray | None = None) -> "CellObservations":
         """Observations of every cell whose centre is within sonar range of a pose.
 
         Args:
@@ -220,13 +222,23 @@ class CellObservations:
             poses: (K, 3) map-frame poses ``(x [m], y [m], theta [rad])``.
             sensor_params: sonar range and bearing/range noise.
             covariance_frame: frame of the pose covariances that will be supplied.
+            cell_slots: optional ``(rows * cols,)`` accumulator slot of every cell, -1 for a
+                cell left out. The pairs of left-out cells are dropped and ``flat_cell``
+                holds slots, so that sums over a subset of the map (the cells a utility
+                counts) cost nothing for the other cells. Default: every cell, slot = flat
+                index.
         """
         poses = np.asarray(poses, dtype=float).reshape(-1, 3)
         pose_index, flat_cell = observation_pairs(geometry, poses, sensor_params.sonar_max_range_m)
+        slot = flat_cell
+        if cell_slots is not None:
+            slot = np.asarray(cell_slots, dtype=np.int64)[flat_cell]
+            kept = slot >= 0
+            pose_index, flat_cell, slot = pose_index[kept], flat_cell[kept], slot[kept]
         centres = geometry.cell_center(np.stack(np.divmod(flat_cell, geometry.cols), axis=-1))
         gain, noise = inverse_sensor_model(poses[pose_index], centres, sensor_params,
                                            covariance_frame)
-        return cls(pose_index, flat_cell, _quadratic_form_coefficients(gain),
+        return cls(pose_index, slot, _quadratic_form_coefficients(gain),
                    noise[:, [0, 0, 1], [0, 1, 1]], len(poses))
 
     def pose_range(self, start: int, stop: int) -> "CellObservations":
