@@ -95,12 +95,11 @@ def test_virtual_odometry_noise_matches_the_slam_keyframe_model(length_m: float)
         accumulator.add(OdometryReading(np.array([step, 0.0, 0.0]),
                                         odometry_covariance_per_step(step, False, PARAMS.sensors)))
     delta, covariance = accumulator.take()
-    root = noise.odometry(delta)
+    root, longer = noise.odometry([delta, [2 * steps * step, 0.0, 0.0]])
     expected = slam.noise.odometry(delta, covariance).information()
     np.testing.assert_allclose(root.T @ root, expected, rtol=1e-9)
     # Twice the steps: twice the heading variance, more than twice the lateral variance
     # (heading errors act through a growing lever arm).
-    longer = noise.odometry(np.array([2 * steps * step, 0.0, 0.0]))
     # Each factor's covariance also holds the SLAM's floor once (slam.covariance_floor_sigma).
     floor = PARAMS.slam.covariance_floor_sigma ** 2
     short_cov = np.linalg.inv(root.T @ root) - floor * np.eye(3)

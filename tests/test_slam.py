@@ -175,6 +175,22 @@ def test_derived_noise_is_expressed_in_the_measured_pose_body_frame() -> None:
                                PARAMS.slam.fixed_bearing_range_sigmas)
 
 
+@pytest.mark.parametrize("use_fixed_sigmas", [False, True])
+def test_batched_odometry_roots_equal_gtsams_noise_models(use_fixed_sigmas: bool) -> None:
+    noise = SlamNoise(dataclasses.replace(PARAMS.slam, use_fixed_sigmas=use_fixed_sigmas))
+    rng = np.random.default_rng(3)
+    deltas = rng.normal(size=(6, 3))
+    deltas[0] = 0.0  # at rest: only the floor
+    factors = rng.normal(scale=1e-2, size=(6, 3, 3))
+    covariances = factors @ np.swapaxes(factors, 1, 2)
+    covariances[0] = 0.0
+    roots = noise.odometry_roots(deltas, covariances)
+    for root, delta, covariance in zip(roots, deltas, covariances):
+        expected = noise.odometry(delta, covariance).R()
+        assert np.allclose(np.tril(root, -1), 0.0)  # upper triangular, as GTSAM's
+        np.testing.assert_allclose(root, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+
+
 def test_empty_graph_accessors() -> None:
     slam = TeamSlam(1, 2, PARAMS.slam, np.zeros(3))
     indices, poses = slam.trajectory(1)

@@ -88,7 +88,6 @@ class VirtualNoise:
         self._slam_noise = slam_noise
         self._sensor_params = sensor_params
         self._step_m = motion_params.speed_mps * motion_params.time_step_s
-        self._odometry_roots: dict[tuple[float, float, float], FloatArray] = {}
         reading = LandmarkReading(0, 1.0, 0.0, sensor_params.sonar_range_sigma_m ** 2,
                                   sensor_params.sonar_bearing_sigma_rad ** 2)
         #: (2, 2) for (bearing [rad], range [m]) residuals.
@@ -97,22 +96,17 @@ class VirtualNoise:
         self.robot_observation = np.asarray(slam_noise.virtual_robot_observation.R(),
                                             dtype=float)
 
-    def odometry(self, delta: ArrayLike) -> FloatArray:
-        """``(3, 3)`` for a virtual odometry ``delta`` (3,) [m, m, rad] in the previous body
-        frame: straight motion over its length at the robot's per-step distance.
-
-        Memoized: along a virtual path most segments have the same delta (a straight
-        ``waypoint spacing`` ahead), so a decision asks for few distinct ones.
-        """
-        key = tuple(float(v) for v in np.asarray(delta, dtype=float).reshape(3))
-        if key not in self._odometry_roots:
-            length = float(np.hypot(key[0], key[1]))
+    def odometry(self, deltas: ArrayLike) -> FloatArray:
+        """``(F, 3, 3)`` for virtual odometry ``deltas`` (F, 3) [m, m, rad], each in the
+        previous body frame: straight motion over its length at the robot's per-step
+        distance."""
+        deltas = np.asarray(deltas, dtype=float).reshape(-1, 3)
+        covariances = np.empty((len(deltas), 3, 3))
+        for covariance, length in zip(covariances, np.hypot(deltas[:, 0], deltas[:, 1])):
             steps = max(1, int(round(length / self._step_m)))
-            covariance = _straight_odometry_covariance(steps, length / steps,
-                                                       self._sensor_params)
-            self._odometry_roots[key] = np.asarray(
-                self._slam_noise.odometry(np.array(key), covariance).R(), dtype=float)
-        return self._odometry_roots[key].copy()
+            covariance[:] = _straight_odometry_covariance(steps, length / steps,
+                                                          self._sensor_params)
+        return self._slam_noise.odometry_roots(deltas, covariances)
 
 
 @dataclass(frozen=True)
@@ -297,8 +291,9 @@ def _robot_observations(pairs_of_paths: Sequence[tuple[_RobotPath, _RobotPath]],
                         root: FloatArray, sonar_range_m: float) -> _PoseFactors:
     """Inter-robot readings between two robots within sonar range at the same step
     ``k >= 1`` (a robot past its last waypoint waits there; two robots both still at their
-    latest graph poses are skipped), once per pair of variables."""
-    pairs: dict[tuple[int, int], tuple[FloatArray, FloatArray]] = {}
+    latest graph poses are skipped), once per pair of variables: the longer path's index
+    grows with ``k``, so no pair of variables comes twice."""
+    parts = []
     for path_a, path_b in pairs_of_paths:
         step = np.arange(1, max(len(path_a.keys), len(path_b.keys)))
         index_a = np.minimum(step, len(path_a.keys) - 1)
@@ -306,12 +301,13 @@ def _robot_observations(pairs_of_paths: Sequence[tuple[_RobotPath, _RobotPath]],
         offsets = path_b.poses[index_b, :2] - path_a.poses[index_a, :2]
         near = (np.hypot(offsets[:, 0], offsets[:, 1]) <= sonar_range_m) & (
             (index_a > 0) | (index_b > 0))
-        for k in np.flatnonzero(near):
-            pair = (int(path_a.keys[index_a[k]]), int(path_b.keys[index_b[k]]))
-            pairs.setdefault(pair, (path_a.poses[index_a[k]], path_b.poses[index_b[k]]))
-    poses = np.array(list(pairs.values())).reshape(-1, 2, 3)
-    return _pose_factors([pair[0] for pair in pairs], [pair[1] for pair in pairs],
-                         poses[:, 0], poses[:, 1], np.broadcast_to(root, (len(pairs), 3, 3)))
+        index_a, index_b = index_a[near], index_b[near]
+        parts.append((path_a.keys[index_a], path_b.keys[index_b], path_a.poses[index_a],
+                      path_b.poses[index_b]))
+    if not parts:
+        return _empty_pose_factors()
+    key1, key2, poses1, poses2 = (np.concatenate(column) for column in zip(*parts))
+    return _pose_factors(key1, key2, poses1, poses2, np.broadcast_to(root, (len(key1), 3, 3)))
 
 
 class ScenarioBuilder:
@@ -345,18 +341,17 @@ class ScenarioBuilder:
         snapshot = self.snapshot
         start = np.asarray(snapshot.start_poses[robot], dtype=float)
         waypoints = virtual_waypoints(start, target_xy, self.spacing_m)
-        first_index = snapshot.next_index[robot]
-        keys = np.array([snapshot.start_keys[robot]]
-                        + [pose_key(robot, first_index + k) for k in range(len(waypoints))],
-                        dtype=np.int64)
+        keys = np.concatenate([[snapshot.start_keys[robot]], pose_keys(
+            robot, snapshot.next_index[robot] + np.arange(len(waypoints)))]).astype(np.int64)
         poses = np.vstack([start[None], waypoints])
+        deltas = between(poses[:-1], poses[1:]).reshape(-1, 3)
         roots = np.empty((len(waypoints), 3, 3))
         if len(waypoints):
-            deltas = between(poses[:-1], poses[1:])
-            roots[0] = self.noise.odometry(deltas[0])
-            if len(waypoints) > 1:
-                roots[1:] = self.noise.odometry(deltas[1])
-        odometry = _pose_factors(keys[:-1], keys[1:], poses[:-1], poses[1:], roots)
+            # Every segment after the first is the same straight step along the path.
+            distinct = self.noise.odometry(deltas[:2])
+            roots[0] = distinct[0]
+            roots[1:] = distinct[-1]
+        odometry = _PoseFactors(keys[:-1], keys[1:], deltas, roots)
         return _RobotPath(robot, keys, poses, odometry,
                           self._landmark_observations(keys[1:], waypoints))
 

@@ -207,6 +207,16 @@ class SlamNoise:
             return self._fixed_odometry
         return self._relative_pose(delta, covariance)
 
+    def odometry_roots(self, deltas: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+        """Square-root information matrices ``(F, 3, 3)`` of many odometry factors: what
+        ``odometry(delta, covariance).R()`` gives for each, computed in one NumPy batch
+        (the upper-triangular ``R`` with ``R^T R`` the inverse of the body-frame covariance,
+        as GTSAM's ``Gaussian.Covariance``; equal to it up to round-off)."""
+        if self._params.use_fixed_sigmas:
+            return np.broadcast_to(self._fixed_odometry.R(), (len(deltas), 3, 3)).copy()
+        body = coordinate_to_body_covariance(deltas, covariances) + self._floor * np.eye(3)
+        return np.swapaxes(np.linalg.cholesky(np.linalg.inv(body)), -1, -2)
+
     def bearing_range(self, reading: LandmarkReading) -> gtsam.noiseModel.Base:
         """Noise model of a bearing-range factor, ordered (bearing [rad], range [m])."""
         if self._params.use_fixed_sigmas:
