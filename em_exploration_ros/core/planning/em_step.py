@@ -338,8 +338,11 @@ class DecisionFactorization:
         projected = self.tracked_cross[:, :, touched] @ update
         tracked = (self.tracked_covariances
                    - projected @ middle_inverse @ np.swapaxes(projected, 1, 2))
+        # Only the 3x3 diagonal blocks of Sigma'_WW: block k is
+        # G_k P' G_k^T + (R_WW^-1)_k (R_WW^-1)_k^T with G_k, (R_WW^-1)_k block row k.
         inverse_ww = np.linalg.inv(root_ww)
-        gain = -inverse_ww @ root_wb
-        waypoints = gain @ posterior @ gain.T + inverse_ww @ inverse_ww.T
-        blocks = waypoints.reshape(count, 3, count, 3)[np.arange(count), :, np.arange(count), :]
+        gain_rows = (-inverse_ww @ root_wb).reshape(count, 3, len(touched))
+        inverse_rows = inverse_ww.reshape(count, 3, waypoint_dim)
+        blocks = (gain_rows @ posterior @ np.swapaxes(gain_rows, 1, 2)
+                  + inverse_rows @ np.swapaxes(inverse_rows, 1, 2))
         return PropagationResult(tracked[:self.num_history], tracked[self.num_history:], blocks)
