@@ -231,3 +231,25 @@ def test_observations_of_a_subset_of_cells_give_those_cells_sums_bit_for_bit() -
     part = subset.pose_range(3, 9)
     assert np.all(part.pose_index < 6) and len(part.pose_index) == np.count_nonzero(
         subset.pose_index >= 3)
+
+
+def test_grouped_sums_equal_each_groups_own_sums_bit_for_bit() -> None:
+    rng = np.random.default_rng(5)
+    poses = np.column_stack([rng.uniform(0, 20, (10, 2)), rng.uniform(-3, 3, 10)])
+    roots = rng.normal(scale=0.1, size=(10, 3, 3))
+    covs = roots @ np.swapaxes(roots, 1, 2) + 1e-4 * np.eye(3)
+    cells = GEOMETRY.rows * GEOMETRY.cols
+    observations = CellObservations.from_poses(GEOMETRY, poses, SENSORS, "body")
+    bounds = [0, 4, 4, 7, 10]  # group 1 has no pose: its sums are all zero
+    group = np.repeat(np.arange(4), np.diff(bounds))
+    grouped = observations.grouped_intersection_sums(covs, group, 4, cells)
+    assert grouped.weight.shape == (4, cells)
+    for index in range(4):
+        alone = observations.pose_range(bounds[index], bounds[index + 1]).intersection_sums(
+            covs[bounds[index]:bounds[index + 1]], cells)
+        np.testing.assert_array_equal(grouped[index].weight, alone.weight)
+        np.testing.assert_array_equal(grouped[index].weighted_information,
+                                      alone.weighted_information)
+        np.testing.assert_array_equal(grouped.covariance_traces()[index],
+                                      alone.covariance_traces())
+    assert not np.any(grouped[1].observed)

@@ -310,27 +310,31 @@ class EmPlanner(_PropagationPlanner):
         current = factorization.tracked_covariances
         current_sums = history.intersection_sums(current, num_cells)
         current_traces = np.trace(current, axis1=1, axis2=2)
-        bounds = np.cumsum([0] + [len(s.next.waypoints) for s in scenarios])
         new_poses = CellObservations.from_poses(
             grid.geometry, np.vstack([s.next.waypoints for s in scenarios]), sensors, "body",
             slots)
-        prior_trace = 2.0 * self.params.map.virtual_landmark_prior_sigma_m ** 2
-        u_m = np.empty(len(scenarios))
-        for index, scenario in enumerate(scenarios):
-            result = factorization.propagate(scenario)
-            new = new_poses.pose_range(bounds[index], bounds[index + 1])
-            history_sums = _history_sums(history, current, current_sums, current_traces,
-                                         result.history_covariances, num_cells,
-                                         planner.history_change_tolerance)
-            sums = history_sums + new.intersection_sums(result.next_covariances, num_cells)
-            traces = sums.covariance_traces()
-            if reference:
-                u_m[index] = np.sum(traces) + prior_trace * np.count_nonzero(~sums.observed)
-            else:
-                counts = history_counts + np.bincount(new.flat_cell, minlength=num_cells)
-                local = observation_confidence(counts, self.params.map) > planner.q_min
-                u_m[index] = np.sum(traces[local])
-        return u_m
+        results = [factorization.propagate(scenario) for scenario in scenarios]
+        # Every candidate's own waypoints in one pass: set c holds candidate c's.
+        candidate_of_pose = np.repeat(np.arange(len(scenarios)),
+                                      [len(s.next.waypoints) for s in scenarios])
+        new_sums = new_poses.grouped_intersection_sums(
+            np.concatenate([r.next_covariances for r in results]), candidate_of_pose,
+            len(scenarios), num_cells)
+        history_sums = CovarianceIntersectionSums.stack([
+            _history_sums(history, current, current_sums, current_traces,
+                          result.history_covariances, num_cells,
+                          planner.history_change_tolerance) for result in results])
+        sums = history_sums + new_sums
+        traces = sums.covariance_traces()
+        if reference:
+            prior_trace = 2.0 * self.params.map.virtual_landmark_prior_sigma_m ** 2
+            unobserved = np.count_nonzero(~sums.observed, axis=1)
+            return np.array([np.sum(row) for row in traces]) + prior_trace * unobserved
+        counts = history_counts + np.bincount(
+            candidate_of_pose[new_poses.pose_index] * num_cells + new_poses.flat_cell,
+            minlength=len(scenarios) * num_cells).reshape(len(scenarios), num_cells)
+        local = observation_confidence(counts, self.params.map) > planner.q_min
+        return np.array([np.sum(row[mask]) for row, mask in zip(traces, local)])
 
 
 def _history_sums(history: CellObservations, current: FloatArray,

@@ -38,7 +38,7 @@ GTSAM ``Pose2`` tangent (body) frame.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -133,9 +133,10 @@ def _quadratic_form_coefficients(gain: FloatArray) -> FloatArray:
 
 @dataclass(frozen=True)
 class CovarianceIntersectionSums:
-    """Per-cell accumulators of covariance intersection: the total weight ``(C,)`` and the
-    weighted information entries ``(C, 3)`` (xx, xy, yy) [1/m^2]. Sums over disjoint sets
-    of observations add up; the fused information is their ratio."""
+    """Per-cell accumulators of covariance intersection: the total weight ``(..., C)`` and
+    the weighted information entries ``(..., C, 3)`` (xx, xy, yy) [1/m^2]; leading
+    dimensions hold several independent sets (e.g. one per EM candidate). Sums over
+    disjoint sets of observations add up; the fused information is their ratio."""
 
     weight: FloatArray
     weighted_information: FloatArray
@@ -151,26 +152,38 @@ class CovarianceIntersectionSums:
 
     @property
     def observed(self) -> NDArray[np.bool_]:
-        """Cells ``(C,)`` with at least one observation."""
+        """Cells ``(..., C)`` with at least one observation."""
         return self.weight > 0.0
 
     def information_entries(self) -> FloatArray:
-        """Fused information entries ``(C, 3)`` (xx, xy, yy), zero for unobserved cells."""
+        """Fused information entries ``(..., C, 3)`` (xx, xy, yy), zero for unobserved
+        cells."""
         scale = np.divide(1.0, self.weight, out=np.zeros_like(self.weight),
                           where=self.observed)
-        return self.weighted_information * scale[:, None]
+        return self.weighted_information * scale[..., None]
 
     def information(self) -> FloatArray:
-        """Fused information ``(C, 2, 2)`` [1/m^2], zero for unobserved cells."""
+        """Fused information ``(..., C, 2, 2)`` [1/m^2], zero for unobserved cells."""
         return _cell_matrices(self.information_entries())
 
     def covariance_traces(self) -> FloatArray:
-        """``trace(Sigma)`` [m^2] of the fused covariance of each cell ``(C,)`` (A-optimality);
-        0 for unobserved cells."""
+        """``trace(Sigma)`` [m^2] of the fused covariance of each cell ``(..., C)``
+        (A-optimality); 0 for unobserved cells."""
         info = self.information_entries()
-        det = info[:, 0] * info[:, 2] - info[:, 1] ** 2
-        return np.divide(info[:, 0] + info[:, 2], det, out=np.zeros_like(det),
+        det = info[..., 0] * info[..., 2] - info[..., 1] ** 2
+        return np.divide(info[..., 0] + info[..., 2], det, out=np.zeros_like(det),
                          where=self.observed)
+
+    def __getitem__(self, index: int) -> "CovarianceIntersectionSums":
+        """The sums of set ``index`` along the first leading dimension."""
+        return CovarianceIntersectionSums(self.weight[index], self.weighted_information[index])
+
+    @classmethod
+    def stack(cls, sums: Sequence["CovarianceIntersectionSums"]
+              ) -> "CovarianceIntersectionSums":
+        """Sets of the same cells stacked along a new first dimension."""
+        return cls(np.stack([s.weight for s in sums]),
+                   np.stack([s.weighted_information for s in sums]))
 
 
 def _intersection_sums(cell_index: IntArray, entries: FloatArray,
@@ -265,6 +278,20 @@ class CellObservations:
         """Covariance-intersection accumulators ``(num_cells,)`` of these observations."""
         return _intersection_sums(self.flat_cell, self._pair_entries(pose_covariances),
                                   num_cells)
+
+    def grouped_intersection_sums(self, pose_covariances: ArrayLike, pose_group: IntArray,
+                                  num_groups: int,
+                                  num_cells: int) -> CovarianceIntersectionSums:
+        """Covariance-intersection accumulators ``(num_groups, num_cells)``, one set per
+        group of poses (``pose_group`` ``(num_poses,)``: the group of each pose), in one
+        pass; each set equals, to the last bit, that of its poses alone."""
+        index = np.asarray(pose_group, dtype=np.int64)[self.pose_index] * num_cells \
+            + self.flat_cell
+        sums = _intersection_sums(index, self._pair_entries(pose_covariances),
+                                  num_groups * num_cells)
+        return CovarianceIntersectionSums(sums.weight.reshape(num_groups, num_cells),
+                                          sums.weighted_information.reshape(
+                                              num_groups, num_cells, 3))
 
     def fused_information(self, pose_covariances: ArrayLike,
                           num_cells: int) -> tuple[FloatArray, NDArray[np.bool_]]:
