@@ -254,13 +254,6 @@ class CellObservations:
         return cls(pose_index, slot, _quadratic_form_coefficients(gain),
                    noise[:, [0, 0, 1], [0, 1, 1]], len(poses))
 
-    def pose_range(self, start: int, stop: int) -> "CellObservations":
-        """The observations of poses ``start <= index < stop``, renumbered from 0."""
-        first, last = np.searchsorted(self.pose_index, [start, stop])
-        return CellObservations(self.pose_index[first:last] - start, self.flat_cell[first:last],
-                                self.coefficients[first:last], self.noise[first:last],
-                                stop - start)
-
     def of_poses(self, selected: NDArray[np.bool_]) -> "CellObservations":
         """The observations of the poses where ``selected`` ``(num_poses,)`` is True, pose
         numbering kept (covariances are still given for all ``num_poses``)."""
