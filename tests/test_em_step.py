@@ -205,3 +205,59 @@ def test_boundary_must_cover_the_scenario(team: dict) -> None:
                                           [snapshot.start_keys[0]])
     with pytest.raises(ValueError, match="outside the boundary"):
         factorization.propagate(scenario)
+
+
+def _expected_readings(timelines: list[tuple[np.ndarray, np.ndarray]],
+                       pairs: list[tuple[int, int]], reach_m: float) -> list[tuple[int, int]]:
+    """Inter-robot readings by their definition, one step at a time: timelines (keys,
+    poses) with the latest graph pose first; a robot past its end waits there."""
+    readings = []
+    for a, b in pairs:
+        (keys_a, poses_a), (keys_b, poses_b) = timelines[a], timelines[b]
+        for k in range(1, max(len(keys_a), len(keys_b))):
+            i, j = min(k, len(keys_a) - 1), min(k, len(keys_b) - 1)
+            if (i or j) and np.hypot(*(poses_b[j, :2] - poses_a[i, :2])) <= reach_m:
+                readings.append((int(keys_a[i]), int(keys_b[j])))
+    return readings
+
+
+def test_scenarios_built_together_equal_scenarios_built_alone_and_the_definition() -> None:
+    # Four robots leaving together: 1 and 2 will cross each other's way, 3 stays idle.
+    trajectories = [straight((10.0, 50.0, 0.0), 6), straight((12.0, 53.0, 0.3), 6),
+                    straight((12.0, 47.0, -0.3), 6), straight((11.0, 51.0, 0.0), 6, step=0.5)]
+    slam = team_slam(trajectories, {0: np.array([14.0, 55.0]), 1: np.array([26.0, 50.0])})
+    snapshot = TeamSnapshot.from_slam(slam, 0)
+    noise = VirtualNoise(slam.noise, PARAMS.sensors, PARAMS.motion)
+    reach = PARAMS.sensors.sonar_max_range_m
+    mate_targets = {1: np.array([30.0, 40.0]), 2: np.array([30.0, 60.0]), 3: None}
+    builder = ScenarioBuilder(snapshot, mate_targets, noise, 2.0, reach)
+    start = snapshot.start_poses[0]
+    candidates = np.array([[40.0, 60.0], start[:2], [12.0, 52.0], [80.0, 20.0]])
+    together = builder.build_all(candidates)
+    alone = [builder.build(c) for c in candidates]
+    for one, other in zip(together, alone):
+        assert one.boundary_keys == other.boundary_keys
+        for name in ("waypoint_keys", "waypoint_robots", "waypoints"):
+            np.testing.assert_array_equal(getattr(one.next, name), getattr(other.next, name))
+        for group in ("odometry", "robot_observations", "landmark_observations"):
+            for field, value in vars(getattr(one.next, group)).items():
+                np.testing.assert_array_equal(value, getattr(getattr(other.next, group), field))
+    assert len(together[1].next.waypoint_keys) == 0  # the candidate at the robot itself
+
+    def timeline(robot: int, target) -> tuple[np.ndarray, np.ndarray]:
+        waypoints = virtual_waypoints(snapshot.start_poses[robot], target, 2.0)
+        keys = [snapshot.start_keys[robot]] + [pose_key(robot, snapshot.next_index[robot] + k)
+                                               for k in range(len(waypoints))]
+        return np.array(keys), np.vstack([snapshot.start_poses[robot][None], waypoints])
+
+    mates = [timeline(r, mate_targets[r]) for r in (1, 2, 3)]
+    predicted = builder.predicted.robot_observations
+    expected = _expected_readings(mates, [(0, 1), (0, 2), (1, 2)], reach)
+    assert list(zip(predicted.key1.tolist(), predicted.key2.tolist())) == expected
+    assert expected  # robots 1 and 2 cross
+    for candidate, scenario in zip(candidates, together):
+        own = [timeline(0, candidate)] + mates
+        expected = _expected_readings(own, [(0, 1), (0, 2), (0, 3)], reach)
+        readings = scenario.next.robot_observations
+        assert list(zip(readings.key1.tolist(), readings.key2.tolist())) == expected
+    assert len(together[2].next.robot_observations.key1) > 0  # passes the idle robot 3

@@ -129,7 +129,7 @@ def oracle_agreement(ctx: PlanningContext, count: int) -> tuple[float, float]:
     builder = ScenarioBuilder(snapshot, {r: t for r, (_, t) in ctx.teammates.items()}, noise,
                               PARAMS.planner.virtual_waypoint_spacing_m,
                               PARAMS.sensors.sonar_max_range_m)
-    scenarios = [builder.build(c.position) for c in ctx.candidates[-count:]]
+    scenarios = builder.build_all(np.array([c.position for c in ctx.candidates[-count:]]))
     boundary = sorted(set().union(*(s.boundary_keys for s in scenarios)))
     fast_path = DecisionFactorization(snapshot, builder.predicted, boundary, True, True)
     worst, oracle_times = 0.0, []

@@ -46,18 +46,27 @@ def virtual_waypoints(start_pose: ArrayLike, target_xy: ArrayLike | None,
     """Waypoints ``(n, 3)`` (map frame) along the straight path from ``start_pose`` (3,) to
     ``target_xy`` (2,): ``n = ceil(length / spacing_m)`` equally spaced points ending at the
     target, heading along the path; none for a missing or reached target."""
-    start = np.asarray(start_pose, dtype=float)
-    if target_xy is None:
-        return np.zeros((0, 3))
-    direction = np.asarray(target_xy, dtype=float)[:2] - start[:2]
-    length = float(np.hypot(direction[0], direction[1]))
-    if length < 1e-9:
-        return np.zeros((0, 3))
-    count = int(np.ceil(length / spacing_m - 1e-9))
-    fractions = np.arange(1, count + 1) / count
-    xy = start[:2] + fractions[:, None] * direction
-    heading = np.full(count, np.arctan2(direction[1], direction[0]))
-    return np.column_stack([xy, heading])
+    target = np.full(2, np.nan) if target_xy is None else target_xy
+    _, waypoints = _batch_waypoints(np.asarray(start_pose, dtype=float).reshape(1, 3),
+                                    np.asarray(target, dtype=float).reshape(1, 2), spacing_m)
+    return waypoints
+
+
+def _batch_waypoints(starts: FloatArray, targets: FloatArray,
+                     spacing_m: float) -> tuple[IntArray, FloatArray]:
+    """:func:`virtual_waypoints` of many paths at once: starts (P, 3), targets (P, 2) (NaN:
+    none). Returns the waypoint count of each path (P,) and every path's waypoints in
+    path order (sum of counts, 3)."""
+    direction = targets - starts[:, :2]
+    length = np.hypot(direction[:, 0], direction[:, 1])
+    moving = np.isfinite(length) & (length >= 1e-9)
+    counts = np.zeros(len(starts), dtype=np.int64)
+    counts[moving] = np.ceil(length[moving] / spacing_m - 1e-9)
+    path = np.repeat(np.arange(len(starts)), counts)
+    step = np.arange(len(path)) - (np.cumsum(counts) - counts)[path] + 1
+    xy = starts[path, :2] + (step / counts[path])[:, None] * direction[path]
+    heading = np.arctan2(direction[:, 1], direction[:, 0])[path]
+    return counts, np.column_stack([xy, heading]).reshape(-1, 3)
 
 
 def _straight_odometry_covariance(steps: int, step_length_m: float,
@@ -101,6 +110,8 @@ class VirtualNoise:
         previous body frame: straight motion over its length at the robot's per-step
         distance."""
         deltas = np.asarray(deltas, dtype=float).reshape(-1, 3)
+        if not len(deltas):
+            return np.zeros((0, 3, 3))
         covariances = np.empty((len(deltas), 3, 3))
         for covariance, length in zip(covariances, np.hypot(deltas[:, 0], deltas[:, 1])):
             steps = max(1, int(round(length / self._step_m)))
@@ -182,17 +193,6 @@ def _pose_factors(key1: Sequence[int], key2: Sequence[int], poses1: FloatArray,
                         between(poses1, poses2).reshape(-1, 3), roots.reshape(-1, 3, 3))
 
 
-def _join_pose_factors(parts: Sequence[_PoseFactors]) -> _PoseFactors:
-    return _PoseFactors(*(np.concatenate([getattr(p, name) for p in parts])
-                          for name in ("key1", "key2", "measured", "sqrt_information")))
-
-
-def _join_landmark_factors(parts: Sequence[_LandmarkFactors]) -> _LandmarkFactors:
-    return _LandmarkFactors(*(np.concatenate([getattr(p, name) for p in parts])
-                              for name in ("pose_key", "landmark_key", "bearing", "range",
-                                           "pose", "point", "sqrt_information")))
-
-
 @dataclass(frozen=True)
 class VirtualFactors:
     """New waypoint variables and virtual measurements.
@@ -255,59 +255,64 @@ class VirtualScenario:
 
 
 @dataclass(frozen=True)
-class _RobotPath:
-    """One robot's virtual timeline (latest graph pose first, then its waypoints), the
-    odometry along it and its landmark readings."""
+class _PathBatch:
+    """Virtual timelines of several robots' paths, each its robot's latest graph pose then
+    ``counts[p]`` waypoints. Waypoint arrays list every path's waypoints in path order
+    (path ``p``'s from ``first[p]``); ``odometry`` has one factor per waypoint (from the
+    previous timeline entry) and ``landmarks`` are in waypoint order (path ``p``'s from
+    ``landmark_first[p]``)."""
 
-    robot_id: int
+    robot_ids: IntArray
+    start_keys: IntArray
+    starts: FloatArray
+    counts: IntArray
+    first: IntArray
+    waypoint_path: IntArray
     keys: IntArray
-    poses: FloatArray
+    waypoints: FloatArray
     odometry: _PoseFactors
     landmarks: _LandmarkFactors
+    landmark_first: IntArray
+
+    def timeline(self, path: int) -> tuple[IntArray, FloatArray]:
+        """Keys (n + 1,) and poses (n + 1, 3) of path ``path``, latest graph pose first."""
+        span = slice(self.first[path], self.first[path] + self.counts[path])
+        return (np.concatenate([self.start_keys[path:path + 1], self.keys[span]]),
+                np.vstack([self.starts[path:path + 1], self.waypoints[span]]))
+
+    def readings_with(self, keys: IntArray, poses: FloatArray, sonar_range_m: float
+                      ) -> tuple[IntArray, IntArray, IntArray, FloatArray, FloatArray]:
+        """Inter-robot readings between each path and one other timeline (``keys`` (m + 1,),
+        ``poses`` (m + 1, 3)): within sonar range at the same step ``k >= 1`` (a robot past
+        its last waypoint waits there). Returns the path of each reading and its keys and
+        poses on both sides, path by path in step order. Steps run to the longer
+        timeline's end, whose index is ``k``: so no pair of variables comes twice, and two
+        robots both still at their latest graph poses (already in the graph) are never
+        read."""
+        other_count = len(keys) - 1
+        steps = np.maximum(self.counts, other_count)
+        path = np.repeat(np.arange(len(self.counts)), steps)
+        step = np.arange(len(path)) - (np.cumsum(steps) - steps)[path] + 1
+        own_index = np.minimum(step, self.counts[path])
+        other_index = np.minimum(step, other_count)
+        # Rows of [starts; waypoints]: path p's latest graph pose, or its waypoint i - 1.
+        entry = np.where(own_index == 0, path,
+                         len(self.counts) + self.first[path] + own_index - 1)
+        own_poses = np.vstack([self.starts, self.waypoints])[entry]
+        offsets = poses[other_index, :2] - own_poses[:, :2]
+        near = np.hypot(offsets[:, 0], offsets[:, 1]) <= sonar_range_m
+        own_keys = np.concatenate([self.start_keys, self.keys])[entry]
+        return (path[near], own_keys[near], keys[other_index[near]], own_poses[near],
+                poses[other_index[near]])
 
 
 def _empty_pose_factors() -> _PoseFactors:
     return _pose_factors([], [], np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)))
 
 
-def _virtual_factors(paths: Sequence[_RobotPath],
-                     robot_observations: _PoseFactors) -> VirtualFactors:
-    """The waypoints of ``paths`` with their odometry and landmark readings."""
-    if not paths:
-        empty = np.zeros(0, dtype=np.int64)
-        no_landmarks = _LandmarkFactors(empty, empty, np.zeros(0), np.zeros(0),
-                                        np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2, 2)))
-        return VirtualFactors(empty, empty, np.zeros((0, 3)), _empty_pose_factors(),
-                              robot_observations, no_landmarks)
-    return VirtualFactors(
-        np.concatenate([p.keys[1:] for p in paths]),
-        np.concatenate([np.full(len(p.keys) - 1, p.robot_id, dtype=np.int64) for p in paths]),
-        np.vstack([p.poses[1:] for p in paths]),
-        _join_pose_factors([p.odometry for p in paths]), robot_observations,
-        _join_landmark_factors([p.landmarks for p in paths]))
-
-
-def _robot_observations(pairs_of_paths: Sequence[tuple[_RobotPath, _RobotPath]],
-                        root: FloatArray, sonar_range_m: float) -> _PoseFactors:
-    """Inter-robot readings between two robots within sonar range at the same step
-    ``k >= 1`` (a robot past its last waypoint waits there; two robots both still at their
-    latest graph poses are skipped), once per pair of variables: the longer path's index
-    grows with ``k``, so no pair of variables comes twice."""
-    parts = []
-    for path_a, path_b in pairs_of_paths:
-        step = np.arange(1, max(len(path_a.keys), len(path_b.keys)))
-        index_a = np.minimum(step, len(path_a.keys) - 1)
-        index_b = np.minimum(step, len(path_b.keys) - 1)
-        offsets = path_b.poses[index_b, :2] - path_a.poses[index_a, :2]
-        near = (np.hypot(offsets[:, 0], offsets[:, 1]) <= sonar_range_m) & (
-            (index_a > 0) | (index_b > 0))
-        index_a, index_b = index_a[near], index_b[near]
-        parts.append((path_a.keys[index_a], path_b.keys[index_b], path_a.poses[index_a],
-                      path_b.poses[index_b]))
-    if not parts:
-        return _empty_pose_factors()
-    key1, key2, poses1, poses2 = (np.concatenate(column) for column in zip(*parts))
-    return _pose_factors(key1, key2, poses1, poses2, np.broadcast_to(root, (len(key1), 3, 3)))
+def _slice_pose_factors(factors: _PoseFactors, span: slice | IntArray) -> _PoseFactors:
+    return _PoseFactors(*(getattr(factors, name)[span]
+                          for name in ("key1", "key2", "measured", "sqrt_information")))
 
 
 class ScenarioBuilder:
@@ -328,35 +333,72 @@ class ScenarioBuilder:
         self.noise = noise
         self.spacing_m = spacing_m
         self.sonar_range_m = sonar_range_m
-        self._teammates = [self._path(robot, teammate_targets.get(robot))
-                           for robot in sorted(snapshot.start_keys)
-                           if robot != snapshot.robot_id]
-        mates = self._teammates
-        observations = _robot_observations(
-            [(a, b) for i, a in enumerate(mates) for b in mates[i + 1:]],
-            noise.robot_observation, sonar_range_m)
-        self.predicted = _virtual_factors(mates, observations)
+        mates = [robot for robot in sorted(snapshot.start_keys) if robot != snapshot.robot_id]
+        targets = [teammate_targets.get(robot) for robot in mates]
+        self._mates = self._paths(np.array(mates, dtype=np.int64), np.array(
+            [np.full(2, np.nan) if t is None else np.asarray(t, dtype=float)[:2]
+             for t in targets]).reshape(-1, 2))
+        self._mate_timelines = [self._mates.timeline(p) for p in range(len(mates))]
+        # Readings between teammates, pair by pair (i < j), each in step order.
+        parts = []
+        for j, (keys, poses) in enumerate(self._mate_timelines):
+            path, *columns = self._mates.readings_with(keys, poses, sonar_range_m)
+            earlier = path < j
+            parts.append((path[earlier] * len(mates) + j, *(c[earlier] for c in columns)))
+        observations, _ = self._observations(parts)
+        batch = self._mates
+        self.predicted = VirtualFactors(batch.keys, batch.robot_ids[batch.waypoint_path],
+                                        batch.waypoints, batch.odometry, observations,
+                                        batch.landmarks)
 
-    def _path(self, robot: int, target_xy: ArrayLike | None) -> _RobotPath:
+    def _observations(self, parts: list[tuple]) -> tuple[_PoseFactors, IntArray]:
+        """Readings from ``(rank, key1, key2, poses1, poses2)`` parts, stably sorted by
+        rank, and their ranks in that order."""
+        if not parts:
+            return _empty_pose_factors(), np.zeros(0, dtype=np.int64)
+        rank, key1, key2, poses1, poses2 = (np.concatenate(c) for c in zip(*parts))
+        order = np.argsort(rank, kind="stable")
+        return _pose_factors(key1[order], key2[order], poses1[order], poses2[order],
+                             np.broadcast_to(self.noise.robot_observation,
+                                             (len(order), 3, 3))), rank[order]
+
+    def _paths(self, robots: IntArray, targets: FloatArray) -> _PathBatch:
+        """The virtual paths of ``robots`` (P,) from their latest graph poses to ``targets``
+        (P, 2) (NaN: idle), with their odometry and landmark readings."""
         snapshot = self.snapshot
-        start = np.asarray(snapshot.start_poses[robot], dtype=float)
-        waypoints = virtual_waypoints(start, target_xy, self.spacing_m)
-        keys = np.concatenate([[snapshot.start_keys[robot]], pose_keys(
-            robot, snapshot.next_index[robot] + np.arange(len(waypoints)))]).astype(np.int64)
-        poses = np.vstack([start[None], waypoints])
-        deltas = between(poses[:-1], poses[1:]).reshape(-1, 3)
-        roots = np.empty((len(waypoints), 3, 3))
-        if len(waypoints):
-            # Every segment after the first is the same straight step along the path.
-            distinct = self.noise.odometry(deltas[:2])
-            roots[0] = distinct[0]
-            roots[1:] = distinct[-1]
-        odometry = _PoseFactors(keys[:-1], keys[1:], deltas, roots)
-        return _RobotPath(robot, keys, poses, odometry,
-                          self._landmark_observations(keys[1:], waypoints))
+        starts = np.array([snapshot.start_poses[r] for r in robots], dtype=float).reshape(-1, 3)
+        start_keys = np.array([snapshot.start_keys[r] for r in robots], dtype=np.int64)
+        counts, waypoints = _batch_waypoints(starts, targets, self.spacing_m)
+        first = np.cumsum(counts) - counts
+        path = np.repeat(np.arange(len(robots)), counts)
+        step = np.arange(len(path)) - first[path]  # 0 for a path's first waypoint
+        next_index = np.array([snapshot.next_index[r] for r in robots], dtype=np.int64)
+        keys = pose_keys(robots[path], next_index[path] + step)
+        is_first = step == 0
+        previous = np.empty_like(waypoints)
+        previous[is_first] = starts[path[is_first]]
+        previous[~is_first] = waypoints[np.flatnonzero(~is_first) - 1]
+        previous_keys = np.where(is_first, start_keys[path], np.roll(keys, 1))
+        deltas = between(previous, waypoints).reshape(-1, 3)
+        # A path's first segment turns from the start heading; every later one is the same
+        # straight step along the path: two noise models per path.
+        first_segments, second_segments = first[counts > 0], first[counts > 1] + 1
+        distinct = self.noise.odometry(deltas[np.concatenate([first_segments,
+                                                              second_segments])])
+        roots = np.empty((len(path), 3, 3))
+        roots[first_segments] = distinct[:len(first_segments)]
+        later_root = np.empty((len(robots), 3, 3))
+        later_root[counts > 1] = distinct[len(first_segments):]
+        roots[~is_first] = later_root[path[~is_first]]
+        landmarks, seen_waypoint = self._landmark_observations(keys, waypoints)
+        return _PathBatch(robots, start_keys, starts, counts, first, path, keys, waypoints,
+                          _PoseFactors(previous_keys, keys, deltas, roots), landmarks,
+                          np.searchsorted(seen_waypoint, first))
 
-    def _landmark_observations(self, keys: IntArray, waypoints: FloatArray) -> _LandmarkFactors:
-        """Bearing-range readings of known landmarks within sonar range of each waypoint."""
+    def _landmark_observations(self, keys: IntArray, waypoints: FloatArray
+                               ) -> tuple[_LandmarkFactors, IntArray]:
+        """Bearing-range readings of known landmarks within sonar range of each waypoint,
+        in waypoint order, and the waypoint of each."""
         landmarks = self.snapshot.landmark_positions
         offsets = landmarks[None, :, :] - waypoints[:, None, :2]
         seen_waypoint, seen_landmark = np.nonzero(
@@ -366,17 +408,41 @@ class ScenarioBuilder:
                                 bearing, distance, waypoints[seen_waypoint],
                                 landmarks[seen_landmark],
                                 np.broadcast_to(self.noise.bearing_range,
-                                                (len(seen_waypoint), 2, 2)))
+                                                (len(seen_waypoint), 2, 2))), seen_waypoint
 
     def build(self, target_xy: ArrayLike) -> VirtualScenario:
         """Virtual paths and measurements of the candidate ``target_xy`` (2,) [m]."""
-        own = self._path(self.snapshot.robot_id, target_xy)
-        observations = _robot_observations([(own, mate) for mate in self._teammates],
-                                           self.noise.robot_observation, self.sonar_range_m)
-        next_factors = _virtual_factors([own], observations)
-        boundary = next_factors.touched_keys() - set(next_factors.waypoint_keys.tolist())
-        return VirtualScenario(self.snapshot.robot_id, self.predicted, next_factors,
-                               tuple(sorted(boundary)))
+        return self.build_all(np.asarray(target_xy, dtype=float).reshape(1, 2))[0]
+
+    def build_all(self, targets_xy: ArrayLike) -> list[VirtualScenario]:
+        """The scenarios of the candidates ``targets_xy`` (C, 2) [m], built together (each
+        as :meth:`build` would)."""
+        targets = np.asarray(targets_xy, dtype=float).reshape(-1, 2)
+        alpha = self.snapshot.robot_id
+        own = self._paths(np.full(len(targets), alpha, dtype=np.int64), targets)
+        parts = []
+        for mate, (keys, poses) in enumerate(self._mate_timelines):
+            path, *columns = own.readings_with(keys, poses, self.sonar_range_m)
+            parts.append((path * len(self._mate_timelines) + mate, *columns))
+        observations, ranks = self._observations(parts)
+        per_candidate = np.searchsorted(ranks // max(len(parts), 1),
+                                        np.arange(len(targets) + 1))
+        landmark_bounds = np.append(own.landmark_first, len(own.landmarks.pose_key))
+        scenarios = []
+        for candidate in range(len(targets)):
+            span = slice(own.first[candidate], own.first[candidate] + own.counts[candidate])
+            seen = slice(landmark_bounds[candidate], landmark_bounds[candidate + 1])
+            readings = slice(per_candidate[candidate], per_candidate[candidate + 1])
+            next_factors = VirtualFactors(
+                own.keys[span], own.robot_ids[own.waypoint_path[span]], own.waypoints[span],
+                _slice_pose_factors(own.odometry, span),
+                _slice_pose_factors(observations, readings),
+                _LandmarkFactors(*(getattr(own.landmarks, name)[seen]
+                                   for name in _LandmarkFactors.__dataclass_fields__)))
+            boundary = next_factors.touched_keys() - set(own.keys[span].tolist())
+            scenarios.append(VirtualScenario(alpha, self.predicted, next_factors,
+                                             tuple(sorted(boundary))))
+        return scenarios
 
 
 def graph_with_virtual(snapshot: TeamSnapshot, *parts: VirtualFactors

@@ -228,7 +228,7 @@ class _PropagationPlanner:
         builder = ScenarioBuilder(snapshot, targets, noise,
                                   self.params.planner.virtual_waypoint_spacing_m,
                                   self.params.sensors.sonar_max_range_m)
-        scenarios = [builder.build(c.position) for c in context.candidates]
+        scenarios = builder.build_all(np.array([c.position for c in context.candidates]))
         boundary = sorted(set().union(*(s.boundary_keys for s in scenarios)))
         factorization = DecisionFactorization(snapshot, builder.predicted, boundary,
                                               with_history=with_history,

@@ -52,10 +52,12 @@ def pose_key(robot_id: int, index: int) -> int:
     return gtsam.symbol(chr(ord("a") + robot_id), index)
 
 
-def pose_keys(robot_id: int, indices: np.ndarray) -> np.ndarray:
-    """:func:`pose_key` of many keyframe indices ``(K,)`` at once, ``(K,)`` int64 (a GTSAM
-    symbol is its character in the top byte and the index below)."""
-    return (np.int64(ord("a") + robot_id) << np.int64(56)) | np.asarray(indices, dtype=np.int64)
+def pose_keys(robot_id: int | np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """:func:`pose_key` of many keyframe indices ``(K,)`` at once (of one robot, or of one
+    robot each, ``robot_id`` ``(K,)``), ``(K,)`` int64 (a GTSAM symbol is its character in
+    the top byte and the index below)."""
+    robot = np.asarray(robot_id, dtype=np.int64)
+    return ((np.int64(ord("a")) + robot) << np.int64(56)) | np.asarray(indices, dtype=np.int64)
 
 
 def landmark_key(landmark_id: int) -> int:
