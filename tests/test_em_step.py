@@ -158,8 +158,13 @@ def test_fast_path_equals_the_oracle(team: dict, with_history: bool,
     boundary = sorted(set().union(*(s.boundary_keys for s in scenarios)))
     factorization = DecisionFactorization(snapshot, builder.predicted, boundary,
                                           with_history, with_predicted)
-    for scenario in scenarios:
-        fast = factorization.propagate(scenario)
+    # All candidates in one batch (paths of different lengths, one of none) and each
+    # alone give the oracle's covariances.
+    alone = [factorization.propagate(scenario) for scenario in scenarios]
+    for scenario, fast, single in zip(scenarios, factorization.propagate_all(scenarios), alone):
+        for part in ("history_covariances", "predicted_covariances", "next_covariances"):
+            np.testing.assert_allclose(getattr(fast, part), getattr(single, part),
+                                       rtol=1e-12, atol=1e-15)
         oracle = propagate_oracle(snapshot, scenario)
         assert _block_error(fast.next_covariances, oracle.next_covariances) < ORACLE_TOLERANCE
         if with_history:

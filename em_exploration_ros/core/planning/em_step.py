@@ -307,6 +307,20 @@ class DecisionFactorization:
     def propagate(self, scenario: VirtualScenario) -> PropagationResult:
         """Covariances after adding the scenario's ``next`` measurements (the Woodbury update
         of the module docstring); only the parts requested at construction are filled."""
+        return self.propagate_all([scenario])[0]
+
+    def propagate_all(self, scenarios: Sequence[VirtualScenario]) -> list[PropagationResult]:
+        """:meth:`propagate` of every scenario; the new waypoints' covariances of all of
+        them in one batch (:func:`_chain_covariances`)."""
+        updates = [self._update(scenario) for scenario in scenarios]
+        waypoints = _chain_covariances(updates)
+        return [PropagationResult(update.tracked[:self.num_history],
+                                  update.tracked[self.num_history:], blocks)
+                for update, blocks in zip(updates, waypoints)]
+
+    def _update(self, scenario: VirtualScenario) -> "_CandidateUpdate":
+        """The QR of the scenario's whitened Jacobian (new waypoints first) and the Woodbury
+        update of the boundary and the tracked poses."""
         missing = set(scenario.boundary_keys) - set(self.boundary_offsets)
         if missing:
             raise ValueError(f"scenario touches {len(missing)} keys outside the boundary")
@@ -328,8 +342,6 @@ class DecisionFactorization:
 
         jacobian = _whitened_jacobian(factors, columns_of, waypoint_dim + len(touched))
         root = np.linalg.qr(jacobian, mode="r")
-        root_ww = root[:waypoint_dim, :waypoint_dim]
-        root_wb = root[:waypoint_dim, waypoint_dim:]
         update = root[waypoint_dim:, waypoint_dim:].T
         prior = self.boundary_covariance[np.ix_(touched, touched)]
         prior_update = prior @ update
@@ -338,11 +350,70 @@ class DecisionFactorization:
         projected = self.tracked_cross[:, :, touched] @ update
         tracked = (self.tracked_covariances
                    - projected @ middle_inverse @ np.swapaxes(projected, 1, 2))
-        # Only the 3x3 diagonal blocks of Sigma'_WW: block k is
-        # G_k P' G_k^T + (R_WW^-1)_k (R_WW^-1)_k^T with G_k, (R_WW^-1)_k block row k.
-        inverse_ww = np.linalg.inv(root_ww)
-        gain_rows = (-inverse_ww @ root_wb).reshape(count, 3, len(touched))
-        inverse_rows = inverse_ww.reshape(count, 3, waypoint_dim)
-        blocks = (gain_rows @ posterior @ np.swapaxes(gain_rows, 1, 2)
-                  + inverse_rows @ np.swapaxes(inverse_rows, 1, 2))
-        return PropagationResult(tracked[:self.num_history], tracked[self.num_history:], blocks)
+        # R_WW is block upper bidiagonal (the waypoints form a chain; every other factor
+        # of a waypoint reaches into B): its diagonal and first off-diagonal 3x3 blocks.
+        root_ww = root[:waypoint_dim, :waypoint_dim].reshape(count, 3, count, 3)
+        steps = np.arange(count)
+        return _CandidateUpdate(tracked, posterior, root_ww[steps, :, steps, :],
+                                root_ww[steps[:-1], :, steps[:-1] + 1, :],
+                                root[:waypoint_dim, waypoint_dim:].reshape(
+                                    count, 3, len(touched)))
+
+
+@dataclass(frozen=True)
+class _CandidateUpdate:
+    """One candidate's propagation before its waypoints' covariances: the tracked poses'
+    covariances (T, 3, 3), the boundary posterior ``P'`` (t, t) of the t boundary
+    dimensions it touches, and the blocks of its square root ``[R_WW R_WB]``: diagonal
+    (n, 3, 3), first off-diagonal (n - 1, 3, 3) and ``R_WB`` (n, 3, t)."""
+
+    tracked: FloatArray
+    posterior: FloatArray
+    diagonal: FloatArray
+    off_diagonal: FloatArray
+    boundary_rows: FloatArray
+
+
+def _chain_covariances(updates: Sequence[_CandidateUpdate]) -> list[FloatArray]:
+    """The new waypoints' covariances (n, 3, 3) of each update, all updates at once.
+
+    ``x_W = K x_B + e`` with ``K = -R_WW^-1 R_WB`` and ``cov(e) = R_WW^-1 R_WW^-T``; for a
+    block upper bidiagonal ``R_WW`` both follow from the last waypoint backwards::
+
+        K_k = R_kk^-1 (-R_kB - R_k,k+1 K_k+1)
+        D_k = R_kk^-1 (I + R_k,k+1 D_k+1 R_k,k+1^T) R_kk^-T
+        Sigma'_kk = K_k P' K_k^T + D_k
+
+    (``D_k`` the diagonal block of ``cov(e)``: block row k of ``R_WW^-1`` has no entry
+    where the identity's row k does). The chains are aligned at their last waypoint and
+    padded in front with independent unit blocks, so one step of the recursion serves
+    every candidate.
+    """
+    if not updates:
+        return []
+    counts = [len(u.diagonal) for u in updates]
+    length = max(counts)
+    width = max(u.posterior.shape[0] for u in updates)
+    diagonal = np.broadcast_to(np.eye(3), (len(updates), length, 3, 3)).copy()
+    off_diagonal = np.zeros((len(updates), length, 3, 3))  # block k couples k and k + 1
+    boundary_rows = np.zeros((len(updates), length, 3, width))
+    posterior = np.zeros((len(updates), width, width))
+    for index, (update, count) in enumerate(zip(updates, counts)):
+        start, touched = length - count, update.posterior.shape[0]
+        diagonal[index, start:] = update.diagonal
+        off_diagonal[index, start:length - 1] = update.off_diagonal
+        boundary_rows[index, start:, :, :touched] = update.boundary_rows
+        posterior[index, :touched, :touched] = update.posterior
+    inverse = np.linalg.inv(diagonal)
+    inverse_t = np.swapaxes(inverse, -1, -2)
+    gains = np.zeros((len(updates), length, 3, width))
+    spread = np.zeros((len(updates), length, 3, 3))
+    gain, below = np.zeros((len(updates), 3, width)), np.zeros((len(updates), 3, 3))
+    for k in range(length - 1, -1, -1):
+        coupling = off_diagonal[:, k]
+        gain = inverse[:, k] @ (-boundary_rows[:, k] - coupling @ gain)
+        below = inverse[:, k] @ (np.eye(3) + coupling @ below @ np.swapaxes(coupling, 1, 2)) \
+            @ inverse_t[:, k]
+        gains[:, k], spread[:, k] = gain, below
+    blocks = (gains @ posterior[:, None] @ np.swapaxes(gains, -1, -2)) + spread
+    return [blocks[index, length - count:] for index, count in enumerate(counts)]

@@ -250,7 +250,7 @@ class BspPlanner(_PropagationPlanner):
             u_m = np.zeros(len(u_d))
         else:
             _, scenarios, factorization = prepared
-            results = [factorization.propagate(s) for s in scenarios]
+            results = factorization.propagate_all(scenarios)
             u_m = np.array([trace_sqrt_sum(r.predicted_covariances)
                             + trace_sqrt_sum(r.next_covariances) for r in results])
         weight_d, weight_m = self.params.planner.bsp_lambdas
@@ -313,7 +313,7 @@ class EmPlanner(_PropagationPlanner):
         new_poses = CellObservations.from_poses(
             grid.geometry, np.vstack([s.next.waypoints for s in scenarios]), sensors, "body",
             slots)
-        results = [factorization.propagate(scenario) for scenario in scenarios]
+        results = factorization.propagate_all(scenarios)
         # Every candidate's own waypoints in one pass: set c holds candidate c's.
         candidate_of_pose = np.repeat(np.arange(len(scenarios)),
                                       [len(s.next.waypoints) for s in scenarios])
