@@ -181,11 +181,16 @@ def test_observed_mask_matches_the_occupancy_rule_and_traces_agree() -> None:
     assert np.all(np.linalg.eigvalsh(covariances) > 0)
 
 
+def _random_poses(seed: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` random poses (K, 3) in the 20 m x 10 m grid and random covariances."""
+    rng = np.random.default_rng(seed)
+    poses = np.column_stack([rng.uniform(0, 20, (count, 2)), rng.uniform(-3, 3, count)])
+    roots = rng.normal(scale=0.1, size=(count, 3, 3))
+    return poses, roots @ np.swapaxes(roots, 1, 2) + 1e-4 * np.eye(3)
+
+
 def test_split_observations_sum_to_observations_of_all_poses() -> None:
-    rng = np.random.default_rng(7)
-    poses = np.column_stack([rng.uniform(0, 20, (8, 2)), rng.uniform(-3, 3, 8)])
-    roots = rng.normal(scale=0.1, size=(8, 3, 3))
-    covs = roots @ np.swapaxes(roots, 1, 2) + 1e-4 * np.eye(3)
+    poses, covs = _random_poses(7, 8)
     cells = GEOMETRY.rows * GEOMETRY.cols
     whole = CellObservations.from_poses(GEOMETRY, poses, SENSORS, "body")
     first = np.arange(8) < 5
@@ -210,12 +215,9 @@ def test_observation_confidence_follows_the_log_odds_update() -> None:
 
 
 def test_observations_of_a_subset_of_cells_give_those_cells_sums_bit_for_bit() -> None:
-    rng = np.random.default_rng(11)
-    poses = np.column_stack([rng.uniform(0, 20, (9, 2)), rng.uniform(-3, 3, 9)])
-    roots = rng.normal(scale=0.1, size=(9, 3, 3))
-    covs = roots @ np.swapaxes(roots, 1, 2) + 1e-4 * np.eye(3)
+    poses, covs = _random_poses(11, 9)
     cells = GEOMETRY.rows * GEOMETRY.cols
-    kept = rng.random(cells) < 0.4
+    kept = np.random.default_rng(12).random(cells) < 0.4
     slots = np.full(cells, -1)
     slots[kept] = np.arange(np.count_nonzero(kept))
     whole = CellObservations.from_poses(GEOMETRY, poses, SENSORS, "body")
@@ -231,10 +233,7 @@ def test_observations_of_a_subset_of_cells_give_those_cells_sums_bit_for_bit() -
 
 
 def test_grouped_sums_equal_each_groups_own_sums_bit_for_bit() -> None:
-    rng = np.random.default_rng(5)
-    poses = np.column_stack([rng.uniform(0, 20, (10, 2)), rng.uniform(-3, 3, 10)])
-    roots = rng.normal(scale=0.1, size=(10, 3, 3))
-    covs = roots @ np.swapaxes(roots, 1, 2) + 1e-4 * np.eye(3)
+    poses, covs = _random_poses(5, 10)
     cells = GEOMETRY.rows * GEOMETRY.cols
     observations = CellObservations.from_poses(GEOMETRY, poses, SENSORS, "body")
     bounds = [0, 4, 4, 7, 10]  # group 1 has no pose: its sums are all zero
