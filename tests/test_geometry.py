@@ -117,3 +117,19 @@ def test_coordinate_to_body_covariance_is_the_gtsam_pose2_tangent_frame(theta: f
     coordinate_cov = np.array([[2.0, 0.5, 0.1], [0.5, 1.0, -0.2], [0.1, -0.2, 0.3]])
     np.testing.assert_allclose(coordinate_to_body_covariance(pose, coordinate_cov),
                                tangent_jacobian @ coordinate_cov @ tangent_jacobian.T, atol=1e-5)
+
+
+def test_a_single_angle_wraps_to_the_same_bits_as_an_array_of_angles() -> None:
+    rng = np.random.default_rng(4)
+    angles = np.concatenate([rng.uniform(-60.0, 60.0, 5000),
+                             [np.pi, -np.pi, 3 * np.pi, -3 * np.pi, 0.0, -0.0, 1e-300,
+                              np.nextafter(np.pi, 0.0), np.nextafter(-np.pi, 0.0),
+                              np.nextafter(-np.pi, -4.0)]])
+    as_array = wrap_angle(angles)
+    one_by_one = np.array([wrap_angle(float(a)) for a in angles])
+    numpy_scalars = np.array([wrap_angle(a) for a in angles])  # np.float64 elements
+    np.testing.assert_array_equal(one_by_one, as_array)
+    np.testing.assert_array_equal(numpy_scalars, as_array)
+    # Within one rounding of (-pi, pi]: the float nearest -3 pi wraps to one ulp above pi.
+    assert np.all((as_array > -np.pi) & (as_array <= np.nextafter(np.pi, 4.0)))
+    assert wrap_angle(-np.pi) == np.pi and np.shape(wrap_angle(1.0)) == ()

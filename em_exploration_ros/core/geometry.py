@@ -8,6 +8,8 @@ perturbations), in that order.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -17,7 +19,15 @@ _TWO_PI = 2.0 * np.pi
 
 
 def wrap_angle(angle: ArrayLike) -> FloatArray:
-    """Angles [rad] wrapped to (-pi, pi], same shape as the input."""
+    """Angles [rad] wrapped to (-pi, pi], same shape as the input.
+
+    A single float (Python or NumPy) takes a scalar path: the same IEEE operations, so the
+    same result to the last bit, at a tenth of the array path's overhead (the simulation
+    and the agents wrap single angles hundreds of thousands of times per run).
+    """
+    if isinstance(angle, float):
+        wrapped = angle - _TWO_PI * math.ceil((angle - math.pi) / _TWO_PI)
+        return np.float64(wrapped + _TWO_PI if wrapped <= -math.pi else wrapped)
     angle = np.asarray(angle, dtype=float)
     wrapped = angle - _TWO_PI * np.ceil((angle - np.pi) / _TWO_PI)
     return np.where(wrapped <= -np.pi, wrapped + _TWO_PI, wrapped)
