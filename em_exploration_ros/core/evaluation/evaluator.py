@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from em_exploration_ros.core.evaluation.metrics import landmark_rmse, localization_rmse
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
@@ -34,6 +35,56 @@ _STAMP_RESOLUTION_NS = 1000
 def stamp_key(stamp_s: float) -> int:
     """Integer key of a simulation time [s], robust to float round-off."""
     return int(round(stamp_s * 1e9 / _STAMP_RESOLUTION_NS))
+
+
+def stamp_keys(stamps_s: ArrayLike) -> NDArray[np.int64]:
+    """:func:`stamp_key` of many finite simulation times [s] (any shape) at once: the same
+    arithmetic, rounding half to even as Python's ``round`` does."""
+    return np.rint(np.asarray(stamps_s, dtype=float) * 1e9 / _STAMP_RESOLUTION_NS).astype(np.int64)
+
+
+class _TruePoses:
+    """One robot's true poses (world frame) by stamp key, stored as growing arrays so that a
+    whole estimated trajectory is matched in one lookup; a stamp recorded again replaces
+    its pose."""
+
+    def __init__(self) -> None:
+        self._row: dict[int, int] = {}
+        self._keys = np.zeros(64, dtype=np.int64)
+        self._poses = np.zeros((64, 3))
+        self._sorted: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
+
+    def put(self, key: int, pose: np.ndarray) -> None:
+        row = self._row.get(key)
+        if row is None:
+            row = len(self._row)
+            if row == len(self._keys):
+                self._keys = np.concatenate([self._keys, np.zeros_like(self._keys)])
+                self._poses = np.concatenate([self._poses, np.zeros_like(self._poses)])
+            self._row[key] = row
+            self._keys[row] = key
+            self._sorted = None
+        self._poses[row] = pose
+
+    def _order(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Rows in key order and the keys in that order."""
+        if self._sorted is None:
+            keys = self._keys[:len(self._row)]
+            order = np.argsort(keys, kind="stable")
+            self._sorted = (order, keys[order])
+        return self._sorted
+
+    def match(self, keys: NDArray[np.int64]) -> tuple[NDArray[np.bool_], np.ndarray]:
+        """Which of ``keys`` (K,) have a true pose, and those poses (in ``keys`` order)."""
+        order, sorted_keys = self._order()
+        position = np.minimum(np.searchsorted(sorted_keys, keys), max(len(sorted_keys) - 1, 0))
+        found = (sorted_keys[position] == keys) if len(sorted_keys) else np.zeros(
+            len(keys), dtype=bool)
+        return found, self._poses[order[position[found]]]
+
+    def in_time_order(self) -> np.ndarray:
+        """Every recorded pose (N, 3), by stamp."""
+        return self._poses[self._order()[0]].copy()
 
 
 def landmark_truth(world_params: WorldParams, landmark_ids: np.ndarray,
@@ -72,7 +123,7 @@ class TeamEvaluator:
         self._grid = OccupancyGrid(world.width_m, world.height_m, params.map,
                                    params.sensors.sonar_max_range_m)
         n = params.world.num_robots
-        self._truth: list[dict[int, np.ndarray]] = [{} for _ in range(n)]
+        self._truth = [_TruePoses() for _ in range(n)]
         self._last_true_xy: list[np.ndarray | None] = [None] * n
         self._distance = np.zeros(n)
 
@@ -88,13 +139,12 @@ class TeamEvaluator:
 
     def true_trajectory(self, robot_id: int) -> np.ndarray:
         """A robot's recorded true poses (K, 3) in time order (world frame)."""
-        truth = self._truth[robot_id]
-        return np.array([truth[key] for key in sorted(truth)]).reshape(-1, 3)
+        return self._truth[robot_id].in_time_order()
 
     def record_truth(self, robot_id: int, stamp_s: float, pose: np.ndarray) -> None:
         """Store a robot's true pose (world frame) at a simulation time [s]."""
         pose = np.asarray(pose, dtype=float)
-        self._truth[robot_id][stamp_key(stamp_s)] = pose
+        self._truth[robot_id].put(stamp_key(stamp_s), pose)
         previous = self._last_true_xy[robot_id]
         if previous is not None:
             self._distance[robot_id] += float(np.linalg.norm(pose[:2] - previous))
@@ -110,16 +160,14 @@ class TeamEvaluator:
             trajectories: ``{robot: (stamps_s (K,), poses (K, 3))}``, map frame.
             landmark_estimates: ``{robot: {landmark_id: position (2,)}}``, map frame.
         """
-        estimated, true = [], []
+        estimated, true = [np.zeros((0, 3))], [np.zeros((0, 3))]
         for robot, (stamps, poses) in trajectories.items():
-            truth = self._truth[robot]
-            for stamp, pose in zip(np.asarray(stamps, dtype=float), np.asarray(poses)):
-                key = stamp_key(float(stamp))
-                if key in truth:
-                    estimated.append(pose)
-                    true.append(truth[key])
-        loc_rmse = (localization_rmse(np.array(estimated), np.array(true))
-                    if estimated else math.nan)
+            found, truth = self._truth[robot].match(stamp_keys(stamps).reshape(-1))
+            estimated.append(np.asarray(poses, dtype=float).reshape(-1, 3)[found])
+            true.append(truth)
+        estimated_poses, true_poses = np.concatenate(estimated), np.concatenate(true)
+        loc_rmse = (localization_rmse(estimated_poses, true_poses)
+                    if len(estimated_poses) else math.nan)
         pooled_errors = []
         for estimates in landmark_estimates.values():
             value = landmark_rmse(estimates, self.world)
