@@ -20,7 +20,7 @@ from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
 from em_exploration_ros.core.sim.links import FrameKind
 from em_exploration_ros.core.sim.team_runner import TeamRunner
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, finish_team_run, processes_in_domain,
-                         robot_pid, start_team_run, wait_until)
+                         robot_pid, start_team_run, wait_for_liveliness, wait_until)
 
 #: Steps between two gap requests at the default repair interval (5 s at 0.2 s).
 REPAIR_STEPS = 25
@@ -151,6 +151,7 @@ def test_a_robot_restarted_under_poor_links_resumes_at_the_worlds_open_step(tmp_
         "--params", str(params), "--summary", str(summary_path))
     def kill_robot_1_mid_run() -> None:
         wait_until(lambda: "t=   20.0 s" in run.output(), RUN_TIMEOUT_S, "mid-run")
+        wait_for_liveliness(summary_path.parent / "logs" / "world.log", 1, RUN_TIMEOUT_S)
         os.kill(robot_pid(domain, 1), signal.SIGKILL)
 
     code = finish_team_run(run, RUN_TIMEOUT_S, kill_robot_1_mid_run)

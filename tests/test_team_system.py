@@ -24,7 +24,7 @@ from rclpy.node import Node
 from em_exploration_ros.nodes.qos import TEAM_QOS
 
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
-                         robot_pid, start_team_run, wait_until)
+                         robot_pid, start_team_run, wait_for_liveliness, wait_until)
 
 #: Bound of one team run in these tests [s].
 RUN_TIMEOUT_S = 180.0
@@ -265,6 +265,8 @@ def test_a_robot_wedged_early_in_the_run_is_restarted(tmp_path):
                                  "--summary", str(summary_path))
     with run:
         run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+        for log in ("world.log", "evaluator.log"):
+            wait_for_liveliness(summary_path.parent / "logs" / log, 2, RUN_TIMEOUT_S)
         os.kill(robot_pid(domain, 2), signal.SIGSTOP)
         code = run.wait(RUN_TIMEOUT_S)
     output = run.output()
