@@ -77,9 +77,10 @@ class _TruePoses:
     def match(self, keys: NDArray[np.int64]) -> tuple[NDArray[np.bool_], np.ndarray]:
         """Which of ``keys`` (K,) have a true pose, and those poses (in ``keys`` order)."""
         order, sorted_keys = self._order()
-        position = np.minimum(np.searchsorted(sorted_keys, keys), max(len(sorted_keys) - 1, 0))
-        found = (sorted_keys[position] == keys) if len(sorted_keys) else np.zeros(
-            len(keys), dtype=bool)
+        if not len(sorted_keys):
+            return np.zeros(len(keys), dtype=bool), np.zeros((0, 3))
+        position = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+        found = sorted_keys[position] == keys
         return found, self._poses[order[position[found]]]
 
     def in_time_order(self) -> np.ndarray:

@@ -24,8 +24,8 @@ tangent (body) frame. The propagation of covariances through these measurements 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Mapping, Sequence
+from dataclasses import dataclass, fields
+from typing import Mapping, Sequence, TypeVar
 
 import gtsam
 import numpy as np
@@ -52,6 +52,13 @@ def virtual_waypoints(start_pose: ArrayLike, target_xy: ArrayLike | None,
     return waypoints
 
 
+def _ragged(counts: IntArray) -> tuple[IntArray, IntArray]:
+    """For runs of ``counts`` (P,) entries laid end to end: the run of every entry and its
+    position in its run (0 first)."""
+    run = np.repeat(np.arange(len(counts)), counts)
+    return run, np.arange(len(run)) - (np.cumsum(counts) - counts)[run]
+
+
 def _batch_waypoints(starts: FloatArray, targets: FloatArray,
                      spacing_m: float) -> tuple[IntArray, FloatArray]:
     """:func:`virtual_waypoints` of many paths at once: starts (P, 3), targets (P, 2) (NaN:
@@ -62,9 +69,8 @@ def _batch_waypoints(starts: FloatArray, targets: FloatArray,
     moving = np.isfinite(length) & (length >= 1e-9)
     counts = np.zeros(len(starts), dtype=np.int64)
     counts[moving] = np.ceil(length[moving] / spacing_m - 1e-9)
-    path = np.repeat(np.arange(len(starts)), counts)
-    step = np.arange(len(path)) - (np.cumsum(counts) - counts)[path] + 1
-    xy = starts[path, :2] + (step / counts[path])[:, None] * direction[path]
+    path, index = _ragged(counts)
+    xy = starts[path, :2] + ((index + 1) / counts[path])[:, None] * direction[path]
     heading = np.arctan2(direction[:, 1], direction[:, 0])[path]
     return counts, np.column_stack([xy, heading]).reshape(-1, 3)
 
@@ -290,9 +296,8 @@ class _PathBatch:
         robots both still at their latest graph poses (already in the graph) are never
         read."""
         other_count = len(keys) - 1
-        steps = np.maximum(self.counts, other_count)
-        path = np.repeat(np.arange(len(self.counts)), steps)
-        step = np.arange(len(path)) - (np.cumsum(steps) - steps)[path] + 1
+        path, index = _ragged(np.maximum(self.counts, other_count))
+        step = index + 1
         own_index = np.minimum(step, self.counts[path])
         other_index = np.minimum(step, other_count)
         # Rows of [starts; waypoints]: path p's latest graph pose, or its waypoint i - 1.
@@ -310,9 +315,12 @@ def _empty_pose_factors() -> _PoseFactors:
     return _pose_factors([], [], np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)))
 
 
-def _slice_pose_factors(factors: _PoseFactors, span: slice | IntArray) -> _PoseFactors:
-    return _PoseFactors(*(getattr(factors, name)[span]
-                          for name in ("key1", "key2", "measured", "sqrt_information")))
+FactorsT = TypeVar("FactorsT", _PoseFactors, _LandmarkFactors)
+
+
+def _sliced(factors: FactorsT, span: slice) -> FactorsT:
+    """The factors ``span`` of a set of factors (every array field sliced alike)."""
+    return type(factors)(*(getattr(factors, field.name)[span] for field in fields(factors)))
 
 
 class ScenarioBuilder:
@@ -370,8 +378,7 @@ class ScenarioBuilder:
         start_keys = np.array([snapshot.start_keys[r] for r in robots], dtype=np.int64)
         counts, waypoints = _batch_waypoints(starts, targets, self.spacing_m)
         first = np.cumsum(counts) - counts
-        path = np.repeat(np.arange(len(robots)), counts)
-        step = np.arange(len(path)) - first[path]  # 0 for a path's first waypoint
+        path, step = _ragged(counts)  # step 0: a path's first waypoint
         next_index = np.array([snapshot.next_index[r] for r in robots], dtype=np.int64)
         keys = pose_keys(robots[path], next_index[path] + step)
         is_first = step == 0
@@ -435,10 +442,8 @@ class ScenarioBuilder:
             readings = slice(per_candidate[candidate], per_candidate[candidate + 1])
             next_factors = VirtualFactors(
                 own.keys[span], own.robot_ids[own.waypoint_path[span]], own.waypoints[span],
-                _slice_pose_factors(own.odometry, span),
-                _slice_pose_factors(observations, readings),
-                _LandmarkFactors(*(getattr(own.landmarks, name)[seen]
-                                   for name in _LandmarkFactors.__dataclass_fields__)))
+                _sliced(own.odometry, span), _sliced(observations, readings),
+                _sliced(own.landmarks, seen))
             boundary = next_factors.touched_keys() - set(own.keys[span].tolist())
             scenarios.append(VirtualScenario(alpha, self.predicted, next_factors,
                                              tuple(sorted(boundary))))

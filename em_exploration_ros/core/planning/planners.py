@@ -330,9 +330,8 @@ class EmPlanner(_PropagationPlanner):
             prior_trace = 2.0 * self.params.map.virtual_landmark_prior_sigma_m ** 2
             unobserved = np.count_nonzero(~sums.observed, axis=1)
             return np.array([np.sum(row) for row in traces]) + prior_trace * unobserved
-        counts = history_counts + np.bincount(
-            candidate_of_pose[new_poses.pose_index] * num_cells + new_poses.flat_cell,
-            minlength=len(scenarios) * num_cells).reshape(len(scenarios), num_cells)
+        counts = history_counts + new_poses.grouped_counts(candidate_of_pose, len(scenarios),
+                                                           num_cells)
         local = observation_confidence(counts, self.params.map) > planner.q_min
         return np.array([np.sum(row[mask]) for row, mask in zip(traces, local)])
 

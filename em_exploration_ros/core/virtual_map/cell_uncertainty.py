@@ -278,13 +278,23 @@ class CellObservations:
         """Covariance-intersection accumulators ``(num_groups, num_cells)``, one set per
         group of poses (``pose_group`` ``(num_poses,)``: the group of each pose), in one
         pass; each set equals, to the last bit, that of its poses alone."""
-        index = np.asarray(pose_group, dtype=np.int64)[self.pose_index] * num_cells \
-            + self.flat_cell
-        sums = _intersection_sums(index, self._pair_entries(pose_covariances),
-                                  num_groups * num_cells)
+        sums = _intersection_sums(self._grouped_cells(pose_group, num_cells),
+                                  self._pair_entries(pose_covariances), num_groups * num_cells)
         return CovarianceIntersectionSums(sums.weight.reshape(num_groups, num_cells),
                                           sums.weighted_information.reshape(
                                               num_groups, num_cells, 3))
+
+    def grouped_counts(self, pose_group: IntArray, num_groups: int,
+                       num_cells: int) -> IntArray:
+        """Observations of each cell ``(num_groups, num_cells)`` by each group of poses
+        (``pose_group`` as for :meth:`grouped_intersection_sums`)."""
+        return np.bincount(self._grouped_cells(pose_group, num_cells),
+                           minlength=num_groups * num_cells).reshape(num_groups, num_cells)
+
+    def _grouped_cells(self, pose_group: IntArray, num_cells: int) -> IntArray:
+        """Index ``group * num_cells + cell`` of every pair."""
+        return np.asarray(pose_group, dtype=np.int64)[self.pose_index] * num_cells \
+            + self.flat_cell
 
     def fused_information(self, pose_covariances: ArrayLike,
                           num_cells: int) -> tuple[FloatArray, NDArray[np.bool_]]:
