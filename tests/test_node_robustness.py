@@ -6,10 +6,14 @@
 - Settings read once are read-only: setting them on a running node is refused.
 - A robot started on its own whose world leaves the ROS graph says so and exits (code 4)
   after world_lost_timeout_s; one that sees the world come back goes on.
+- Ctrl-C raises nothing inside a node's callbacks (where it once broke a message being
+  taken and ended the world with exit code 1): it shuts ROS down and the node wraps up.
 """
 from __future__ import annotations
 
 import signal
+import sys
+import textwrap
 
 import pytest
 import rclpy
@@ -17,7 +21,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from ros_process import NodeProcess, ros_args
+from ros_process import NodeProcess, REPO_ROOT, ros_args
 
 WORLD = "em_exploration_ros.nodes.world_node"
 ROBOT = "em_exploration_ros.nodes.robot_node"
@@ -106,3 +110,51 @@ def test_a_robot_whose_world_leaves_says_so_and_exits(tmp_path):
         robot.wait_for_output("the world left the ROS graph", 2 * START_S)
         assert robot.wait(START_S) == 4
     assert "the world has been gone for 3 s; exiting (code 4)" in robot.output()
+
+
+# A node that sends itself SIGINT from a callback, then keeps running Python code in that
+# callback (building messages, as rclpy's conversion of a taken message does) for 0.5 s.
+SELF_INTERRUPTING_NODE = textwrap.dedent("""
+    import os, signal, sys, time
+    from rclpy.node import Node
+    from std_msgs.msg import String
+    from em_exploration_ros.nodes.node_main import run_node
+
+    class SelfInterrupting(Node):
+        def __init__(self):
+            super().__init__("self_interrupting")
+            self.ticks = 0
+            self.create_timer(0.05, self.tick)
+
+        def tick(self):
+            self.ticks += 1
+            if self.ticks != 3:
+                return
+            os.kill(os.getpid(), signal.SIGINT)
+            try:
+                deadline = time.monotonic() + 0.5
+                while time.monotonic() < deadline:
+                    String(data="message")
+            except KeyboardInterrupt:
+                self.get_logger().error("KeyboardInterrupt inside a callback")
+                raise
+            self.get_logger().info("callback ended undisturbed")
+
+    def wrap_up(node):
+        node.get_logger().info(f"wrapped up after {node.ticks} ticks")
+        return 0
+
+    sys.exit(run_node(SelfInterrupting, "self_interrupting", wrap_up=wrap_up))
+""")
+
+
+def test_ctrl_c_shuts_ros_down_without_raising_inside_a_callback(tmp_path):
+    node = NodeProcess([sys.executable, "-c", SELF_INTERRUPTING_NODE], tmp_path / "node.log",
+                       env={"PYTHONPATH": str(REPO_ROOT)})
+    with node:
+        code = node.wait(START_S)
+    output = node.output()
+    assert code == 0, output
+    assert "KeyboardInterrupt" not in output and "Traceback" not in output, output
+    assert "callback ended undisturbed" in output, output
+    assert "wrapped up after" in output, output

@@ -36,6 +36,7 @@ from em_exploration_ros.bag_format.bag_writer import COMPRESSIONS, DEFAULT_CHUNK
 from em_exploration_ros.bag_format.interface_index import read_type_hash
 from em_exploration_ros.bag_format.qos_yaml import request_for_offers
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
+from em_exploration_ros.nodes.node_main import interrupt_shuts_down
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
     qos_from_rclpy, qos_to_rclpy)
@@ -186,19 +187,21 @@ def main(argv: list[str] | None = None) -> None:
     except OSError as error:
         sys.stderr.write(f"em-record: cannot create {options.output}: {error.strerror}\n")
         sys.exit(EXIT_USAGE)
-    rclpy.init(args=full_args)
-    recorder = None
-    try:
-        recorder = Recorder(writer, options)
-        rclpy.spin(recorder)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if recorder is not None:
-            recorder.finish()
-            recorder.destroy_node()
-        writer.close()
-        rclpy.try_shutdown()
+    with interrupt_shuts_down() as interrupted:
+        rclpy.init(args=full_args)
+        recorder = None
+        try:
+            if not interrupted():  # a Ctrl-C before rclpy.init ends the recording empty
+                recorder = Recorder(writer, options)
+                rclpy.spin(recorder)
+        except ExternalShutdownException:
+            pass
+        finally:
+            if recorder is not None:
+                recorder.finish()
+                recorder.destroy_node()
+            writer.close()
+            rclpy.try_shutdown()
 
 
 if __name__ == "__main__":

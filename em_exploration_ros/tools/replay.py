@@ -41,6 +41,7 @@ from em_exploration_ros.bag_format.mcap_ros2_schema import (DefinitionNotFoundEr
                                                             same_layout)
 from em_exploration_ros.bag_format.qos_yaml import QosFormatError, QosProfile, offer_for_playback
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
+from em_exploration_ros.nodes.node_main import interrupt_shuts_down
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, cli_args, import_message_class, number_type, qos_to_rclpy)
 
@@ -311,17 +312,19 @@ def main(argv: list[str] | None = None) -> None:
     except BagError as error:
         sys.stderr.write(f"em-replay: {error}\n")
         sys.exit(EXIT_BAD_INPUT)
-    rclpy.init(args=full_args)
-    replayer = None
-    try:
-        replayer = Replayer(info, topics, options)
-        replayer.play()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if replayer is not None:
-            replayer.destroy_node()
-        rclpy.try_shutdown()
+    with interrupt_shuts_down() as interrupted:
+        rclpy.init(args=full_args)
+        replayer = None
+        try:
+            if not interrupted():  # a Ctrl-C before rclpy.init plays nothing
+                replayer = Replayer(info, topics, options)
+                replayer.play()
+        except ExternalShutdownException:
+            pass
+        finally:
+            if replayer is not None:
+                replayer.destroy_node()
+            rclpy.try_shutdown()
 
 
 if __name__ == "__main__":
