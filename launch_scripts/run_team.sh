@@ -388,11 +388,11 @@ start evaluator -m "$NODES.evaluator_node" "${COMMON[@]}" -p use_sim_time:=true 
     -p "summary_path:=$SUMMARY" -p "map_png_path:=$MAP_PNG" "${SIM_LIMIT[@]}"
 EVALUATOR_PID=${PIDS[-1]}
 WAIT_FOR=(-p wait_for_evaluator:=true)
-# The robots wait for the recorder too: /tf keeps nothing for a listener that matches late.
+# The robots wait for the recorder too: volatile topics keep nothing for a late subscriber.
 ROBOT_WAIT_FOR=()
 if [[ -n $RECORD ]]; then
     WAIT_FOR+=(-p wait_for_recorder:=true)
-    ROBOT_WAIT_FOR=(-p tf_listeners:=1)
+    ROBOT_WAIT_FOR=(-p wait_for_recorder:=true)
 fi
 start world -m "$NODES.world_node" "${COMMON[@]}" "${CLOCK[@]}" "${WAIT_FOR[@]}" \
     "${SIM_LIMIT[@]}"

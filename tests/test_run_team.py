@@ -155,6 +155,11 @@ def test_three_robots_explore_end_to_end(tmp_path):
     info = scan_bag(bag)
     with RosbagsReader(bag) as reader:
         assert reader.message_count == info.message_count == read_metadata_yaml(bag).message_count
+    # ... from the first step: the robots answered it only once the recorder subscribed to
+    # all their topics (it once missed their first 30 commands, subscribed as discovered).
+    counts = info.topic_counts()
+    steps = counts["/world/ground_truth/robot_0"]
+    assert [counts[f"/robot_{robot}/motion_command"] for robot in range(3)] == [steps] * 3
     assert_frame_chains(bag, num_robots=3, max_error_m=2.0)
 
 

@@ -51,7 +51,7 @@ def assert_frame_chains(bag: Path, num_robots: int, max_error_m: float) -> None:
         common = sorted(corrections.keys() & true_poses.keys())
         # Every step but possibly the first (a teammate of robot 0 has no map pose before
         # its first step is processed): the robots answer their first step only once the
-        # recorder listens to /tf (run_team.sh --record sets tf_listeners).
+        # recorder listens to all their topics (run_team.sh --record sets wait_for_recorder).
         assert len(common) >= len(true_poses) - 1 > 10, (robot, len(common), len(true_poses))
         errors = [np.hypot(*(compose(compose(map_in_world, corrections[t]),
                                      dead_reckoning[t])[:2] - true_poses[t][:2]))

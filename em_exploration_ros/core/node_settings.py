@@ -51,8 +51,8 @@ class WorldNodeSettings:
         False, "Before the first step, also wait until an evaluator listens to the ground "
         "truth and to every robot's team updates.")
     wait_for_recorder: bool = param_field(
-        False, "Before the first step, also wait until a second listener (the recorder) "
-        "listens to the clock, the ground truth and every robot's sensors.")
+        False, "Before the first step, also wait until the recorder (em-record) subscribes "
+        "to every topic the world publishes.")
 
 
 @dataclass(frozen=True)
@@ -77,13 +77,13 @@ class RobotNodeSettings:
     rejoin_timeout_s: float = param_field(
         20.0, "After a restart: wall seconds after which the robot resumes with what it "
         "recovered of its stream, even if records are missing.", 0.1, 1e6)
-    tf_listeners: int = param_field(
-        0, "Before its first step, wait until this many listeners have matched the "
-        "robot's /tf publisher (run_team.sh sets 1 when it records, so the "
-        "recording holds every transform from the first step; /tf keeps no history for a "
-        "late listener).", 0, 100)
-    tf_listener_wait_s: float = param_field(
-        5.0, "Wall seconds to wait for the tf_listeners before the first step is answered "
+    wait_for_recorder: bool = param_field(
+        False, "Before its first step, wait until the recorder (em-record) subscribes to "
+        "every topic this robot publishes (run_team.sh --record sets it), so that the "
+        "recording holds every message from the first step: volatile topics keep nothing "
+        "for a late subscriber.")
+    recorder_wait_s: float = param_field(
+        5.0, "Wall seconds to wait for the recorder before the first step is answered "
         "anyway (with a warning); keep it below the world's robot_timeout_s.", 0.0, 1e6)
 
 

@@ -87,6 +87,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, given_up_to_msg,
 from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
+from em_exploration_ros.nodes.recorder_presence import topics_not_recorded
 from em_exploration_ros.nodes.qos import ESTIMATE_QOS, LATCHED_QOS, SENSOR_QOS, TEAM_QOS
 from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
                                                   checked_team_update, content_problem,
@@ -145,8 +146,8 @@ class RobotNode(LeanNode):
         self._last_request = 0.0
         self._barrier: dict[int, int] = {}
         self._world_watch = WorldWatch(self.settings.world_lost_timeout_s)
-        self._tf_wait_since: float | None = None
-        self._tf_listened = self.settings.tf_listeners == 0
+        self._recorder_wait_since: float | None = None
+        self._recorder_listens = not self.settings.wait_for_recorder
         self._next_world_check_s = 0.0
         self._create_interfaces()
         self.get_logger().info(
@@ -422,7 +423,7 @@ class RobotNode(LeanNode):
         if not self.relay_mode:  # relay mode: re-sends go at steps (LinkSender)
             self._send_due_resends()
         self._watch_world()
-        if self._tf_wait_since is not None and not self._tf_listened:
+        if self._recorder_wait_since is not None and not self._recorder_listens:
             self._process_ready_steps()
         now = time.monotonic()
         if self._recovery is not None:
@@ -547,7 +548,7 @@ class RobotNode(LeanNode):
             step = self._next_step
             if step is None or step not in self._scans or step not in self._odometry:
                 return
-            if not self._tf_listened and not self._tf_listeners_matched():
+            if not self._recorder_listens and not self._recorder_listening():
                 return
             scan = self._scans[step]
             limits = {robot: int(seq) for robot, seq in enumerate(scan.team_sequences)
@@ -572,27 +573,27 @@ class RobotNode(LeanNode):
         return all(received + offset >= count for received, offset, count in
                    zip(self.received_deliveries, self._delivery_offset, needed))
 
-    def _tf_listeners_matched(self) -> bool:
-        """Before the first step: True once ``tf_listeners`` listeners (the recorder) have
-        matched /tf, or ``tf_listener_wait_s`` passed (logged). /tf is volatile: a transform
-        published before a listener matched never reaches it. Until then the step waits
-        (``_maintain`` looks again; the world re-sends the step)."""
-        matched = self.tf_pub.get_subscription_count()
+    def _recorder_listening(self) -> bool:
+        """Before the first step: True once the recorder subscribes to every topic this robot
+        publishes, or ``recorder_wait_s`` passed (logged). Most topics are volatile: what is
+        published before the recorder's subscription matched never reaches it. Until then
+        the step waits (``_maintain`` looks again; the world re-sends the step)."""
+        missing = topics_not_recorded(self)
         now = time.monotonic()
-        if self._tf_wait_since is None:
-            self._tf_wait_since = now
-        waited = now - self._tf_wait_since
-        if matched >= self.settings.tf_listeners:
-            self.get_logger().info(f"/tf has {matched} listener(s) after {waited:.1f} s: "
-                                   "answering the first step")
-        elif waited >= self.settings.tf_listener_wait_s:
+        if self._recorder_wait_since is None:
+            self._recorder_wait_since = now
+        waited = now - self._recorder_wait_since
+        if not missing:
+            self.get_logger().info(f"the recorder listens to every topic of this robot after "
+                                   f"{waited:.1f} s: answering the first step")
+        elif waited >= self.settings.recorder_wait_s:
             self.get_logger().warn(
-                f"/tf has {matched} of {self.settings.tf_listeners} listener(s) after "
-                f"{waited:.1f} s; answering the first step anyway (a recording misses the "
-                "transforms published before its listener matched)")
+                f"the recorder does not listen to {', '.join(missing)} after {waited:.1f} s; "
+                "answering the first step anyway (the recording misses what these topics "
+                "carry before it subscribes)")
         else:
             return False
-        self._tf_listened = True
+        self._recorder_listens = True
         return True
 
     def _step(self, scan: SonarScan, odometry: Odometry, limits: dict[int, int] | None) -> None:

@@ -72,6 +72,7 @@ from em_exploration_ros.nodes import tf_publishing
 from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
+from em_exploration_ros.nodes.recorder_presence import topics_not_recorded
 from em_exploration_ros.nodes.qos import CLOCK_QOS, GROUND_TRUTH_QOS, LATCHED_QOS, SENSOR_QOS
 from em_exploration_ros.nodes.input_guard import (InputGuard, content_problem, header_problem,
                                                   listened)
@@ -220,18 +221,9 @@ class WorldNode(LeanNode):
     def _evaluator_connected(self) -> bool:
         return all(pub.get_subscription_count() >= 1 for pub in self.truth_pubs)
 
-    def _recorder_connected(self) -> bool:
-        """A listener besides the robots and the evaluator on every world topic."""
-        truth_listeners = 1 + (1 if self.wait_for_evaluator else 0)
-        return (self.clock_pub.get_subscription_count() >= 1
-                and all(pub.get_subscription_count() >= truth_listeners
-                        for pub in self.truth_pubs)
-                and all(pub.get_subscription_count() >= 2
-                        for pub in self.sonar_pubs + self.odom_pubs))
-
     def _observers_connected(self) -> bool:
         return ((not self.wait_for_evaluator or self._evaluator_connected())
-                and (not self.wait_for_recorder or self._recorder_connected()))
+                and (not self.wait_for_recorder or not topics_not_recorded(self)))
 
     def _try_start(self) -> None:
         connected = [self.robot_connected(r) for r in range(self.num_robots)]
