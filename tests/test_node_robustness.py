@@ -6,11 +6,14 @@
 - Settings read once are read-only: setting them on a running node is refused.
 - A robot started on its own whose world leaves the ROS graph says so and exits (code 4)
   after world_lost_timeout_s; one that sees the world come back goes on.
+- A robot the evaluator never saw alive (stopped before its liveliness reached the
+  evaluator) is reported lost after the liveliness grace, not silently left out.
 - Ctrl-C raises nothing inside a node's callbacks (where it once broke a message being
   taken and ended the world with exit code 1): it shuts ROS down and the node wraps up.
 """
 from __future__ import annotations
 
+import json
 import signal
 import sys
 import textwrap
@@ -25,6 +28,7 @@ from ros_process import NodeProcess, REPO_ROOT, ros_args
 
 WORLD = "em_exploration_ros.nodes.world_node"
 ROBOT = "em_exploration_ros.nodes.robot_node"
+EVALUATOR = "em_exploration_ros.nodes.evaluator_node"
 ONE_ROBOT = {"world.num_robots": 1, "world.width_m": 30.0, "world.height_m": 30.0,
              "world.num_landmarks": 2}
 START_S = 30.0  # process start-up on a loaded machine
@@ -110,6 +114,36 @@ def test_a_robot_whose_world_leaves_says_so_and_exits(tmp_path):
         robot.wait_for_output("the world left the ROS graph", 2 * START_S)
         assert robot.wait(START_S) == 4
     assert "the world has been gone for 3 s; exiting (code 4)" in robot.output()
+
+
+def test_a_robot_never_seen_alive_is_reported_lost(tmp_path):
+    """Robot 1 of 2 never starts: the world starts with robot 0 alone after
+    startup_timeout_s (it once treated robot 0 as missing too, since robot 1 did not listen
+    to its team updates, and stepped over at once); the evaluator, which never saw robot 1's
+    liveliness, reports it lost after the grace, and the run ends at its time limit."""
+    team = dict(ONE_ROBOT, **{"world.num_robots": 2})
+    summary_path = tmp_path / "summary.json"
+    world = NodeProcess.start_module(WORLD, ros_args(params=dict(
+        team, startup_timeout_s=3.0, wait_for_evaluator=True, max_sim_time_s=30.0)),
+        log_path=tmp_path / "world.log")
+    evaluator = NodeProcess.start_module(EVALUATOR, ros_args(params=dict(
+        team, summary_path=str(summary_path), max_sim_time_s=30.0, use_sim_time=True)),
+        log_path=tmp_path / "evaluator.log")
+    robot = NodeProcess.start_module(ROBOT, ros_args(params=dict(team, robot_id=0),
+                                                     namespace="/robot_0"),
+                                     log_path=tmp_path / "robot.log")
+    with world, evaluator, robot:
+        assert evaluator.wait(4 * START_S) == 0, evaluator.output()[-3000:]
+    assert "robots [1] not connected after 3 s: treated as stopped" in world.output()
+    log = evaluator.output()
+    assert "robot 1 lost: no liveliness for 4 s (never seen alive)" in log, log
+    assert "robot 0 lost" not in log, log
+    summary = json.loads(summary_path.read_text())
+    assert summary["stop_reason"].startswith("final step 150"), summary["stop_reason"]
+    robot_0, robot_1 = summary["robots"]
+    assert [change["status"] for change in robot_1["status_changes"]] == ["lost"]
+    assert robot_1["downtime_wall_s"] > 0.0 and robot_1["distance_m"] == 0.0
+    assert robot_0["status_changes"] == [] and robot_0["distance_m"] > 1.0
 
 
 # A node that sends itself SIGINT from a callback, then keeps running Python code in that

@@ -91,7 +91,7 @@ from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.path_cdr import PathDecodeError, decode_path
 from em_exploration_ros.nodes.qos import (ESTIMATE_READER_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
-                                          SENSOR_QOS, STREAM_QOS,
+                                          LIVELINESS_LEASE_S, SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   content_problem, header_problem,
@@ -196,6 +196,8 @@ class EvaluatorNode(LeanNode):
         self._world_watch = WorldWatch(self.silence_timeout_s)
         self._started_wall_s = time.monotonic()
         self.liveness = TeamLiveness(self.num_robots, settings.liveliness_grace_s)
+        self._liveliness_seen: set[int] = set()
+        self._liveliness_expected = False
         self._create_interfaces()
         self.get_logger().info(
             f"evaluating {self.num_robots} robots every {self.interval_steps} steps; stop at "
@@ -307,6 +309,19 @@ class EvaluatorNode(LeanNode):
                 self._first_step_wall_s = time.monotonic()
             self._process()
 
+    def _expect_liveliness(self) -> None:
+        """One liveliness lease after the first step: a robot whose liveliness was not seen
+        yet counts as lost unless it shows within the grace, as if its liveliness had been
+        lost then; a robot stopped before this node saw it would otherwise never be reported
+        lost. (The middleware reports a live robot's liveliness up to about a second after
+        the first step.)"""
+        if (self._liveliness_expected or self._first_step_wall_s is None
+                or time.monotonic() - self._first_step_wall_s < LIVELINESS_LEASE_S):
+            return
+        self._liveliness_expected = True
+        for robot in sorted(set(range(self.num_robots)) - self._liveliness_seen):
+            self.liveness.liveliness_lost(robot, *self._status_times())
+
     def _on_path(self, robot: int, data: bytes) -> None:
         """A robot's serialized trajectory, read with NumPy (``nodes.path_cdr``)."""
         topic = f"/{robot_namespace(robot)}/estimated_path"
@@ -401,6 +416,7 @@ class EvaluatorNode(LeanNode):
 
     def _on_liveliness(self, robot: int, alive: bool, restarted: bool) -> None:
         if alive:
+            self._liveliness_seen.add(robot)
             self.get_logger().info(f"robot {robot}: liveliness asserted"
                                    + (" by a new process (restarted)" if restarted else ""))
             if self.liveness.liveliness_back(robot, restarted):
@@ -459,9 +475,11 @@ class EvaluatorNode(LeanNode):
         if self.exit_code is not None:
             return
         self._watch_world()
+        self._expect_liveliness()
         for robot in self.liveness.confirm(time.monotonic() - self._started_wall_s):
+            never = "" if robot in self._liveliness_seen else " (never seen alive)"
             self.get_logger().warn(f"robot {robot} lost: no liveliness for "
-                                   f"{self.liveness.grace_s:g} s")
+                                   f"{self.liveness.grace_s:g} s{never}")
             self._check_all_finished()
         self._request_missing_updates()
         self._process()

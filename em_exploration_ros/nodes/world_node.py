@@ -206,17 +206,21 @@ class WorldNode(LeanNode):
 
     # -- start-up ---------------------------------------------------------------------------
 
-    def robot_connected(self, robot: int) -> bool:
-        """True when robot ``robot``'s node listens to its sensors, commands, and its team
-        updates have their listeners (the teammates, plus the evaluator if required)."""
-        teammates = self.num_robots - 1 if self.relay is None else 1  # relay: the world hears
-        listeners = teammates + (1 if self.wait_for_evaluator else 0)
-        ns = robot_namespace(robot)
+    def robot_started(self, robot: int) -> bool:
+        """True when robot ``robot``'s node runs: it listens to its sensors (and, in relay
+        mode, to what the links deliver to it) and publishes its commands."""
         return ((self.relay is None or self.relay.robot_listens(robot))
                 and self.sonar_pubs[robot].get_subscription_count() >= 1
                 and self.odom_pubs[robot].get_subscription_count() >= 1
-                and self.command_subs[robot].get_publisher_count() >= 1
-                and self.count_subscribers(f"/{ns}/team/updates") >= listeners)
+                and self.command_subs[robot].get_publisher_count() >= 1)
+
+    def robot_connected(self, robot: int) -> bool:
+        """True when robot ``robot`` runs and its team updates have their listeners (the
+        teammates, plus the evaluator if required)."""
+        teammates = self.num_robots - 1 if self.relay is None else 1  # relay: the world hears
+        listeners = teammates + (1 if self.wait_for_evaluator else 0)
+        return (self.robot_started(robot) and self.count_subscribers(
+            f"/{robot_namespace(robot)}/team/updates") >= listeners)
 
     def _evaluator_connected(self) -> bool:
         return all(pub.get_subscription_count() >= 1 for pub in self.truth_pubs)
@@ -237,7 +241,9 @@ class WorldNode(LeanNode):
         settled = ready and now - self._ready_since_s >= self.startup_settle_s
         if not settled and waited < self.startup_timeout_s:
             return
-        missing = [r for r, ok in enumerate(connected) if not ok]
+        # Only a robot that does not run is missing; one whose team updates lack a listener
+        # only because a teammate is missing goes on.
+        missing = [r for r in range(self.num_robots) if not self.robot_started(r)]
         if missing:
             self.get_logger().warn(f"robots {missing} not connected after "
                                    f"{self.startup_timeout_s:g} s: treated as stopped")
