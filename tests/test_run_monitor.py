@@ -69,6 +69,21 @@ def test_every_robot_finished_and_the_final_step_stop_the_run():
     assert limited.observe(40, metrics(40, 0.3)).startswith("final step 40")
 
 
+def test_every_robot_finished_learned_after_the_evaluation_stops_the_run_there():
+    monitor = RunMonitor(ExplorationParams().replace(run={"max_steps": 400}))
+    assert monitor.observe_finished(10) == "" and not monitor.stopped  # nothing evaluated yet
+    assert monitor.observe(10, metrics(10, 0.3)) == ""
+    assert monitor.observe(20, metrics(20, 0.4)) == ""   # the robots' answers come later
+    assert monitor.observe_finished(20) == "every robot finished"
+    assert monitor.stopped and monitor.final_metrics is monitor.history[-1]
+    assert len(monitor.history) == 2                        # the evaluation is not repeated
+    assert monitor.observe_finished(20) == "every robot finished"
+    # an earlier rule stays the reason
+    explored = RunMonitor(ExplorationParams().replace(run={"until_explored": 0.5}))
+    first = explored.observe(10, metrics(10, 0.6))
+    assert first.startswith("explored ratio") and explored.observe_finished(10) == first
+
+
 def test_distance_limit_stops_the_run():
     monitor = RunMonitor(ExplorationParams().replace(run={"max_distance_m": 5.0}))
     assert monitor.observe(10, metrics(10, 0.1, (2.0, 3.0))).startswith("distance 5 m")

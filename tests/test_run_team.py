@@ -163,6 +163,27 @@ def test_three_robots_explore_end_to_end(tmp_path):
     assert_frame_chains(bag, num_robots=3, max_error_m=2.0)
 
 
+def test_a_run_whose_robots_all_finish_at_an_evaluation_step_ends_there(tmp_path):
+    """The evaluator evaluates every step here, so the robots' last answers (finished) come
+    after the evaluation of their step: the run waited 121 s for ground truth that the
+    world, which had stepped over, never sent, and ended with exit code 3."""
+    params = tmp_path / "params.yaml"
+    params.write_text((REPO_ROOT / "config" / "exploration.yaml").read_text()
+                      + "\n/em_evaluator:\n  ros__parameters:\n    metrics_interval_s: 0.2\n")
+    summary_path = tmp_path / "summary.json"
+    run, _ = start_team_run(tmp_path, "--robots", "2", "--planner", "NEAREST", "--map-size",
+                            "30", "--landmarks", "3", "--seed", "1", "--until-explored", "1",
+                            "--max-sim-time", "600", "--params", str(params),
+                            "--summary", str(summary_path))
+    code = finish_team_run(run, RUN_TIMEOUT_S)
+    assert code == 0, run.output()[-3000:]
+    summary = json.loads(summary_path.read_text())
+    assert summary["stop_reason"] == "every robot finished"
+    world = (summary_path.parent / "logs" / "world.log").read_text()
+    assert f"stepping over at step {round(summary['sim_time_s'] / 0.2)} " in world
+    assert summary["wall_s"] < 60.0  # not the 120 s of silence the evaluator once waited
+
+
 def _free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))

@@ -533,6 +533,8 @@ class EvaluatorNode(LeanNode):
                 return
             if self._pending is None:
                 if not self._complete_steps:
+                    if self._finished_after_evaluation():
+                        continue
                     if not self._finished_unevaluated():
                         return
                     self._pending = (self.recorded_step, time.monotonic())
@@ -555,10 +557,14 @@ class EvaluatorNode(LeanNode):
                     f"until they publish)")
             self._pending = None
             metrics = self.evaluate(step)
-            all_finished = self._finished_by(step)
-            if self.monitor.observe(step, metrics, all_finished):
-                self._stream_wait_deadline_s = time.monotonic() + self.estimate_wait_s
-                self._request_missing_updates()
+            if self.monitor.observe(step, metrics, self._finished_by(step)):
+                self._stopping()
+
+    def _stopping(self) -> None:
+        """A stop rule fired: give the robots' update streams ``estimate_wait_s`` to
+        complete, and ask for what is missing."""
+        self._stream_wait_deadline_s = time.monotonic() + self.estimate_wait_s
+        self._request_missing_updates()
 
     def _finish_when_streams_complete(self) -> None:
         """After the stop rule fired: finish once every robot's update stream is complete up
@@ -593,6 +599,20 @@ class EvaluatorNode(LeanNode):
 
     def _finished_by(self, step: int) -> bool:
         return self._all_finished_step is not None and step >= self._all_finished_step
+
+    def _finished_after_evaluation(self) -> bool:
+        """Every robot finished at the last recorded step, which was evaluated before their
+        answers said so: the stop rule runs again on that evaluation (True if it fired).
+        Without this, a run whose robots all finished at an evaluation step waited for
+        ground truth that never came (exit 3 after ``silence_timeout_s``)."""
+        history = self.monitor.history
+        if not (self._finished_by(self.recorded_step) and history
+                and history[-1].stamp_s == self._stamp_s(self.recorded_step)):
+            return False
+        if not self.monitor.observe_finished(self.recorded_step):
+            return False
+        self._stopping()
+        return True
 
     def _finished_unevaluated(self) -> bool:
         """Every robot finished at a step already recorded (its ground truth came before

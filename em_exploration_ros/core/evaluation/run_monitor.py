@@ -159,6 +159,19 @@ class RunMonitor:
             self._stop_metrics = metrics
         return reason
 
+    def observe_finished(self, step: int) -> str:
+        """Every robot had reported ``finished`` by ``step``, the step of the last evaluation,
+        but that was learned only after the evaluation was observed (the robots' answers
+        can arrive after the step's ground truth): the stop rule is applied to it again as
+        ``observe`` would have, and its reason returned ("" if none fired)."""
+        if self.stopped or not self.history:
+            return self.stop_reason
+        reason = self._stop_rule(step, self.history[-1], True)
+        if reason:
+            self.stop_reason = reason
+            self._stop_metrics = self.history[-1]
+        return reason
+
     def record(self, metrics: TeamMetrics) -> None:
         """Keep an evaluation made after the run ended without a stop rule (the last steps
         recorded before Ctrl-C or silence); no rule is applied. Ignored after a rule fired."""
