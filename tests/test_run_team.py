@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import socket
 import subprocess
@@ -20,7 +21,7 @@ from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.evaluation.summary import check_summary
 from em_exploration_ros.core.sim.team_runner import TeamRunner
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, finish_team_run,
-                         processes_in_domain, start_team_run)
+                         processes_in_domain, robot_pid, start_team_run, wait_for_liveliness)
 from rosbags.rosbag2 import Reader as RosbagsReader
 from websockets.sync.client import connect
 
@@ -181,6 +182,36 @@ def test_a_run_whose_robots_all_finish_at_an_evaluation_step_ends_there(tmp_path
     assert summary["stop_reason"] == "every robot finished"
     world = (summary_path.parent / "logs" / "world.log").read_text()
     assert f"stepping over at step {round(summary['sim_time_s'] / 0.2)} " in world
+    assert summary["wall_s"] < 60.0  # not the 120 s of silence the evaluator once waited
+
+
+def test_a_run_whose_robots_all_die_ends_when_the_world_steps_over(tmp_path):
+    """Every robot killed (no --respawn): the world steps over ("every robot finished or
+    stopped") and says so on /world/status; the evaluator, which counts no robot as
+    finished, ends the run then (exit code 3) instead of after silence_timeout_s (120 s)."""
+    params = tmp_path / "params.yaml"
+    params.write_text((REPO_ROOT / "config" / "exploration.yaml").read_text()
+                      + "\n/em_world:\n  ros__parameters:\n    robot_timeout_s: 5.0\n")
+    summary_path = tmp_path / "summary.json"
+    run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
+                                 "--map-size", "100", "--landmarks", "3", "--seed", "1",
+                                 "--until-explored", "0.99", "--params", str(params),
+                                 "--summary", str(summary_path))
+    logs = summary_path.parent / "logs"
+
+    def kill_every_robot() -> None:
+        run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+        for robot in range(3):
+            wait_for_liveliness(logs / "world.log", robot, RUN_TIMEOUT_S)
+        for robot in range(3):
+            os.kill(robot_pid(domain, robot), signal.SIGKILL)
+
+    code = finish_team_run(run, RUN_TIMEOUT_S, meanwhile=kill_every_robot)
+    assert code == 3, run.output()[-3000:]
+    summary = json.loads(summary_path.read_text())
+    assert summary["stop_reason"].startswith("the world stepped over at step "), summary
+    assert "(every robot finished or stopped)" in summary["stop_reason"]
+    assert all(robot["status_changes"][0]["status"] == "lost" for robot in summary["robots"])
     assert summary["wall_s"] < 60.0  # not the 120 s of silence the evaluator once waited
 
 

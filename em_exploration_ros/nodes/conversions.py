@@ -33,6 +33,9 @@ from em_exploration_ros.nodes.path_cdr import DecodedPath, encode_path
 
 MAP_FRAME = "map"
 WORLD_FRAME = "world"
+#: The world simulator's node name, and its stepping state topic (WorldStatus, latched).
+WORLD_NODE_NAME = "em_world"
+WORLD_STATUS_TOPIC = "/world/status"
 
 
 def robot_namespace(robot_id: int) -> str:

@@ -26,7 +26,9 @@ with the summary JSON (em-sim's schema) and the final map PNG written, when:
 - the run's final step (``run.max_steps`` or ``max_sim_time_s``, as the world) completed:
   exit code 0, the stop reason says so;
 - no ground truth arrived for ``silence_timeout_s`` wall seconds (world or robots
-  stopped): exit code 3; Ctrl-C: the summary so far, exit code 130;
+  stopped), or sooner, ``liveliness_grace_s`` after the world said on /world/status that it
+  stepped over without a stop rule firing here (e.g. every robot lost): exit code 3;
+  Ctrl-C: the summary so far, exit code 130;
 - the team neither travelled nor explored new area for ``run.stall_timeout_s`` of
   simulation time: stop reason "stalled: ...", exit code 4 (``EXIT_STALLED``).
 
@@ -50,7 +52,7 @@ from typing import Any
 
 import numpy as np
 from em_exploration_msgs.msg import (ExplorationMetrics, LandmarkArray, MotionCommand,
-                                     TeamLinkCounts, TeamUpdate, TeamUpdateRequest)
+                                     TeamLinkCounts, TeamUpdate, TeamUpdateRequest, WorldStatus)
 from nav_msgs.msg import Odometry, Path as PathMsg
 from builtin_interfaces.msg import Time
 from rclpy.clock import Clock, ClockType
@@ -79,7 +81,8 @@ from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.sim.links import perfect_links
 from em_exploration_ros.core.sim.wire_model import sim_time_s
-from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, given_up_from_msg,
+from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_NODE_NAME,
+                                                  WORLD_STATUS_TOPIC, given_up_from_msg,
                                                   landmark_array_to_msg,
                                                   landmark_positions_from_msg,
                                                   odometry_pose, planar_path,
@@ -93,7 +96,7 @@ from em_exploration_ros.nodes.path_cdr import PathDecodeError, decode_path
 from em_exploration_ros.nodes.qos import (ESTIMATE_READER_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
                                           LIVELINESS_LEASE_S, SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
-from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
+from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard, checked_team_update,
                                                   content_problem, header_problem,
                                                   path_problem, publish_or_log, serialized_size,
                                                   size_limited)
@@ -107,6 +110,8 @@ EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
 _WATCH_PERIOD_S = 1.0
 #: Relay mode: the link counts of this many evaluation steps before the newest are kept.
 _LINK_COUNTS_KEPT = 100
+#: Longest reason a WorldStatus may give.
+_MAX_REASON_CHARS = 200
 
 
 class StampedEstimates:
@@ -198,6 +203,8 @@ class EvaluatorNode(LeanNode):
         self.liveness = TeamLiveness(self.num_robots, settings.liveliness_grace_s)
         self._liveliness_seen: set[int] = set()
         self._liveliness_expected = False
+        #: (step, reason) once the world said it stepped over.
+        self._world_over: tuple[int, str] | None = None
         self._create_interfaces()
         self.get_logger().info(
             f"evaluating {self.num_robots} robots every {self.interval_steps} steps; stop at "
@@ -214,6 +221,8 @@ class EvaluatorNode(LeanNode):
         self.request_pub = self.create_publisher(TeamUpdateRequest, "/team/update_requests",
                                                  TEAM_QOS)
         self.create_subscription(LandmarkArray, "/world/landmarks", self._on_true_landmarks,
+                                 LATCHED_QOS)
+        self.create_subscription(WorldStatus, WORLD_STATUS_TOPIC, self._on_world_status,
                                  LATCHED_QOS)
         # The largest valid estimates: a path with a pose per keyframe of the run, a
         # landmark set of the most landmarks an update may hold.
@@ -393,6 +402,44 @@ class EvaluatorNode(LeanNode):
         for old in [s for s in self.link_counts if s < oldest]:
             del self.link_counts[old]
 
+    def _on_world_status(self, message: WorldStatus) -> None:
+        """The world stepped over (no further step will come): remembered, so that the run
+        ends as soon as the ground truth up to that step is in (``_end_with_the_world``)."""
+        step, problem = self._stamp_problem(message.header.stamp)
+        if not self.inputs.check(
+                WORLD_STATUS_TOPIC, header_problem(message.header, WORLD_FRAME), problem,
+                f"stamp of step {step} in a status of step {message.step}"
+                if step != message.step else None,
+                f"reason of {len(message.reason)} characters"
+                if len(message.reason) > _MAX_REASON_CHARS else None):
+            return
+        if not message.stepping_over or self._world_over is not None:
+            return
+        self._world_over = (step, message.reason)
+        self.get_logger().info(f"the world stepped over at step {step} ({message.reason})")
+
+    def _end_with_the_world(self) -> None:
+        """End the run (exit code 3, as for silence) when the world stepped over at a step
+        whose ground truth is recorded, nothing newer came for ``liveliness_grace_s``, and
+        no stop rule fired (e.g. every robot lost: the evaluator waits for the robots it
+        still counts on, while the world no longer does). Only while the world is the sole
+        publisher of its status: a forged "stepping over" must not end a live run."""
+        if self._world_over is None or self.monitor.stopped or self.exit_code is not None:
+            return
+        step, reason = self._world_over
+        if (self._latest_step() != step or self.recorded_step != step
+                or time.monotonic() - self._last_data_wall_s < self.liveness.grace_s):
+            return
+        publishers = {info.node_name for info in
+                      self.get_publishers_info_by_topic(WORLD_STATUS_TOPIC)}
+        if publishers != {WORLD_NODE_NAME}:
+            self.get_logger().warn(
+                f"the world's status says it stepped over, but {WORLD_STATUS_TOPIC} has the "
+                f"publishers {sorted(publishers)}: not trusted; ending by silence instead",
+                throttle_duration_sec=LOG_PERIOD_S)
+            return
+        self.finish(f"the world stepped over at step {step} ({reason})", EXIT_SILENCE)
+
     def _on_team_update(self, robot: int, message: TeamUpdate) -> None:
         """Targets from the robots' update streams, validated and in sequence order exactly
         as a robot reads them (malformed or impostor records are rejected)."""
@@ -476,6 +523,9 @@ class EvaluatorNode(LeanNode):
             return
         self._watch_world()
         self._expect_liveliness()
+        self._end_with_the_world()
+        if self.exit_code is not None:
+            return
         for robot in self.liveness.confirm(time.monotonic() - self._started_wall_s):
             never = "" if robot in self._liveliness_seen else " (never seen alive)"
             self.get_logger().warn(f"robot {robot} lost: no liveliness for "

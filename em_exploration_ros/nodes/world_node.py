@@ -47,11 +47,11 @@ import sys
 import time
 
 import numpy as np
-from em_exploration_msgs.msg import LandmarkArray, MotionCommand, SonarScan
+from em_exploration_msgs.msg import LandmarkArray, MotionCommand, SonarScan, WorldStatus
 from geometry_msgs.msg import Point, PoseStamped
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
-from std_msgs.msg import ColorRGBA
+from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from em_exploration_ros.core.agent.input_checks import command_problem, sequence_entry_problem
@@ -63,7 +63,8 @@ from em_exploration_ros.core.sim.lockstep import STAND_STILL, LockstepBarrier, S
 from em_exploration_ros.core.sim.simulation import WorldSimulation
 from em_exploration_ros.core.agent.team_data import LandmarkEstimate
 from em_exploration_ros.core.sim.world import World
-from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME,
+from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_NODE_NAME,
+                                                  WORLD_STATUS_TOPIC,
                                                   dead_reckoning_to_msg, landmark_array_to_msg,
                                                   odometry_to_msg, robot_namespace,
                                                   seconds_to_time, sonar_scan_to_msg,
@@ -121,7 +122,7 @@ class WorldNode(LeanNode):
     """The world simulator (see module docstring)."""
 
     def __init__(self) -> None:
-        super().__init__("em_world")
+        super().__init__(WORLD_NODE_NAME)
         self.inputs = InputGuard(self)
         install_validated_clock(self, self.inputs)
         self.settings = declare_node_settings(self, WorldNodeSettings)
@@ -170,6 +171,7 @@ class WorldNode(LeanNode):
         self.landmarks_pub = self.create_publisher(LandmarkArray, "/world/landmarks",
                                                    LATCHED_QOS)
         self.markers_pub = self.create_publisher(MarkerArray, "/world/markers", LATCHED_QOS)
+        self.status_pub = self.create_publisher(WorldStatus, WORLD_STATUS_TOPIC, LATCHED_QOS)
         self.tf_pub = tf_publishing.create_tf_publisher(self)
         self.tf_static_pub = tf_publishing.create_tf_static_publisher(self)
         self.sonar_pubs, self.odom_pubs, self.truth_pubs, self.command_subs = [], [], [], []
@@ -253,6 +255,7 @@ class WorldNode(LeanNode):
                                    "starting anyway")
         self.running = True
         self.get_logger().info(f"all set after {waited:.1f} s: stepping ({self.clock_mode})")
+        self._publish_status(False, f"stepping ({self.clock_mode})")
         self._publish_step()
         if self.clock_mode == REALTIME:
             period = self.params.motion.time_step_s / self.realtime_factor
@@ -394,6 +397,13 @@ class WorldNode(LeanNode):
         self.log_links()
         self.get_logger().info(f"stepping over at step {self.sim.step} (t = {self.sim.stamp_s:g}"
                                f" s): {reason}; still serving the latched topics until stopped")
+        self._publish_status(True, reason)
+
+    def _publish_status(self, stepping_over: bool, reason: str) -> None:
+        """/world/status: the current step, whether stepping is over for good, and why."""
+        header = Header(stamp=seconds_to_time(self.sim.stamp_s), frame_id=WORLD_FRAME)
+        self.status_pub.publish(WorldStatus(header=header, step=self.sim.step,
+                                            stepping_over=stepping_over, reason=reason))
 
     def _send_step_messages(self, robot: int) -> None:
         """(Re-)send the current step's sonar and odometry of ``robot``."""
@@ -438,7 +448,7 @@ class WorldNode(LeanNode):
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of em-world; returns the exit code (2 for invalid parameters)."""
-    return run_node(WorldNode, "em_world", args, wrap_up=_log_links)
+    return run_node(WorldNode, WORLD_NODE_NAME, args, wrap_up=_log_links)
 
 
 def _log_links(node: WorldNode) -> int:
