@@ -17,12 +17,18 @@ import json
 import signal
 import sys
 import textwrap
+import time
 
 import pytest
 import rclpy
 from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
+from em_exploration_msgs.msg import WorldStatus
+from nav_msgs.msg import Odometry
 from rclpy.parameter import Parameter
+from std_msgs.msg import Header
+
+from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, LATCHED_QOS
 
 from ros_process import NodeProcess, REPO_ROOT, ros_args
 
@@ -144,6 +150,69 @@ def test_a_robot_never_seen_alive_is_reported_lost(tmp_path):
     assert [change["status"] for change in robot_1["status_changes"]] == ["lost"]
     assert robot_1["downtime_wall_s"] > 0.0 and robot_1["distance_m"] == 0.0
     assert robot_0["status_changes"] == [] and robot_0["distance_m"] > 1.0
+
+
+def test_a_forged_world_status_does_not_end_a_paused_run(tmp_path):
+    """While the world waits for a stopped robot, a second publisher on /world/status says
+    that the world stepped over at the current step: the evaluator does not trust it (the
+    world is not the status's sole publisher) and the run goes on."""
+    team = dict(ONE_ROBOT, **{"world.num_robots": 2})
+    world = NodeProcess.start_module(WORLD, ros_args(params=dict(
+        team, wait_for_evaluator=True, robot_timeout_s=120.0, liveliness_grace_s=120.0)),
+        log_path=tmp_path / "world.log")
+    evaluator = NodeProcess.start_module(EVALUATOR, ros_args(params=dict(
+        team, summary_path=str(tmp_path / "summary.json"), use_sim_time=True)),
+        log_path=tmp_path / "evaluator.log")
+    robots = [NodeProcess.start_module(ROBOT, ros_args(params=dict(team, robot_id=robot),
+                                                       namespace=f"/robot_{robot}"),
+                                       log_path=tmp_path / f"robot_{robot}.log")
+              for robot in range(2)]
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("forger", context=context)
+    try:
+        with world, evaluator, robots[0], robots[1]:
+            for robot in range(2):
+                evaluator.wait_for_output(f"robot {robot}: liveliness asserted", START_S)
+            robots[1].signal_group(signal.SIGSTOP)  # the world waits for it from now on
+            truth = []
+            node.create_subscription(Odometry, "/world/ground_truth/robot_0",
+                                     truth.append, GROUND_TRUTH_QOS)
+            executor = SingleThreadedExecutor(context=context)
+            executor.add_node(node)
+            deadline = time.monotonic() + START_S
+            while True:  # until the world has published no new step for a second
+                heard = len(truth)
+                spin_for(executor, 1.0)
+                if truth and len(truth) == heard:
+                    break
+                assert time.monotonic() < deadline, "the world did not wait for robot 1"
+            last = truth[-1]
+            step = round(stamp_s(last) / 0.2)
+            status = node.create_publisher(WorldStatus, "/world/status", LATCHED_QOS)
+            status.publish(WorldStatus(header=Header(stamp=last.header.stamp, frame_id="world"),
+                                       step=step, stepping_over=True, reason="forged"))
+            evaluator.wait_for_output("not trusted", 4 * START_S)
+            assert evaluator.running()
+            robots[1].signal_group(signal.SIGCONT)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    log = evaluator.output()
+    assert f"the world stepped over at step {step} (forged)" in log
+    assert "done (the world stepped over" not in log, log
+
+
+def spin_for(executor: SingleThreadedExecutor, seconds: float) -> None:
+    """Spin ``executor`` for ``seconds`` wall seconds."""
+    end = time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        executor.spin_once(timeout_sec=left)
+
+
+def stamp_s(message: Odometry) -> float:
+    """The message's header stamp [s]."""
+    return message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec
 
 
 # A node that sends itself SIGINT from a callback, then keeps running Python code in that

@@ -413,9 +413,9 @@ class EvaluatorNode(LeanNode):
                 f"reason of {len(message.reason)} characters"
                 if len(message.reason) > _MAX_REASON_CHARS else None):
             return
-        if not message.stepping_over or self._world_over is not None:
+        if not message.stepping_over or self._world_over == (step, message.reason):
             return
-        self._world_over = (step, message.reason)
+        self._world_over = (step, message.reason)  # the latest, should a forged one precede
         self.get_logger().info(f"the world stepped over at step {step} ({message.reason})")
 
     def _end_with_the_world(self) -> None:
