@@ -26,8 +26,9 @@ with the summary JSON (em-sim's schema) and the final map PNG written, when:
 - the run's final step (``run.max_steps`` or ``max_sim_time_s``, as the world) completed:
   exit code 0, the stop reason says so;
 - no ground truth arrived for ``silence_timeout_s`` wall seconds (world or robots
-  stopped), or sooner, ``liveliness_grace_s`` after the world said on /world/status that it
-  stepped over without a stop rule firing here (e.g. every robot lost): exit code 3;
+  stopped), or sooner when the world said on /world/status that it stepped over and no stop
+  rule fired here (``liveliness_grace_s`` later if every robot is lost, else
+  ``estimate_wait_s``): exit code 3;
   Ctrl-C: the summary so far, exit code 130;
 - the team neither travelled nor explored new area for ``run.stall_timeout_s`` of
   simulation time: stop reason "stalled: ...", exit code 4 (``EXIT_STALLED``).
@@ -420,15 +421,16 @@ class EvaluatorNode(LeanNode):
 
     def _end_with_the_world(self) -> None:
         """End the run (exit code 3, as for silence) when the world stepped over at a step
-        whose ground truth is recorded, nothing newer came for ``liveliness_grace_s``, and
-        no stop rule fired (e.g. every robot lost: the evaluator waits for the robots it
-        still counts on, while the world no longer does). Only while the world is the sole
-        publisher of its status: a forged "stepping over" must not end a live run."""
+        whose ground truth is recorded and evaluated as far as due, and no stop rule fired:
+        ``liveliness_grace_s`` after the last ground truth when every robot is lost here
+        (the evaluator would wait for silence), ``estimate_wait_s`` after it otherwise (the
+        robots' last answers and estimates had that long to come). Only while the world is
+        the sole publisher of its status: a forged "stepping over" must not end a live run."""
         if self._world_over is None or self.monitor.stopped or self.exit_code is not None:
             return
         step, reason = self._world_over
         if (self._latest_step() != step or self.recorded_step != step
-                or time.monotonic() - self._last_data_wall_s < self.liveness.grace_s):
+                or self._pending is not None or self._complete_steps):
             return
         publishers = {info.node_name for info in
                       self.get_publishers_info_by_topic(WORLD_STATUS_TOPIC)}
@@ -437,6 +439,10 @@ class EvaluatorNode(LeanNode):
                 f"the world's status says it stepped over, but {WORLD_STATUS_TOPIC} has the "
                 f"publishers {sorted(publishers)}: not trusted; ending by silence instead",
                 throttle_duration_sec=LOG_PERIOD_S)
+            return
+        every_robot_lost = all(self.liveness.status(r) == LOST for r in range(self.num_robots))
+        wait_s = self.liveness.grace_s if every_robot_lost else self.estimate_wait_s
+        if time.monotonic() - self._last_data_wall_s < wait_s:
             return
         self.finish(f"the world stepped over at step {step} ({reason})", EXIT_SILENCE)
 
