@@ -209,13 +209,15 @@ RUN_PROCESS_PATTERN = r"em_exploration_ros\.(nodes|tools)\."
 
 def start_team_run(tmp_path: Path, *args: str) -> tuple[NodeProcess, str]:
     """run_team.sh with ``args`` in this test run's domain; waits until the world, the
-    evaluator and three robots run (which also shows the leftover check can see them)."""
+    evaluator and every robot (``--robots``, default 3) run, which also shows the leftover
+    check can see them, or until the run has ended."""
     domain = os.environ["ROS_DOMAIN_ID"]
+    robots = int(args[args.index("--robots") + 1]) if "--robots" in args else 3
     run = NodeProcess(["bash", str(RUN_TEAM), *args, "--domain-id", domain],
                       tmp_path / "run_team.out")
     try:
-        wait_until(lambda: len(processes_in_domain(RUN_PROCESS_PATTERN, domain)) >= 5 or
-                   not run.running(), 60.0, "the run's five processes")
+        wait_until(lambda: len(processes_in_domain(RUN_PROCESS_PATTERN, domain)) >= 2 + robots
+                   or not run.running(), 60.0, f"the run's {2 + robots} processes")
     except TimeoutError:
         run.stop()
         raise
