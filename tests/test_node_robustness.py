@@ -23,12 +23,12 @@ import pytest
 import rclpy
 from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
-from em_exploration_msgs.msg import WorldStatus
+from em_exploration_msgs.msg import MotionCommand, SonarScan, WorldStatus
 from nav_msgs.msg import Odometry
 from rclpy.parameter import Parameter
 from std_msgs.msg import Header
 
-from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, LATCHED_QOS
+from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, LATCHED_QOS, SENSOR_QOS
 
 from ros_process import NodeProcess, REPO_ROOT, ros_args
 
@@ -201,6 +201,40 @@ def test_a_forged_world_status_does_not_end_a_paused_run(tmp_path):
     log = evaluator.output()
     assert f"the world stepped over at step {step} (forged)" in log
     assert "done (the world stepped over" not in log, log
+
+
+def test_a_robot_never_seen_alive_is_not_waited_for_the_robot_timeout(tmp_path):
+    """Robot 1 is a stand-in that listens to its sensors and has a command publisher, but
+    never answers and offers no liveliness (like a robot that died before the middleware
+    reported it): the world gives it up a lease plus liveliness_grace_s into the run, not
+    after robot_timeout_s (60 s here; 30 s by default, one robot after another)."""
+    team = dict(ONE_ROBOT, **{"world.num_robots": 2})
+    world = NodeProcess.start_module(WORLD, ros_args(params=dict(
+        team, startup_timeout_s=3.0, robot_timeout_s=60.0, liveliness_grace_s=4.0)),
+        log_path=tmp_path / "world.log")
+    robot = NodeProcess.start_module(ROBOT, ros_args(params=dict(team, robot_id=0),
+                                                     namespace="/robot_0"),
+                                     log_path=tmp_path / "robot_0.log")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("stand_in", context=context)
+    try:
+        node.create_subscription(SonarScan, "/robot_1/sonar", lambda _m: None, SENSOR_QOS)
+        node.create_subscription(Odometry, "/robot_1/odom", lambda _m: None, SENSOR_QOS)
+        node.create_publisher(MotionCommand, "/robot_1/motion_command", SENSOR_QOS)
+        with world, robot:
+            world.wait_for_output("stepping (lockstep)", START_S)
+            started = time.monotonic()
+            world.wait_for_output("robot 1 lost: no answer to step 0 in time (liveliness lost)",
+                                  START_S)
+            given_up_after_s = time.monotonic() - started
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    output = world.output()
+    assert "robot 1: no liveliness seen 3 s into the run; given 4 s to answer" in output
+    assert "robot 0 lost" not in output, output
+    assert given_up_after_s < 20.0  # about 3 + 4 s; robot_timeout_s would be 60 s
 
 
 def spin_for(executor: SingleThreadedExecutor, seconds: float) -> None:

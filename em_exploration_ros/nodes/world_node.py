@@ -74,7 +74,8 @@ from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.recorder_presence import topics_not_recorded
-from em_exploration_ros.nodes.qos import CLOCK_QOS, GROUND_TRUTH_QOS, LATCHED_QOS, SENSOR_QOS
+from em_exploration_ros.nodes.qos import (CLOCK_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
+                                          LIVELINESS_LEASE_S, SENSOR_QOS)
 from em_exploration_ros.nodes.input_guard import (InputGuard, content_problem, header_problem,
                                                   listened)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
@@ -144,6 +145,9 @@ class WorldNode(LeanNode):
         self.barrier = LockstepBarrier(self.num_robots, robot_timeout_s, step_resend_s,
                                        liveliness_grace_s)
         self._step_messages: list[tuple[SonarScan, Odometry] | None] = [None] * self.num_robots
+        self._liveliness_seen: set[int] = set()
+        self._stepping_since_s: float | None = None
+        self._liveliness_expected = False
         self._latest = [STAND_STILL] * self.num_robots
         self.running = False
         self.stepping_over = False
@@ -254,6 +258,7 @@ class WorldNode(LeanNode):
             self.get_logger().warn("the evaluator or the recorder does not listen yet; "
                                    "starting anyway")
         self.running = True
+        self._stepping_since_s = now
         self.get_logger().info(f"all set after {waited:.1f} s: stepping ({self.clock_mode})")
         self._publish_status(False, f"stepping ({self.clock_mode})")
         self._publish_step()
@@ -274,6 +279,7 @@ class WorldNode(LeanNode):
             self._poll_timer.cancel()
             return
         now = time.monotonic()
+        self._suspect_the_unseen(now)
         for robot in self.barrier.due_for_resend(now):
             self._send_step_messages(robot)
         for robot in self.barrier.expire(now):
@@ -281,6 +287,23 @@ class WorldNode(LeanNode):
                                   + (" (liveliness lost)" if robot in self.barrier.suspects
                                      else ""))
         self._check_step_complete()
+
+    def _suspect_the_unseen(self, now_s: float) -> None:
+        """One liveliness lease after stepping started: a robot whose liveliness was never
+        reported is suspect, as if its liveliness had been lost (``liveliness_grace_s`` to
+        answer a step instead of ``robot_timeout_s``) until it is reported. A robot that
+        died before the middleware reported its liveliness was otherwise waited for
+        ``robot_timeout_s``, and a team of such robots one after the other."""
+        if (self._liveliness_expected or self._stepping_since_s is None
+                or now_s - self._stepping_since_s < LIVELINESS_LEASE_S):
+            return
+        self._liveliness_expected = True
+        unseen = set(range(self.num_robots)) - self._liveliness_seen - self.barrier.stopped
+        for robot in sorted(unseen):
+            self.barrier.suspect(robot, now_s)
+            self.get_logger().warn(
+                f"robot {robot}: no liveliness seen {LIVELINESS_LEASE_S:g} s into the run; "
+                f"given {self.barrier.suspect_timeout_s:g} s to answer until it is")
 
     def command_problem(self, robot: int, message: MotionCommand) -> str | None:
         """Reason to drop a motion command received on robot ``robot``'s topic: another
@@ -308,6 +331,7 @@ class WorldNode(LeanNode):
 
     def _on_liveliness(self, robot: int, alive: bool, restarted: bool) -> None:
         if alive:
+            self._liveliness_seen.add(robot)
             self.barrier.trust(robot)
             self.get_logger().info(f"robot {robot}: liveliness asserted"
                                    + (" by a new process (restarted)" if restarted else ""))
