@@ -2,7 +2,8 @@
 from __future__ import annotations
 
 from em_exploration_ros.core.agent.liveness import (ACTIVE, FINISHED, LOST, REJOINED,
-                                                    StatusChange, TeamLiveness)
+                                                    StatusChange, TeamLiveness,
+                                                    UnseenLiveliness)
 
 
 def test_a_liveliness_loss_counts_after_the_grace_and_downtime_is_summed():
@@ -43,3 +44,18 @@ def test_a_restart_within_the_grace_counts_as_lost_from_the_loss():
     assert team.changes(1) == [StatusChange(LOST, 20.0, 8.0, "process restarted")]
     assert team.heard(1, 26.0, 12.0, "answers again")
     assert team.downtime_s(1, 99.0, 99.0) == (6.0, 4.0)
+
+
+def test_robots_never_seen_alive_are_due_once_a_lease_after_the_first_step():
+    unseen = UnseenLiveliness(3, lease_s=3.0)
+    assert unseen.due(100.0) == []                  # no first step yet
+    unseen.seen(1)
+    unseen.first_step(10.0)
+    unseen.first_step(12.0)                          # the first one counts
+    assert unseen.due(12.9) == []
+    unseen.seen(0)
+    assert unseen.due(13.0) == [2]
+    assert unseen.due(20.0) == []                    # looked once
+    assert unseen.was_seen(0) and unseen.was_seen(1) and not unseen.was_seen(2)
+    unseen.seen(2)                                   # a late report still counts as seen
+    assert unseen.was_seen(2)

@@ -55,6 +55,7 @@ import numpy as np
 from em_exploration_msgs.msg import (ExplorationMetrics, LandmarkArray, MotionCommand,
                                      TeamLinkCounts, TeamUpdate, TeamUpdateRequest, WorldStatus)
 from nav_msgs.msg import Odometry, Path as PathMsg
+from std_msgs.msg import Header
 from builtin_interfaces.msg import Time
 from rclpy.clock import Clock, ClockType
 from rclpy.task import Future
@@ -74,7 +75,7 @@ from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, fir
                                                         stamp_step_problem, step_problem)
 from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
-from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness
+from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness, UnseenLiveliness
 from em_exploration_ros.core.evaluation.run_monitor import (EXIT_STALLED, DecisionEntry,
                                                             RobotProgressRecord, RunMonitor)
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, RunSummary
@@ -111,7 +112,7 @@ EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
 _WATCH_PERIOD_S = 1.0
 #: Relay mode: the link counts of this many evaluation steps before the newest are kept.
 _LINK_COUNTS_KEPT = 100
-#: Longest reason a WorldStatus may give.
+#: Longest reason a WorldStatus may give (longer statuses are dropped unread).
 _MAX_REASON_CHARS = 200
 
 
@@ -202,8 +203,7 @@ class EvaluatorNode(LeanNode):
         self._world_watch = WorldWatch(self.silence_timeout_s)
         self._started_wall_s = time.monotonic()
         self.liveness = TeamLiveness(self.num_robots, settings.liveliness_grace_s)
-        self._liveliness_seen: set[int] = set()
-        self._liveliness_expected = False
+        self._unseen = UnseenLiveliness(self.num_robots, LIVELINESS_LEASE_S)
         #: (step, reason) once the world said it stepped over.
         self._world_over: tuple[int, str] | None = None
         self._create_interfaces()
@@ -223,8 +223,11 @@ class EvaluatorNode(LeanNode):
                                                  TEAM_QOS)
         self.create_subscription(LandmarkArray, "/world/landmarks", self._on_true_landmarks,
                                  LATCHED_QOS)
-        self.create_subscription(WorldStatus, WORLD_STATUS_TOPIC, self._on_world_status,
-                                 LATCHED_QOS)
+        status_bytes = serialized_size(WorldStatus(header=Header(frame_id=WORLD_FRAME),
+                                                   reason="x" * _MAX_REASON_CHARS))
+        self.create_subscription(WorldStatus, WORLD_STATUS_TOPIC, size_limited(
+            self.inputs, WORLD_STATUS_TOPIC, WorldStatus, status_bytes, self._on_world_status),
+            LATCHED_QOS, raw=True)
         # The largest valid estimates: a path with a pose per keyframe of the run, a
         # landmark set of the most landmarks an update may hold.
         path_bytes = len(serialized_path(0.0, np.zeros(self._keyframes()),
@@ -317,19 +320,13 @@ class EvaluatorNode(LeanNode):
             self._complete_steps.append(step)
             if self._first_step_wall_s is None:
                 self._first_step_wall_s = time.monotonic()
+                self._unseen.first_step(self._first_step_wall_s)
             self._process()
 
     def _expect_liveliness(self) -> None:
-        """One liveliness lease after the first step: a robot whose liveliness was not seen
-        yet counts as lost unless it shows within the grace, as if its liveliness had been
-        lost then; a robot stopped before this node saw it would otherwise never be reported
-        lost. (The middleware reports a live robot's liveliness up to about a second after
-        the first step.)"""
-        if (self._liveliness_expected or self._first_step_wall_s is None
-                or time.monotonic() - self._first_step_wall_s < LIVELINESS_LEASE_S):
-            return
-        self._liveliness_expected = True
-        for robot in sorted(set(range(self.num_robots)) - self._liveliness_seen):
+        """A robot whose liveliness was not reported a lease after the first step counts as
+        lost unless it shows within the grace, as if its liveliness had been lost then."""
+        for robot in self._unseen.due(time.monotonic()):
             self.liveness.liveliness_lost(robot, *self._status_times())
 
     def _on_path(self, robot: int, data: bytes) -> None:
@@ -410,9 +407,7 @@ class EvaluatorNode(LeanNode):
         if not self.inputs.check(
                 WORLD_STATUS_TOPIC, header_problem(message.header, WORLD_FRAME), problem,
                 f"stamp of step {step} in a status of step {message.step}"
-                if step != message.step else None,
-                f"reason of {len(message.reason)} characters"
-                if len(message.reason) > _MAX_REASON_CHARS else None):
+                if step != message.step else None):
             return
         if not message.stepping_over or self._world_over == (step, message.reason):
             return
@@ -469,7 +464,7 @@ class EvaluatorNode(LeanNode):
 
     def _on_liveliness(self, robot: int, alive: bool, restarted: bool) -> None:
         if alive:
-            self._liveliness_seen.add(robot)
+            self._unseen.seen(robot)
             self.get_logger().info(f"robot {robot}: liveliness asserted"
                                    + (" by a new process (restarted)" if restarted else ""))
             if self.liveness.liveliness_back(robot, restarted):
@@ -533,7 +528,7 @@ class EvaluatorNode(LeanNode):
         if self.exit_code is not None:
             return
         for robot in self.liveness.confirm(time.monotonic() - self._started_wall_s):
-            never = "" if robot in self._liveliness_seen else " (never seen alive)"
+            never = "" if self._unseen.was_seen(robot) else " (never seen alive)"
             self.get_logger().warn(f"robot {robot} lost: no liveliness for "
                                    f"{self.liveness.grace_s:g} s{never}")
             self._check_all_finished()
@@ -661,9 +656,7 @@ class EvaluatorNode(LeanNode):
         answers said so: the stop rule runs again on that evaluation (True if it fired).
         Without this, a run whose robots all finished at an evaluation step waited for
         ground truth that never came (exit 3 after ``silence_timeout_s``)."""
-        history = self.monitor.history
-        if not (self._finished_by(self.recorded_step) and history
-                and history[-1].stamp_s == self._stamp_s(self.recorded_step)):
+        if not (self._finished_by(self.recorded_step) and self._recorded_step_evaluated()):
             return False
         if not self.monitor.observe_finished(self.recorded_step):
             return False
@@ -673,9 +666,12 @@ class EvaluatorNode(LeanNode):
     def _finished_unevaluated(self) -> bool:
         """Every robot finished at a step already recorded (its ground truth came before
         the robots' answers) that was not evaluated yet."""
+        return self._finished_by(self.recorded_step) and not self._recorded_step_evaluated()
+
+    def _recorded_step_evaluated(self) -> bool:
+        """Whether the last evaluation is that of the last recorded step."""
         history = self.monitor.history
-        return (self._finished_by(self.recorded_step)
-                and (not history or history[-1].stamp_s != self._stamp_s(self.recorded_step)))
+        return bool(history) and history[-1].stamp_s == self._stamp_s(self.recorded_step)
 
     def _record_step(self, step: int) -> None:
         stamp_s = self._stamp_s(step)

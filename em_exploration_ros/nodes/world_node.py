@@ -54,6 +54,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from em_exploration_ros.core.agent.liveness import UnseenLiveliness
 from em_exploration_ros.core.agent.input_checks import command_problem, sequence_entry_problem
 from em_exploration_ros.core.agent.team_data import MAX_SEQUENCE_LEAD
 from em_exploration_ros.core.node_settings import LOCKSTEP, REALTIME, WorldNodeSettings
@@ -145,9 +146,7 @@ class WorldNode(LeanNode):
         self.barrier = LockstepBarrier(self.num_robots, robot_timeout_s, step_resend_s,
                                        liveliness_grace_s)
         self._step_messages: list[tuple[SonarScan, Odometry] | None] = [None] * self.num_robots
-        self._liveliness_seen: set[int] = set()
-        self._stepping_since_s: float | None = None
-        self._liveliness_expected = False
+        self._unseen = UnseenLiveliness(self.num_robots, LIVELINESS_LEASE_S)
         self._latest = [STAND_STILL] * self.num_robots
         self.running = False
         self.stepping_over = False
@@ -258,7 +257,7 @@ class WorldNode(LeanNode):
             self.get_logger().warn("the evaluator or the recorder does not listen yet; "
                                    "starting anyway")
         self.running = True
-        self._stepping_since_s = now
+        self._unseen.first_step(now)
         self.get_logger().info(f"all set after {waited:.1f} s: stepping ({self.clock_mode})")
         self._publish_status(False, f"stepping ({self.clock_mode})")
         self._publish_step()
@@ -289,17 +288,14 @@ class WorldNode(LeanNode):
         self._check_step_complete()
 
     def _suspect_the_unseen(self, now_s: float) -> None:
-        """One liveliness lease after stepping started: a robot whose liveliness was never
-        reported is suspect, as if its liveliness had been lost (``liveliness_grace_s`` to
-        answer a step instead of ``robot_timeout_s``) until it is reported. A robot that
-        died before the middleware reported its liveliness was otherwise waited for
-        ``robot_timeout_s``, and a team of such robots one after the other."""
-        if (self._liveliness_expected or self._stepping_since_s is None
-                or now_s - self._stepping_since_s < LIVELINESS_LEASE_S):
-            return
-        self._liveliness_expected = True
-        unseen = set(range(self.num_robots)) - self._liveliness_seen - self.barrier.stopped
-        for robot in sorted(unseen):
+        """A robot whose liveliness was not reported a lease into the run is suspect, as if
+        its liveliness had been lost (``liveliness_grace_s`` to answer a step instead of
+        ``robot_timeout_s``) until it is reported. A robot that died before the middleware
+        reported its liveliness was otherwise waited for ``robot_timeout_s``, and a team of
+        such robots one after the other."""
+        for robot in self._unseen.due(now_s):
+            if robot in self.barrier.stopped:
+                continue
             self.barrier.suspect(robot, now_s)
             self.get_logger().warn(
                 f"robot {robot}: no liveliness seen {LIVELINESS_LEASE_S:g} s into the run; "
@@ -331,7 +327,7 @@ class WorldNode(LeanNode):
 
     def _on_liveliness(self, robot: int, alive: bool, restarted: bool) -> None:
         if alive:
-            self._liveliness_seen.add(robot)
+            self._unseen.seen(robot)
             self.barrier.trust(robot)
             self.get_logger().info(f"robot {robot}: liveliness asserted"
                                    + (" by a new process (restarted)" if restarted else ""))

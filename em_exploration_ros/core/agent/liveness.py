@@ -104,3 +104,39 @@ class TeamLiveness:
                 reason: str) -> bool:
         self._changes[robot].append(StatusChange(status, sim_time_s, wall_s, reason))
         return True
+
+
+class UnseenLiveliness:
+    """Which robots' liveliness the middleware has never reported, for the one look a
+    watcher takes a lease after the run's first step: such a robot is treated as if its
+    liveliness had been lost then (a robot that died or stopped before its liveliness was
+    reported would otherwise never count as lost). A live robot's liveliness is reported up
+    to about a second after the first step. No clock of its own (wall seconds given)."""
+
+    def __init__(self, num_robots: int, lease_s: float) -> None:
+        self.lease_s = lease_s
+        self._unseen = set(range(num_robots))
+        self._first_step_s: float | None = None
+        self._looked = False
+
+    def seen(self, robot: int) -> None:
+        """The robot's liveliness was reported."""
+        self._unseen.discard(robot)
+
+    def was_seen(self, robot: int) -> bool:
+        """Whether the robot's liveliness was ever reported."""
+        return robot not in self._unseen
+
+    def first_step(self, wall_s: float) -> None:
+        """The run's first step happened at ``wall_s`` (later calls are ignored)."""
+        if self._first_step_s is None:
+            self._first_step_s = wall_s
+
+    def due(self, wall_s: float) -> list[int]:
+        """Once, from a lease after the first step: the robots never seen alive (sorted);
+        [] before and after."""
+        if (self._looked or self._first_step_s is None
+                or wall_s - self._first_step_s < self.lease_s):
+            return []
+        self._looked = True
+        return sorted(self._unseen)
