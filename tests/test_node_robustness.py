@@ -156,7 +156,10 @@ def test_a_forged_world_status_does_not_end_a_paused_run(tmp_path):
     """While the world waits for a stopped robot, a second publisher on /world/status says
     that the world stepped over at the current step: the evaluator does not trust it (the
     world is not the status's sole publisher) and the run goes on."""
-    team = dict(ONE_ROBOT, **{"world.num_robots": 2})
+    # A map the team does not finish before robot 1 is stopped (on 30 m x 30 m it once
+    # finished 1.7 s into the run, before the evaluator had seen robot 0's liveliness).
+    team = dict(ONE_ROBOT, **{"world.num_robots": 2, "world.width_m": 100.0,
+                              "world.height_m": 100.0})
     world = NodeProcess.start_module(WORLD, ros_args(params=dict(
         team, wait_for_evaluator=True, robot_timeout_s=120.0, liveliness_grace_s=120.0)),
         log_path=tmp_path / "world.log")
@@ -187,6 +190,7 @@ def test_a_forged_world_status_does_not_end_a_paused_run(tmp_path):
                 if truth and len(truth) == heard:
                     break
                 assert time.monotonic() < deadline, "the world did not wait for robot 1"
+            assert "stepping over" not in world.output()  # it waits, it has not ended
             last = truth[-1]
             step = round(stamp_s(last) / 0.2)
             status = node.create_publisher(WorldStatus, "/world/status", LATCHED_QOS)
