@@ -11,14 +11,14 @@ def test_a_liveliness_loss_counts_after_the_grace_and_downtime_is_summed():
     assert [team.status(r) for r in range(3)] == [ACTIVE] * 3
     assert team.heard(0, 1.0, 1.0, "answers") is False        # never lost: no change
     team.liveliness_lost(0, 2.0, 2.0)                          # a lossy network ...
-    team.liveliness_back(0, restarted=False)                   # ... and it is back
+    team.liveliness_back(0, False, 3.0, 3.0)                   # ... and it is back
     assert team.confirm(100.0) == [] and team.status(0) == ACTIVE
 
     team.liveliness_lost(1, 10.0, 5.0)
     team.liveliness_lost(1, 11.0, 6.0)                         # repeated report: no news
     assert team.confirm(8.9) == [] and team.status(1) == ACTIVE
     assert team.confirm(9.0) == [1] and team.status(1) == LOST
-    team.liveliness_back(1, restarted=True)                    # a restarted process ...
+    team.liveliness_back(1, True, 12.0, 10.0)                  # a restarted process ...
     assert team.status(1) == LOST                              # ... is lost until it answers
     assert team.heard(1, 30.0, 15.0, "answers again")
     assert team.status(1) == REJOINED
@@ -39,11 +39,25 @@ def test_a_restart_within_the_grace_counts_as_lost_from_the_loss():
     team = TeamLiveness(2, grace_s=4.0)
     team.liveliness_lost(1, 20.0, 8.0)
     assert not team.heard(1, 20.0, 9.0, "answers")   # the new process answered first ...
-    assert team.liveliness_back(1, restarted=True)   # ... its liveliness came 2 s later
+    assert team.liveliness_back(1, True, 22.0, 10.0)  # ... its liveliness came 2 s later
     assert team.status(1) == LOST
     assert team.changes(1) == [StatusChange(LOST, 20.0, 8.0, "process restarted")]
     assert team.heard(1, 26.0, 12.0, "answers again")
     assert team.downtime_s(1, 99.0, 99.0) == (6.0, 4.0)
+
+
+def test_a_restart_within_the_old_process_lease_counts_as_lost_from_its_report():
+    team = TeamLiveness(2, grace_s=4.0)
+    # The old process died, a new one came up and was reported before the old one's
+    # lease ran out, so no loss was ever reported.
+    assert team.liveliness_back(1, True, 30.0, 12.0)
+    assert team.status(1) == LOST
+    assert team.changes(1) == [StatusChange(LOST, 30.0, 12.0,
+                                            "process restarted within its liveliness lease")]
+    assert not team.liveliness_back(1, False, 31.0, 12.5)  # the old lease ran out: no news
+    assert team.status(1) == LOST
+    assert team.heard(1, 32.0, 13.0, "answers again") and team.status(1) == REJOINED
+    assert not team.liveliness_back(0, False, 30.0, 12.0) and team.status(0) == ACTIVE
 
 
 def test_robots_never_seen_alive_are_due_once_a_lease_after_the_first_step():

@@ -467,7 +467,7 @@ class EvaluatorNode(LeanNode):
             self._unseen.seen(robot)
             self.get_logger().info(f"robot {robot}: liveliness asserted"
                                    + (" by a new process (restarted)" if restarted else ""))
-            if self.liveness.liveliness_back(robot, restarted):
+            if self.liveness.liveliness_back(robot, restarted, *self._status_times()):
                 self.get_logger().warn(f"robot {robot} lost: its process was restarted")
             return
         self.liveness.liveliness_lost(robot, *self._status_times())

@@ -48,15 +48,22 @@ class TeamLiveness:
         if self.status(robot) != LOST and robot not in self._unconfirmed:
             self._unconfirmed[robot] = (sim_time_s, wall_s)
 
-    def liveliness_back(self, robot: int, restarted: bool) -> bool:
-        """The middleware reported the robot's liveliness again: an unconfirmed loss is void,
-        unless the liveliness comes from a new process (``restarted``): then the robot was
-        lost from the time of the loss (returns True). A lost robot rejoins only when
-        ``heard``."""
+    def liveliness_back(self, robot: int, restarted: bool, sim_time_s: float,
+                        wall_s: float) -> bool:
+        """The middleware reported the robot's liveliness again (at these times [s]): an
+        unconfirmed loss is void, unless the liveliness comes from a new process
+        (``restarted``): then the robot was lost from the time of the loss, or from now if
+        the new process came up within the old one's lease, before that loss was reported
+        (returns True). A lost robot rejoins only when ``heard``."""
         unconfirmed = self._unconfirmed.pop(robot, None)
-        if not (restarted and unconfirmed is not None):
+        if not restarted:
             return False
-        return self._change(robot, LOST, *unconfirmed, "process restarted")
+        if unconfirmed is not None:
+            return self._change(robot, LOST, *unconfirmed, "process restarted")
+        if self.status(robot) == LOST:
+            return False
+        return self._change(robot, LOST, sim_time_s, wall_s,
+                            "process restarted within its liveliness lease")
 
     def confirm(self, wall_s: float) -> list[int]:
         """Robots whose liveliness loss has lasted ``grace_s`` at ``wall_s``: now lost (from
