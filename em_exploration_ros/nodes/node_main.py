@@ -27,6 +27,8 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 
+from em_exploration_ros.nodes import lean_executor
+
 #: The error rclpy raises when a call into its C library fails (e.g. publishing after the
 #: context was shut down).
 RCLError = rclpy_implementation.RCLError
@@ -79,11 +81,7 @@ def _spin_node(make_node: Callable[[], NodeType], logger_name: str,
         except (ValueError, ParameterException) as error:
             rclpy.logging.get_logger(logger_name).fatal(f"cannot start: {error}")
             return EXIT_BAD_PARAMETERS
-        done = getattr(node, "done", None)
-        if done is None:
-            rclpy.spin(node)
-        else:
-            rclpy.spin_until_future_complete(node, done)
+        lean_executor.spin(node, until=getattr(node, "done", None))
     except ExternalShutdownException:
         pass
     except RCLError:

@@ -36,6 +36,7 @@ from em_exploration_ros.bag_format.bag_writer import COMPRESSIONS, DEFAULT_CHUNK
 from em_exploration_ros.bag_format.interface_index import read_type_hash
 from em_exploration_ros.bag_format.qos_yaml import request_for_offers
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
+from em_exploration_ros.nodes import lean_executor
 from em_exploration_ros.nodes.node_main import interrupt_shuts_down
 from em_exploration_ros.nodes.recorder_presence import RECORDER_NODE_NAME
 from em_exploration_ros.tools.bag_ros import (
@@ -194,7 +195,7 @@ def main(argv: list[str] | None = None) -> None:
         try:
             if not interrupted():  # a Ctrl-C before rclpy.init ends the recording empty
                 recorder = Recorder(writer, options)
-                rclpy.spin(recorder)
+                lean_executor.spin(recorder)
         except ExternalShutdownException:
             pass
         finally:
