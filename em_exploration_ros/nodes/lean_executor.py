@@ -10,8 +10,9 @@ bookkeeping was about a third of every process's CPU (cProfile, stop 24).
 ``LeanExecutor`` keeps the same contract for the team's nodes and does less:
 
 - the wait set, its entities and their order are built once and rebuilt only when a node's
-  entities change (compared by identity at every wake-up), or when a handle turns out to
-  be destroyed;
+  entities change (compared by identity at every wake-up). The entities' handles are held
+  (entered, as rclpy does around each wait) from that build until the next one or
+  ``shutdown``: an entity destroyed meanwhile is freed when it is released;
 - a ready subscription or timer whose callback is a plain function is taken and called
   directly, inside its callback group's ``beginning_execution`` / ``ending_execution`` and
   the executor's work tracker, without a ``Task`` and without waking the executor again;
@@ -27,6 +28,7 @@ order. One callback runs per ``spin_once``.
 from __future__ import annotations
 
 import inspect
+import threading
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Union
@@ -55,8 +57,8 @@ class _WaitPlan:
     #: ((node, its entities by kind), ...), compared by identity to detect a change
     snapshot: tuple
     wait_set: Any
-    #: handles held (entered) during each wait, so that none is destroyed under it
-    handles: list
+    #: what the plan holds (entered) while it is in use, so that none is freed under it
+    held: list
     #: the handles to add before each wait, by kind: (subscriptions, guard conditions,
     #: timers, clients, services) as ``WaitSet.add_*`` takes them
     to_add: tuple
@@ -72,26 +74,38 @@ def _node_entities(node: Node) -> tuple:
             tuple(node.clients), tuple(node.services), tuple(node.waitables))
 
 
-def _pointer(entity: Any) -> int | None:
-    """The entity's handle pointer; None once the entity is destroyed."""
+def _hold(entity: Any) -> bool:
+    """Enter the entity's handle (released by ``_WaitPlan``'s owner); False once the entity
+    is destroyed."""
     try:
-        return entity.handle.pointer
+        entity.__enter__()
     except InvalidHandle:
-        return None
+        return False
+    return True
 
 
 class LeanExecutor(SingleThreadedExecutor):
     """A ``SingleThreadedExecutor`` with a cached wait set and direct callbacks (see the
-    module docstring). Not for use from several threads."""
+    module docstring). One thread spins it; ``shutdown`` (which releases what the wait set
+    holds) may come from another."""
 
     def __init__(self, *, context: Optional[Context] = None) -> None:
         super().__init__(context=context)
         self._plan: _WaitPlan | None = None
         self._ready: deque = deque()
+        self._plan_lock = threading.Lock()
+        self._waiting = False
+        self._release_after_wait = False
+        #: an entity was found destroyed (its node may still list it): rebuild the plan
+        self._stale = False
 
     def shutdown(self, timeout_sec: Optional[float] = None) -> bool:
-        self._plan = None
-        self._ready.clear()
+        with self._plan_lock:
+            self._ready.clear()
+            if self._waiting:  # the spinning thread releases it when its wait returns
+                self._release_after_wait = True
+            else:
+                self._release_plan()
         return super().shutdown(timeout_sec)
 
     # ----------------------------------------------------------------- spinning
@@ -124,12 +138,10 @@ class LeanExecutor(SingleThreadedExecutor):
         timeout_nsec = timeout_sec_to_nsec(timeout_sec)
         if self._is_shutdown or wait_condition():
             return
-        plan = self._current_plan()
-        entered = []
+        with self._plan_lock:
+            plan = self._current_plan()
+            self._waiting = True
         try:
-            for handle in plan.handles:
-                handle.__enter__()
-                entered.append(handle)
             wait_set = plan.wait_set
             wait_set.clear_entities()
             adders = (wait_set.add_subscription, wait_set.add_guard_condition,
@@ -145,11 +157,14 @@ class LeanExecutor(SingleThreadedExecutor):
             if not self._context.ok():
                 raise ExternalShutdownException()
             self._queue_ready(plan)
-        except InvalidHandle:
-            self._plan = None  # destroyed without its node knowing: rebuild without it
+        except InvalidHandle:  # a waitable destroyed behind its node's back
+            self._stale = True
         finally:
-            for handle in reversed(entered):
-                handle.__exit__(None, None, None)
+            with self._plan_lock:
+                self._waiting = False
+                if self._release_after_wait:
+                    self._release_after_wait = False
+                    self._release_plan()
 
     def _queue_ready(self, plan: _WaitPlan) -> None:
         """Queue the ready entities of ``plan``'s wait set, in rclpy's order."""
@@ -190,13 +205,13 @@ class LeanExecutor(SingleThreadedExecutor):
             raise handler.exception()
         handler.result()
 
-    @staticmethod
-    def _call_subscription(subscription: Subscription) -> None:
+    def _call_subscription(self, subscription: Subscription) -> None:
         try:
             with subscription.handle:
                 taken = subscription.handle.take_message(subscription.msg_type,
                                                          subscription.raw)
-        except InvalidHandle:
+        except InvalidHandle:  # destroyed since the wait
+            self._stale = True
             return
         if taken is None:
             return
@@ -205,54 +220,71 @@ class LeanExecutor(SingleThreadedExecutor):
         else:
             subscription.callback(*taken)
 
-    @staticmethod
-    def _call_timer(timer: Timer) -> None:
+    def _call_timer(self, timer: Timer) -> None:
         try:
             with timer.handle:
                 if not timer.handle.is_timer_ready():  # cancelled since the wait
                     return
                 timer.handle.call_timer()
-        except InvalidHandle:
+        except InvalidHandle:  # destroyed since the wait
+            self._stale = True
             return
         timer.callback()
 
     # ----------------------------------------------------------------- the wait plan
     def _current_plan(self) -> _WaitPlan:
         """The cached plan, rebuilt when a node's entities changed since it was made."""
-        nodes = self.get_nodes()
-        snapshot = tuple((node, _node_entities(node)) for node in nodes)
-        if self._plan is None or self._plan.snapshot != snapshot:
+        snapshot = tuple((node, _node_entities(node)) for node in self.get_nodes())
+        if self._plan is None or self._stale or self._plan.snapshot != snapshot:
+            self._stale = False
+            self._release_plan()
             self._plan = self._build_plan(snapshot)
         return self._plan
 
+    def _release_plan(self) -> None:
+        """Release what the plan holds (an entity destroyed meanwhile is freed now)."""
+        if self._plan is not None:
+            for held in reversed(self._plan.held):
+                held.__exit__(None, None, None)
+            self._plan = None
+
     def _build_plan(self, snapshot: tuple) -> _WaitPlan:
-        """The wait set and run order of ``snapshot``; destroyed entities are left out."""
+        """The wait set and run order of ``snapshot``, holding every entity's handle (and the
+        context's); entities destroyed already are left out."""
         takes = {"guard_condition": self._take_guard_condition,
                  "client": self._take_client, "service": self._take_service}
         direct = {"timer": (_DIRECT_TIMER, self._take_timer),
                   "subscription": (_DIRECT_SUBSCRIPTION, self._take_subscription)}
         by_kind: dict[str, list] = {kind: [] for kind in _NODE_KINDS}
-        waitables, entries = [], []
+        held, waitables, entries = [], [], []
         for node, entities in snapshot:
             node_entries = []
             for kind, kind_entities in zip(_NODE_KINDS, entities):
                 kind_entries = []
                 for entity in kind_entities:
-                    pointer = _pointer(entity)
-                    if pointer is None:
+                    if not _hold(entity.handle):
                         continue
+                    held.append(entity.handle)
                     if kind in direct:
                         plain, take = direct[kind]
                         how = take if inspect.iscoroutinefunction(entity.callback) else plain
                     else:
                         how = takes[kind]
                     by_kind[kind].append(entity.handle)
-                    kind_entries.append((pointer, entity, node, how))
+                    kind_entries.append((entity.handle.pointer, entity, node, how))
                 node_entries.append((kind, kind_entries))
             entries.append(node_entries)
-            waitables.extend((waitable, node) for waitable in entities[len(_NODE_KINDS)])
+            for waitable in entities[len(_NODE_KINDS)]:
+                if _hold(waitable):
+                    held.append(waitable)
+                    waitables.append((waitable, node))
         # The executor's own guard conditions (wake(), Ctrl-C) only end the wait.
-        by_kind["guard_condition"] += [self._guard.handle, self._sigint_gc.handle]
+        for guard in (self._guard, self._sigint_gc):
+            _hold(guard.handle)
+            held.append(guard.handle)
+            by_kind["guard_condition"].append(guard.handle)
+        _hold(self._context.handle)
+        held.append(self._context.handle)
         to_add = tuple(by_kind[kind] for kind in
                        ("subscription", "guard_condition", "timer", "client", "service"))
         counts = [len(handles) for handles in to_add] + [0]
@@ -262,12 +294,9 @@ class LeanExecutor(SingleThreadedExecutor):
                                            extra.num_timers, extra.num_clients,
                                            extra.num_services, extra.num_events)):
                 counts[index] += count
-        handles = [handle for kind_handles in to_add for handle in kind_handles]
-        handles += [waitable for waitable, _node in waitables]
-        handles.append(self._context.handle)
         return _WaitPlan(snapshot=snapshot,
                          wait_set=_rclpy.WaitSet(*counts, self._context.handle),
-                         handles=handles, to_add=to_add, waitables=waitables, entries=entries)
+                         held=held, to_add=to_add, waitables=waitables, entries=entries)
 
 
 def spin(node: Node, until: Future | None = None) -> None:
