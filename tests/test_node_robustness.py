@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
 import sys
 import textwrap
 import time
@@ -299,3 +300,18 @@ def test_ctrl_c_shuts_ros_down_without_raising_inside_a_callback(tmp_path):
     assert "KeyboardInterrupt" not in output and "Traceback" not in output, output
     assert "callback ended undisturbed" in output, output
     assert "wrapped up after" in output, output
+
+
+def test_a_robot_process_loads_neither_the_relay_nor_the_simulator_runner_nor_plotting():
+    """A robot node imports what a robot runs: not the world's link relay, em-sim's team
+    runner with its evaluation, or matplotlib (0.76 s of CPU at every (re)start, before)."""
+    check = ("import sys\n"
+             "import em_exploration_ros.nodes.robot_node\n"
+             "loaded = [m for m in ('em_exploration_ros.nodes.team_relay',\n"
+             "                      'em_exploration_ros.core.sim.team_runner',\n"
+             "                      'em_exploration_ros.core.evaluation.evaluator',\n"
+             "                      'matplotlib') if m in sys.modules]\n"
+             "assert not loaded, loaded\n")
+    result = subprocess.run([sys.executable, "-c", check], cwd=REPO_ROOT, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stderr

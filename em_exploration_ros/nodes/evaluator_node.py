@@ -105,7 +105,7 @@ from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard, chec
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
-from em_exploration_ros.nodes.team_relay import LINK_COUNTS_TOPIC
+from em_exploration_ros.nodes.team_topics import LINK_COUNTS_TOPIC
 
 EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
 #: Wall period of the silence check [s].

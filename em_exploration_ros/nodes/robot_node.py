@@ -95,8 +95,8 @@ from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
-from em_exploration_ros.nodes.team_relay import (delivered_requests_topic,
-                                                 delivered_updates_topic, history_copies_topic)
+from em_exploration_ros.nodes.team_topics import (delivered_requests_topic,
+                                                  delivered_updates_topic, history_copies_topic)
 
 EXIT_OK, EXIT_WORLD_GONE = 0, 4
 

@@ -31,34 +31,18 @@ from em_exploration_ros.core.agent.input_checks import request_problem
 from em_exploration_ros.core.agent import team_data
 from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate
 from em_exploration_ros.core.agent.team_wire import TeamWireFormat, cdr_size, request_cdr_size
+from em_exploration_ros.core.evaluation.run_monitor import METRICS_INTERVAL_STEPS
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
 from em_exploration_ros.core.sim.links import FrameKind
 from em_exploration_ros.core.sim.lockstep import StepAnswer
-from em_exploration_ros.core.sim.team_runner import METRICS_INTERVAL_STEPS
 from em_exploration_ros.nodes.conversions import robot_namespace
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   publish_or_log)
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, TEAM_QOS
-
-REQUESTS_TOPIC = "/team/update_requests"
-LINK_COUNTS_TOPIC = "/world/link_counts"
-
-
-def delivered_updates_topic(robot: int) -> str:
-    """Where the relay delivers team records to ``robot``."""
-    return f"/{robot_namespace(robot)}/team/delivered_updates"
-
-
-def history_copies_topic(robot: int) -> str:
-    """Where ``robot`` sends, in relay mode, its copies of a restarted teammate's records."""
-    return f"/{robot_namespace(robot)}/team/history_copies"
-
-
-def delivered_requests_topic(robot: int) -> str:
-    """Where the relay delivers requests for ``robot``'s records."""
-    return f"/{robot_namespace(robot)}/team/delivered_requests"
-
+from em_exploration_ros.nodes.team_topics import (LINK_COUNTS_TOPIC, REQUESTS_TOPIC,
+                                                  delivered_requests_topic,
+                                                  delivered_updates_topic, history_copies_topic)
 
 class TeamRelay:
     """Hears, checks and relays team data on ``node`` (see module docstring). ``open_step``

@@ -36,6 +36,10 @@ from em_exploration_ros.core.evaluation.summary import (GivenUpEntry, HistorySam
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.frontiers import FrontierType
 
+#: Team metrics are evaluated every this many steps (and at the end) in em-sim; the link
+#: relay delivers before those steps so that they see what the links carried.
+METRICS_INTERVAL_STEPS = 10
+
 #: Exit status of em-sim, em-evaluator and run_team.sh for a stalled run.
 EXIT_STALLED = 4
 #: Stop reasons of stalled runs start with this.

@@ -31,17 +31,15 @@ from em_exploration_ros.core.agent.team_data import (MissingRange, RendezvousEve
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
 from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, evaluation_layers
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
-from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RobotProgressRecord,
-                                                            RunMonitor)
+from em_exploration_ros.core.evaluation.run_monitor import (METRICS_INTERVAL_STEPS,
+                                                            DecisionEntry,
+                                                            RobotProgressRecord, RunMonitor)
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, RunSummary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.links import DeliveryLedger, FrameKind, TeamLinks
 from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
 from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
                                                     twist_to_increment_covariance)
-
-#: Team metrics are evaluated every this many steps (and at the end).
-METRICS_INTERVAL_STEPS = 10
 
 
 def step_input(frame: SensorFrame, time_step_s: float) -> StepInput:
