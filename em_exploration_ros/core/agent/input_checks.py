@@ -60,12 +60,12 @@ def array_problem(values: np.ndarray, what: str) -> str | None:
     values = np.asarray(values, dtype=float)
     if values.size == 0:
         return None
+    largest = float(np.max(np.abs(values)))  # NaN if any value is NaN
+    if largest <= MAX_ABS_VALUE:
+        return None
     if not np.all(np.isfinite(values)):
         return f"{what} is not finite ({values[~np.isfinite(values)].flat[0]})"
-    largest = float(np.max(np.abs(values)))
-    if largest > MAX_ABS_VALUE:
-        return f"{what} is implausibly large ({largest:g})"
-    return None
+    return f"{what} is implausibly large ({largest:g})"
 
 
 def stamp_problem(sec: int, nanosec: int, what: str = "stamp") -> str | None:
