@@ -123,8 +123,12 @@ def test_a_coroutine_callback_waits_for_a_future_set_by_a_later_callback(
 
     node.create_subscription(Int32, "numbers", on_number, QOS)
     # Its own group: the coroutine holds the node's default (mutually exclusive) group.
-    node.create_timer(0.05, lambda: gate.done() or (log.append("gate"), gate.set_result(1)),
-                      callback_group=MutuallyExclusiveCallbackGroup())
+    def open_gate() -> None:
+        if log and not gate.done():  # only once the coroutine waits
+            log.append("gate")
+            gate.set_result(1)
+
+    node.create_timer(0.05, open_gate, callback_group=MutuallyExclusiveCallbackGroup())
     node.create_publisher(Int32, "numbers", QOS).publish(Int32(data=7))
     spin_until(executor, lambda: "end 7" in log, "the coroutine's end")
     assert log == ["start 7", "gate", "end 7"]

@@ -30,7 +30,7 @@ from __future__ import annotations
 import inspect
 import threading
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, Optional, Union
 
 from rclpy.context import Context
@@ -65,7 +65,7 @@ class _WaitPlan:
     #: (waitable, node) pairs (e.g. QoS event handlers); they add themselves
     waitables: list
     #: per node: ((kind, [(pointer, entity, node, how), ...]), ...) in ``_NODE_KINDS`` order
-    entries: list = field(default_factory=list)
+    entries: list
 
 
 def _node_entities(node: Node) -> tuple:
@@ -280,11 +280,11 @@ class LeanExecutor(SingleThreadedExecutor):
                     waitables.append((waitable, node))
         # The executor's own guard conditions (wake(), Ctrl-C) only end the wait.
         for guard in (self._guard, self._sigint_gc):
-            _hold(guard.handle)
-            held.append(guard.handle)
-            by_kind["guard_condition"].append(guard.handle)
-        _hold(self._context.handle)
-        held.append(self._context.handle)
+            if _hold(guard.handle):
+                held.append(guard.handle)
+                by_kind["guard_condition"].append(guard.handle)
+        if _hold(self._context.handle):
+            held.append(self._context.handle)
         to_add = tuple(by_kind[kind] for kind in
                        ("subscription", "guard_condition", "timer", "client", "service"))
         counts = [len(handles) for handles in to_add] + [0]
