@@ -38,6 +38,19 @@ def ros_value(value: Any) -> str:
     return str(value)
 
 
+def loaded_modules(*imported: str) -> set[str]:
+    """The names in ``sys.modules`` of a fresh Python process after it imported ``imported``
+    (what a node process loads, without starting it)."""
+    script = ("import importlib, sys\n"
+              f"for name in {list(imported)!r}:\n"
+              "    importlib.import_module(name)\n"
+              "print('\\n'.join(sys.modules))\n")
+    result = subprocess.run([sys.executable, "-c", script], cwd=REPO_ROOT, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    return set(result.stdout.split())
+
+
 def ros_args(params: Mapping[str, Any] | None = None, namespace: str | None = None,
              params_file: str | Path | None = None, extra: Sequence[str] = ()) -> list[str]:
     """``--ros-args`` arguments: optional namespace remap, parameter file, then ``-p``s."""

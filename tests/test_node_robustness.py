@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import signal
-import subprocess
 import sys
 import textwrap
 import time
@@ -31,7 +30,7 @@ from std_msgs.msg import Header
 
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, LATCHED_QOS, SENSOR_QOS
 
-from ros_process import NodeProcess, REPO_ROOT, ros_args
+from ros_process import NodeProcess, REPO_ROOT, loaded_modules, ros_args
 
 WORLD = "em_exploration_ros.nodes.world_node"
 ROBOT = "em_exploration_ros.nodes.robot_node"
@@ -305,13 +304,7 @@ def test_ctrl_c_shuts_ros_down_without_raising_inside_a_callback(tmp_path):
 def test_a_robot_process_loads_neither_the_relay_nor_the_simulator_runner_nor_plotting():
     """A robot node imports what a robot runs: not the world's link relay, em-sim's team
     runner with its evaluation, or matplotlib (0.76 s of CPU at every (re)start, before)."""
-    check = ("import sys\n"
-             "import em_exploration_ros.nodes.robot_node\n"
-             "loaded = [m for m in ('em_exploration_ros.nodes.team_relay',\n"
-             "                      'em_exploration_ros.core.sim.team_runner',\n"
-             "                      'em_exploration_ros.core.evaluation.evaluator',\n"
-             "                      'matplotlib') if m in sys.modules]\n"
-             "assert not loaded, loaded\n")
-    result = subprocess.run([sys.executable, "-c", check], cwd=REPO_ROOT, capture_output=True,
-                            text=True, timeout=120)
-    assert result.returncode == 0, result.stderr
+    loaded = loaded_modules("em_exploration_ros.nodes.robot_node")
+    assert not loaded & {"em_exploration_ros.nodes.team_relay",
+                         "em_exploration_ros.core.sim.team_runner",
+                         "em_exploration_ros.core.evaluation.evaluator", "matplotlib"}
