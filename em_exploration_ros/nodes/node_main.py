@@ -22,6 +22,7 @@ from contextlib import contextmanager
 from typing import Callable, Iterator, TypeVar
 
 import rclpy
+from rclpy.context import Context
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation
@@ -91,8 +92,25 @@ def _spin_node(make_node: Callable[[], NodeType], logger_name: str,
     finally:
         code = 0
         if node is not None:
+            _console_logging_after_signal(node.context)
             if wrap_up is not None:
                 code = wrap_up(node)
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def _console_logging_after_signal(context: Context) -> None:
+    """After Ctrl-C / SIGTERM, log to the console only.
+
+    rclpy's signal handler shuts the context down in C, which, unlike ``Context.shutdown``,
+    leaves rcl's /rosout logging on with a publisher that can no longer publish, so every
+    line a node logs while wrapping up also printed "Failed to publish log message to
+    rosout: publisher's context is invalid". This ends that logging as ``Context.shutdown``
+    would (the private ``_logging_fini``, under the context's lock, as rclpy calls it); the
+    console and log files keep every line.
+    """
+    if context.ok():
+        return
+    with context._lock:  # noqa: SLF001 (rclpy's own shutdown path, see docstring)
+        context._logging_fini()  # noqa: SLF001
