@@ -155,6 +155,9 @@ def run_summary(tmp_path, name: str, with_intruder: bool) -> tuple[dict, str]:
     with run:
         if with_intruder:  # from mid-run on, so its stale sequence numbers really are stale
             run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+            wait_until(lambda: evaluator_heard_every_robot(
+                summary_path.parent / "logs" / "evaluator.log", evaluations_after=3),
+                RUN_TIMEOUT_S, "the evaluator hearing every robot")
             intruder = NodeProcess([sys.executable, "-c", HOSTILE_PUBLISHER, "30"],
                                    tmp_path / name / "intruder.out")
         try:
@@ -165,6 +168,22 @@ def run_summary(tmp_path, name: str, with_intruder: bool) -> tuple[dict, str]:
     assert code == 0, run.output()[-3000:]
     logs = "".join(p.read_text() for p in (summary_path.parent / "logs").glob("robot_*.log"))
     return json.loads(summary_path.read_text()), logs
+
+
+def evaluator_heard_every_robot(log_path, evaluations_after: int) -> bool:
+    """Whether the evaluator saw every robot's liveliness and then evaluated
+    ``evaluations_after`` more times (time for a gap in a stream to be asked for and
+    re-sent). Until then a robot's first team updates may not have reached it: when Fast
+    DDS misses a participant's first announcements, discovery waits for the next one (3 s),
+    and at 25x the team passes t = 20 s within a second. A forged update with the next
+    sequence number is well-formed and cannot be told from the robot's own; sent before
+    the real one, it takes its place (this test once lost robot 0's first target so)."""
+    lines = log_path.read_text().splitlines() if log_path.exists() else []
+    heard = [i for i, line in enumerate(lines) if "liveliness asserted" in line]
+    robots = {re.search(r"robot (\d+): liveliness", lines[i]).group(1) for i in heard}
+    if len(robots) < 3:
+        return False
+    return sum("t=" in line for line in lines[max(heard) + 1:]) >= evaluations_after
 
 
 def test_hostile_team_messages_are_rejected_and_change_nothing(tmp_path):
