@@ -5,7 +5,7 @@
 | ``SENSOR_QOS`` (reliable, keep last 50, volatile) | /robot_<i>/sonar, /robot_<i>/odom, /robot_<i>/motion_command | lockstep needs every step; a small queue absorbs bursts; old steps are useless to a late joiner |
 | ``TEAM_QOS`` (reliable, keep all, volatile) | /robot_<i>/team/updates, /team/update_requests | team data must arrive; losses and late joins are repaired by the sequence-number resend protocol, so durability is not needed |
 | ``LATCHED_QOS`` (reliable, keep last 1, transient local) | /world/landmarks, /robot_<i>/virtual_map, /robot_<i>/markers, /robot_<i>/target | state whose last value a late subscriber (RViz, Foxglove) needs at once |
-| ``ESTIMATE_QOS`` (reliable, keep last ``ESTIMATE_DEPTH`` = 20, transient local) | /robot_<i>/estimated_path, /robot_<i>/landmarks | as latched, and a reader that matched late (the evaluator, when discovery packets were lost) still gets the estimates of the last 20 keyframes, so its evaluations as of each keyframe are the same whatever the network did |
+| ``ESTIMATE_QOS`` (reliable, keep last ``ESTIMATE_DEPTH`` = 100, transient local) | /robot_<i>/estimated_path, /robot_<i>/landmarks | as latched, and a reader that matched late (the evaluator, when discovery packets were lost) still gets the estimates of the last 100 keyframes (200 simulated seconds), so its evaluations as of each keyframe are the same whatever the network did. 20 keyframes were too few once the lockstep team ran at 25x: when Fast DDS misses a participant's first announcements, the evaluator discovers the robots about 3 s (75 simulated seconds) late, and its first evaluation found no estimate of its keyframe left |
 | ``ESTIMATE_READER_QOS`` (as ``ESTIMATE_QOS`` with depth ``GROUND_TRUTH_DEPTH``) | the evaluator's readers of /robot_<i>/estimated_path and /robot_<i>/landmarks | the lockstep world does not wait for the evaluator: a flooded or loaded evaluator fell more than 20 keyframes (40 simulated seconds) behind the robots, its keep-last-20 queue dropped the estimates it had not taken yet, and an evaluation read an older estimate; now it may lag as far behind on estimates as on ground truth |
 | ``CLOCK_QOS`` (best effort, keep last 1) | /clock | the ROS 2 convention for /clock; only the newest time matters |
 | ``TF_QOS``, ``TF_STATIC_QOS`` | /tf, /tf_static | tf2's own profiles (below), which every tf2 listener, RViz and Foxglove expect |
@@ -27,7 +27,7 @@ SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
 TEAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
 #: Keyframes of estimates a late reader of ESTIMATE_QOS still gets.
-ESTIMATE_DEPTH = 20
+ESTIMATE_DEPTH = 100
 ESTIMATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=ESTIMATE_DEPTH,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
