@@ -30,8 +30,8 @@ QOS = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE,
 DEADLINE_S = 10.0
 
 
-EXECUTORS = pytest.mark.parametrize("executor_class", [SingleThreadedExecutor, LeanExecutor],
-                                    ids=["rclpy", "lean"])
+EXECUTOR_CLASSES = [SingleThreadedExecutor, LeanExecutor]
+EXECUTORS = pytest.mark.parametrize("executor_class", EXECUTOR_CLASSES, ids=["rclpy", "lean"])
 
 
 @contextmanager
@@ -50,7 +50,7 @@ def node_on(executor_class: type) -> Iterator[tuple[Node, SingleThreadedExecutor
         rclpy.try_shutdown(context=context)
 
 
-@pytest.fixture(params=[SingleThreadedExecutor, LeanExecutor], ids=["rclpy", "lean"])
+@pytest.fixture(params=EXECUTOR_CLASSES, ids=["rclpy", "lean"])
 def ros(request: pytest.FixtureRequest) -> Iterator[tuple[Node, SingleThreadedExecutor]]:
     """A node on an executor of each kind."""
     with node_on(request.param) as node_and_executor:
@@ -223,30 +223,22 @@ def test_a_done_future_ends_spin_until_future_complete(
 
 @EXECUTORS
 def test_shutting_the_context_down_ends_the_spin(executor_class: type) -> None:
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node("lean_executor_shutdown_test", context=context)
-    executor = executor_class(context=context)
-    executor.add_node(node)
-    node.create_subscription(Int32, "numbers", lambda _m: None, QOS)
-    outcome: list[str] = []
+    with node_on(executor_class) as (node, executor):
+        spinning = threading.Event()
+        node.create_timer(0.01, spinning.set)
+        outcome: list[str] = []
 
-    def spin() -> None:
-        try:
-            executor.spin()
-            outcome.append("returned")
-        except ExternalShutdownException:
-            outcome.append("external shutdown")
+        def spin() -> None:
+            try:
+                executor.spin()
+                outcome.append("returned")
+            except ExternalShutdownException:
+                outcome.append("external shutdown")
 
-    spinner = threading.Thread(target=spin)
-    spinner.start()
-    try:
-        time.sleep(0.2)  # let it block in its wait
-        rclpy.shutdown(context=context)
+        spinner = threading.Thread(target=spin)
+        spinner.start()
+        assert spinning.wait(DEADLINE_S), "the executor never ran a callback"
+        rclpy.shutdown(context=node.context)
         spinner.join(timeout=DEADLINE_S)
         assert not spinner.is_alive()
         assert outcome in (["external shutdown"], ["returned"])
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)

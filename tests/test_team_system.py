@@ -156,7 +156,7 @@ def run_summary(tmp_path, name: str, with_intruder: bool) -> tuple[dict, str]:
         if with_intruder:  # from mid-run on, so its stale sequence numbers really are stale
             run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
             wait_until(lambda: evaluator_heard_every_robot(
-                summary_path.parent / "logs" / "evaluator.log", evaluations_after=3),
+                summary_path.parent / "logs" / "evaluator.log", robots=3, evaluations_after=3),
                 RUN_TIMEOUT_S, "the evaluator hearing every robot")
             intruder = NodeProcess([sys.executable, "-c", HOSTILE_PUBLISHER, "30"],
                                    tmp_path / name / "intruder.out")
@@ -170,8 +170,8 @@ def run_summary(tmp_path, name: str, with_intruder: bool) -> tuple[dict, str]:
     return json.loads(summary_path.read_text()), logs
 
 
-def evaluator_heard_every_robot(log_path, evaluations_after: int) -> bool:
-    """Whether the evaluator saw every robot's liveliness and then evaluated
+def evaluator_heard_every_robot(log_path, robots: int, evaluations_after: int) -> bool:
+    """Whether the evaluator saw the liveliness of all ``robots`` robots and then evaluated
     ``evaluations_after`` more times (time for a gap in a stream to be asked for and
     re-sent). Until then a robot's first team updates may not have reached it: when Fast
     DDS misses a participant's first announcements, discovery waits for the next one (3 s),
@@ -180,8 +180,8 @@ def evaluator_heard_every_robot(log_path, evaluations_after: int) -> bool:
     the real one, it takes its place (this test once lost robot 0's first target so)."""
     lines = log_path.read_text().splitlines() if log_path.exists() else []
     heard = [i for i, line in enumerate(lines) if "liveliness asserted" in line]
-    robots = {re.search(r"robot (\d+): liveliness", lines[i]).group(1) for i in heard}
-    if len(robots) < 3:
+    seen = {re.search(r"robot (\d+): liveliness", lines[i]).group(1) for i in heard}
+    if len(seen) < robots:
         return False
     return sum("t=" in line for line in lines[max(heard) + 1:]) >= evaluations_after
 
