@@ -41,9 +41,11 @@ class WorldNodeSettings:
         60.0, "Wall seconds to wait for every robot to connect before the first step; robots "
         "not connected by then are treated as stopped.", 0.0, 1e6)
     startup_settle_s: float = param_field(
-        1.0, "Wall seconds every connection must hold before the first step, so the "
+        3.5, "Wall seconds every connection must hold before the first step, so the "
         "middleware has matched the robots' team-update streams too (the graph shows a "
-        "reader slightly before every writer delivers to it).", 0.0, 60.0)
+        "reader before every writer delivers to it: when Fast DDS misses a participant's "
+        "first announcements, a robot and the evaluator find each other only at the next, "
+        "up to 3 s later).", 0.0, 60.0)
     max_sim_time_s: float = param_field(
         0.0, "Stop stepping after this simulation time [s] (0: no limit besides "
         "run.max_steps).", 0.0, 1e9)
