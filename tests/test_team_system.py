@@ -106,19 +106,29 @@ def test_robots_are_separate_processes_blind_to_ground_truth_and_survive_a_dead_
 
 HOSTILE_PUBLISHER = r'''
 import math, sys, time
+from pathlib import Path
 import rclpy
-from em_exploration_msgs.msg import TeamUpdate
-from rclpy.node import Node
-
-from em_exploration_ros.nodes.qos import TEAM_QOS
-from rclpy.serialization import serialize_message
 from em_exploration_msgs.msg import Keyframe, KeyframeTeammate, TeamUpdate, TargetRecord
+from rclpy.node import Node
+from rclpy.serialization import serialize_message
+
 from em_exploration_ros.nodes.qos import TEAM_QOS
 
 rclpy.init()
 node = Node("intruder")
 pubs = {r: node.create_publisher(TeamUpdate, f"/robot_{r}/team/updates", TEAM_QOS)
         for r in range(3)}
+# Matched first (two teammates and the evaluator read each topic), so that nothing it sends
+# after the go file appears is lost to discovery, which can take seconds.
+until = time.monotonic() + 60.0
+while any(pub.get_subscription_count() < 3 for pub in pubs.values()):
+    if time.monotonic() > until:
+        sys.exit("the team's readers were not discovered within 60 s")
+    time.sleep(0.01)
+print("matched", flush=True)
+go_file = Path(sys.argv[2])
+while not go_file.exists():
+    time.sleep(0.01)
 
 def update(robot, sequence, **fields):
     message = TeamUpdate(robot_id=robot, sequence=sequence)
@@ -153,13 +163,19 @@ def run_summary(tmp_path, name: str, with_intruder: bool) -> tuple[dict, str]:
                                  "--until-explored", "0.8", "--summary", str(summary_path))
     intruder = None
     with run:
-        if with_intruder:  # from mid-run on, so its stale sequence numbers really are stale
+        if with_intruder:
+            # Started with the team and matched to its readers; it sends from mid-run on
+            # (when the go file appears), so its stale sequence numbers really are stale.
+            # Started mid-run instead, it was discovered in CI only as the run ended.
+            go_file = tmp_path / name / "intruder.go"
+            intruder = NodeProcess([sys.executable, "-c", HOSTILE_PUBLISHER, "30",
+                                    str(go_file)], tmp_path / name / "intruder.out")
             run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
             wait_until(lambda: evaluator_heard_every_robot(
                 summary_path.parent / "logs" / "evaluator.log", robots=3, evaluations_after=3),
                 RUN_TIMEOUT_S, "the evaluator hearing every robot")
-            intruder = NodeProcess([sys.executable, "-c", HOSTILE_PUBLISHER, "30"],
-                                   tmp_path / name / "intruder.out")
+            intruder.wait_for_output("matched", RUN_TIMEOUT_S)
+            go_file.touch()
         try:
             code = run.wait(RUN_TIMEOUT_S)
         finally:
