@@ -267,7 +267,11 @@ def test_killed_and_wedged_robots_are_restarted_and_rejoin_without_losing_keyfra
     logs = summary_path.parent / "logs"
     for name in ("world", "evaluator", "robot_0"):
         log = (logs / f"{name}.log").read_text()
-        assert "1: liveliness lost" in log and "2: liveliness lost" in log, name
+        # Robot 1's new process may assert its liveliness before the killed one's lease (3 s)
+        # runs out: then no loss is reported, only the restart.
+        assert ("1: liveliness lost" in log
+                or "1: liveliness asserted by a new process (restarted)" in log), name
+        assert "2: liveliness lost" in log, name  # wedged: restarted only once found lost
     assert before_crash and before_wedge
     log = (logs / "evaluator.log").read_text()
     assert "robot 1 lost:" in log and "robot 2 lost:" in log
