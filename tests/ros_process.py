@@ -78,6 +78,14 @@ def wait_until(condition: Callable[[], bool], timeout_s: float, what: str,
             time.sleep(poll_s)
 
 
+def _interruptible() -> None:
+    """In a child before it runs its command: SIGINT at its default action. A test suite
+    started in the background by a non-interactive shell inherits SIGINT ignored, and a
+    shell cannot trap a signal ignored on entry: run_team.sh then ignored the Ctrl-C test's
+    SIGINT. A terminal's Ctrl-C always meets the default action."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class NodeProcess:
     """One child process in its own process group, output to ``log_path``."""
 
@@ -93,7 +101,8 @@ class NodeProcess:
         with open(self.log_path, "wb") as log:
             self.process = subprocess.Popen(self.command, stdout=log, stderr=subprocess.STDOUT,
                                             stdin=subprocess.DEVNULL, env=environment,
-                                            cwd=cwd, start_new_session=True)
+                                            cwd=cwd, start_new_session=True,
+                                            preexec_fn=_interruptible)
 
     @classmethod
     def start_module(cls, module: str, args: Sequence[str] = (), log_path: Path | None = None,
