@@ -10,6 +10,10 @@ import signal
 
 import numpy as np
 import pytest
+import rclpy
+from nav_msgs.msg import Odometry
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
 
 from em_exploration_ros.core.agent.link_sender import LinkSender
 from em_exploration_ros.core.agent.team_data import (MissingRange, TeamUpdate, TeamUpdateInbox,
@@ -19,6 +23,7 @@ from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
 from em_exploration_ros.core.sim.links import FrameKind
 from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, finish_team_run, processes_in_domain,
                          robot_pid, start_team_run, wait_for_liveliness, wait_until)
 
@@ -133,11 +138,59 @@ def test_ros_team_under_poor_links_chooses_em_sims_targets(tmp_path):
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
 
 
+#: Comm range of the restart test [m]: in its seeded mission robot 1 is 23-48 m from its
+#: nearest teammate from step 100 to 330 (at 15 m, never more than 13 m).
+COMM_RANGE_M = 8.0
+#: Distance [m] beyond which the test kills robot 1: the range plus what a teammate drives
+#: (0.2 m per step) in the 40 steps the world must go on without it, plus a margin.
+OUT_OF_RANGE_M = COMM_RANGE_M + 10.0
+
+
+class GroundTruth:
+    """The robots' true positions as the world publishes them, read by the test (a user
+    may read /world; a robot may not). Subscribe only once the world steps: the world takes
+    any ground-truth reader for the evaluator when it decides to start."""
+
+    def __init__(self, robots: int) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = Node("ground_truth_reader", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.positions: dict[int, np.ndarray] = {}
+        for robot in range(robots):
+            self.node.create_subscription(
+                Odometry, f"/world/ground_truth/robot_{robot}",
+                lambda message, r=robot: self.positions.__setitem__(r, np.array(
+                    [message.pose.pose.position.x, message.pose.pose.position.y])),
+                GROUND_TRUTH_QOS)
+        self.robots = robots
+
+    def spin(self) -> None:
+        self.executor.spin_once(timeout_sec=0.02)
+
+    def nearest_teammate_m(self, robot: int) -> float:
+        """Distance [m] from ``robot`` to its nearest teammate; 0 until every robot's
+        position has been heard."""
+        if len(self.positions) < self.robots:
+            return 0.0
+        return min(float(np.linalg.norm(self.positions[robot] - self.positions[other]))
+                   for other in range(self.robots) if other != robot)
+
+    def __enter__(self) -> "GroundTruth":
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
 def test_a_robot_restarted_under_poor_links_resumes_at_the_worlds_open_step(tmp_path):
-    """--respawn in relay mode: robot 1 is SIGKILLed mid-run. Its teammates are mostly out of
-    range, so its recovery runs into ``rejoin_timeout_s`` while the world goes on without it
-    for hundreds of steps; it must resume at the world's open step (not replay the stale
-    ones it could never catch up with) and the team must finish."""
+    """--respawn in relay mode: robot 1 is SIGKILLed mid-run, out of its teammates' range, so
+    its recovery waits for them while the world goes on without it for hundreds of steps;
+    it must resume at the world's open step (not replay the stale ones it could never catch
+    up with) and the team must finish."""
     params = tmp_path / "params.yaml"
     # The recovery must outlast the world's wait before it goes on without the killed robot
     # (liveliness_grace_s, 4 s): with 4 s each, the two raced and the world went only 15
@@ -147,12 +200,20 @@ def test_a_robot_restarted_under_poor_links_resumes_at_the_worlds_open_step(tmp_
     summary_path = tmp_path / "run" / "summary.json"
     run, domain = start_team_run(
         tmp_path, "--robots", "3", "--map-size", "60", "--landmarks", "6", "--seed", "2",
-        "--max-sim-time", "900", "--respawn", "--comm-range", "15", "--comm-loss", "0.1",
+        "--max-sim-time", "900", "--respawn", "--comm-range", f"{COMM_RANGE_M:g}",
+        "--comm-loss", "0.1",
         "--params", str(params), "--summary", str(summary_path))
     def kill_robot_1_mid_run() -> None:
         wait_until(lambda: "t=   20.0 s" in run.output(), RUN_TIMEOUT_S, "mid-run")
         wait_for_liveliness(summary_path.parent / "logs" / "world.log", 1, RUN_TIMEOUT_S)
-        os.kill(robot_pid(domain, 1), signal.SIGKILL)
+        # Killed only when out of both teammates' range: the world then holds the team at
+        # that step until it gives robot 1 up, so no teammate can answer the new process's
+        # requests before the world has gone on. Killed where a teammate was in range, it
+        # recovered within 3.5 s and the world went on only 3 steps (once in 3 runs).
+        with GroundTruth(robots=3) as truth:
+            wait_until(lambda: truth.nearest_teammate_m(1) > OUT_OF_RANGE_M, RUN_TIMEOUT_S,
+                       "robot 1 out of its teammates' range", while_waiting=truth.spin)
+            os.kill(robot_pid(domain, 1), signal.SIGKILL)
 
     code = finish_team_run(run, RUN_TIMEOUT_S, kill_robot_1_mid_run)
     assert code == 0, run.output()[-3000:]
