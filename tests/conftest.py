@@ -12,11 +12,16 @@ ROS 2 system on the network:
 - AMENT_PREFIX_PATH: the venv prefix first, so ament_index_python finds this venv's packages.
 
 Processes started by tests inherit os.environ and therefore the same domain.
+
+SIGTERM (what a CI job's timeout or `kill` sends) ends the run as Ctrl-C does: pytest
+stops and the tests' clean-up runs, so the processes they started are stopped too. By
+default SIGTERM ended pytest at once and left every running team behind.
 """
 from __future__ import annotations
 
 import fcntl
 import os
+import signal
 import sys
 import tempfile
 from pathlib import Path
@@ -61,5 +66,10 @@ def _isolate_ros_environment() -> None:
             [sys.prefix] + [p for p in prefixes if p != sys.prefix])
 
 
+def _interrupt(signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+
 # At import, i.e. before any test module is collected and could initialise rclpy.
 _isolate_ros_environment()
+signal.signal(signal.SIGTERM, _interrupt)
