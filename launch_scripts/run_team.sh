@@ -352,8 +352,22 @@ PY
 }
 
 # shellcheck disable=SC2317  # called through the traps below
+# A signal while the run is being stopped (a second Ctrl-C, or a TERM after the INT from a
+# supervisor) kills what is left at once; by default it ended this shell in the middle of
+# stop_all and left the remaining nodes running with no one to stop them.
+kill_all_now() {
+    trap '' INT TERM
+    local pid
+    for pid in "${PIDS[@]}"; do kill -KILL -- "-$pid" 2>/dev/null; done
+    wait_groups "$KILL_GRACE_S"
+    echo "$PROG: stopped at once (a signal while stopping); the last log lines may be missing" >&2
+    exit "$1"
+}
+
+# shellcheck disable=SC2317  # called through the traps below
 on_signal() {
-    trap - INT TERM
+    trap 'kill_all_now 130' INT
+    trap 'kill_all_now 143' TERM
     echo "$PROG: stopping ($1)" >&2
     [[ -n ${TAIL_PID:-} ]] && kill "$TAIL_PID" 2>/dev/null
     stop_all
@@ -495,7 +509,8 @@ fi
 wait "$EVALUATOR_PID"
 CODE=$?
 wait "$TAIL_PID" 2>/dev/null
-trap - INT TERM
+trap 'kill_all_now 130' INT
+trap 'kill_all_now 143' TERM
 stop_all
 report_results
 exit "$CODE"

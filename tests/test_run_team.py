@@ -215,6 +215,24 @@ def test_a_run_whose_robots_all_die_ends_when_the_world_steps_over(tmp_path):
     assert summary["wall_s"] < 60.0  # not the 120 s of silence the evaluator once waited
 
 
+def test_a_signal_while_the_run_stops_kills_every_process_at_once(tmp_path):
+    """A supervisor's TERM soon after its INT (or a second Ctrl-C) while run_team.sh stops
+    the nodes: it kills what is left and exits. It used to die in the middle of stopping
+    and leave the remaining nodes running."""
+    run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
+                                 "--map-size", "100", "--until-explored", "0.95",
+                                 "--summary", str(tmp_path / "summary.json"))
+    with run:
+        run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+        run.signal_group(signal.SIGINT)
+        run.wait_for_output("stopping (interrupted)", 10.0)
+        run.signal_group(signal.SIGTERM)
+        code = run.wait(10.0)
+    assert code == 143, run.output()[-3000:]
+    assert "stopped at once (a signal while stopping)" in run.output()
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+
+
 def _free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
