@@ -8,8 +8,10 @@ import pytest
 from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
                                                   keyframe_ranges)
 from em_exploration_ros.core.agent.robot_agent import RobotAgent
-from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TeamUpdateOutbox
+from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, TeamUpdate,
+                                                     TeamUpdateOutbox)
 from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.sim.sensors import odometry_covariance_per_step
 from em_exploration_ros.core.sim.team_runner import TeamRunner, step_input
 
 PARAMS = ExplorationParams().replace(
@@ -60,29 +62,58 @@ def test_outbox_restore_continues_numbering_and_refuses_a_gap():
         TeamUpdateOutbox(1).restore([records[0], records[2]])
 
 
+def test_outbox_restore_numbers_after_records_no_teammate_gave_back():
+    records = stream(1, 2)
+    outbox = TeamUpdateOutbox(1)
+    outbox.restore(records, through_sequence=5)
+    assert outbox.last_sequence == 5 and outbox.resend(1, 2) == records
+    empty = outbox.resend(3, 5)
+    assert [u.sequence for u in empty] == [3, 4, 5]
+    assert all(u.robot_id == 1 and u.stamp_s == records[-1].stamp_s and not u.keyframes
+               and not u.targets and not u.rendezvous for u in empty)
+    assert outbox.publish(9.0).sequence == 6
+
+
 def test_keyframe_ranges():
     assert keyframe_ranges(np.array([0, 1, 2, 5, 6, 9])) == "6 [0-2 5-6 9-9]"
     assert keyframe_ranges(np.array([], dtype=int)) == "0 []"
 
 
-def test_restarted_agent_resumes_its_stream_graph_and_odometry():
+def crashed_team() -> tuple[TeamRunner, RobotAgent]:
+    """A team whose robot 1 crashed between two keyframes (the motion since is unrecorded)
+    and stood still for a while; returns the runner and robot 1's crashed agent."""
     runner = TeamRunner(PARAMS)
     interval = PARAMS.slam.keyframe_interval_steps
-    crash_step = 12 * interval + 3   # between two keyframes: the motion since is unrecorded
-    for _ in range(crash_step):
+    for _ in range(12 * interval + 3):
         runner.step_once()
-    old = runner.agents[1]
-    history = old.outbox.resend(1, 0)
-    old_indices, old_poses = old.slam.trajectory(1)
-
     sim = runner.simulation
     for _ in range(2 * interval + 4):     # downtime: the vehicle stands still
         for robot in range(PARAMS.world.num_robots):
             sim.apply_command(robot, 0.0, 0.0)
         sim.advance()
+    return runner, runner.agents[1]
+
+
+def step_to_next_keyframe(agent: RobotAgent, runner: TeamRunner) -> TeamUpdate:
+    """Step robot ``agent`` (the vehicle standing still) up to its next keyframe; the update
+    carrying it."""
+    sim, interval = runner.simulation, PARAMS.slam.keyframe_interval_steps
+    while sim.step % interval:
+        agent.step(step_input(sim.sense(1), PARAMS.motion.time_step_s))
+        sim.apply_command(1, 0.0, 0.0)
+        sim.advance()
+    agent.step(step_input(sim.sense(1), PARAMS.motion.time_step_s))
+    return agent.take_outgoing()
+
+
+def test_restarted_agent_resumes_its_stream_graph_and_odometry():
+    runner, old = crashed_team()
+    sim, interval = runner.simulation, PARAMS.slam.keyframe_interval_steps
+    history = old.outbox.resend(1, 0)
+    old_indices, old_poses = old.slam.trajectory(1)
 
     new = RobotAgent(1, PARAMS, sim.world.start_poses[0])
-    new.resume(history)
+    new.resume(history, old.outbox.last_sequence, sim.step)
     # Its teammates' streams come back through the ordinary re-send protocol.
     new.apply_team_updates([update for robot in (0, 2)
                             for update in runner.agents[robot].outbox.resend(1, 0)])
@@ -96,14 +127,41 @@ def test_restarted_agent_resumes_its_stream_graph_and_odometry():
 
     # The first keyframe after the restart links to the last one before the crash, and the
     # robot knows where it stands.
-    while sim.step % interval:
-        new.step(step_input(sim.sense(1), PARAMS.motion.time_step_s))
-        sim.apply_command(1, 0.0, 0.0)
-        sim.advance()
-    new.step(step_input(sim.sense(1), PARAMS.motion.time_step_s))
-    update = new.take_outgoing()
+    update = step_to_next_keyframe(new, runner)
     assert update.sequence == old.outbox.last_sequence + 1
     keyframe = update.keyframes[0]
     assert not keyframe.is_first and keyframe.previous_index == int(old_indices[-1])
     assert keyframe.index == sim.step // interval
+    assert np.linalg.norm(new.current_pose()[:2] - sim.true_pose(1)[:2]) < 1.0
+
+
+def test_an_agent_resumed_without_its_latest_records_numbers_after_them_and_bridges_the_gap():
+    """Under poor links its teammates may give back only the start of a restarted robot's
+    stream. It must not number new records with sequence numbers its earlier process used
+    (the world refused its commands as behind its barrier entry until the new numbers
+    caught up, and teammates took them for duplicates), and the motion from its last
+    recovered keyframe, measured by the dead reckoning, needs the odometry covariance of
+    all those steps, not of one keyframe interval."""
+    runner, old = crashed_team()
+    sim, interval = runner.simulation, PARAMS.slam.keyframe_interval_steps
+    history = old.outbox.resend(1, 0)
+    kept = [u for u in history if u.sequence <= 3]
+    last_kept = max(k.index for u in kept for k in u.keyframes)
+    assert last_kept < max(old.slam.trajectory(1)[0]) - 5  # many keyframes are missing
+
+    new = RobotAgent(1, PARAMS, sim.world.start_poses[0])
+    new.resume(kept, old.outbox.last_sequence, sim.step)
+    new.apply_team_updates([update for robot in (0, 2)
+                            for update in runner.agents[robot].outbox.resend(1, 0)])
+    assert new.outbox.last_sequence == old.outbox.last_sequence
+    update = step_to_next_keyframe(new, runner)
+    assert update.sequence == old.outbox.last_sequence + 1
+    keyframe = update.keyframes[0]
+    assert keyframe.previous_index == last_kept
+    motion = PARAMS.motion
+    per_step = odometry_covariance_per_step(motion.speed_mps * motion.time_step_s, True,
+                                            PARAMS.sensors)
+    bridged = keyframe.index * interval - last_kept * interval
+    assert np.all(np.diag(keyframe.odom_covariance) >= np.diag(per_step) * (bridged - interval))
+    # The dead reckoning measured the unrecorded motion: the robot still knows where it is.
     assert np.linalg.norm(new.current_pose()[:2] - sim.true_pose(1)[:2]) < 1.0

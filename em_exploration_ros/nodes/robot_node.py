@@ -519,14 +519,16 @@ class RobotNode(LeanNode):
         if recovery.short_of:
             self.get_logger().error(
                 f"resuming without {recovery.short_of} records of this robot's stream (up to "
-                f"sequence {recovery.needed_sequence}): no teammate sent them")
-        self.agent.resume(history)
+                f"sequence {recovery.needed_sequence}): no teammate sent them; they are "
+                f"re-sent empty, and the motion since the last keyframe recovered is linked "
+                f"with the odometry covariance of every step since")
+        self.agent.resume(history, recovery.needed_sequence, self._next_step)
         keyframes = np.array([keyframe.index for update in history
                               for keyframe in update.keyframes], dtype=int)
         self.get_logger().info(
             f"rejoined: recovered {len(history)} records of this robot's stream (keyframes "
             f"{keyframe_ranges(keyframes)}, {len(self.agent.decisions)} targets); continuing "
-            f"at sequence {len(history) + 1}")
+            f"at sequence {self.agent.outbox.last_sequence + 1}")
 
     def _process_ready_steps(self, ignore_barrier: bool = False) -> None:
         """Process every step whose sensor data (and barrier) is complete, in order."""

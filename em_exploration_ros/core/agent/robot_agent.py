@@ -198,19 +198,25 @@ class RobotAgent:
         if updates:
             self._update_slam()
 
-    def resume(self, history: list[TeamUpdate]) -> None:
+    def resume(self, history: list[TeamUpdate], through_sequence: int = 0,
+               first_step: int = 0) -> None:
         """Take back this robot's own earlier stream after its process restarted.
 
-        ``history``: its records from sequence 1 on, as its teammates hold them. The own
-        keyframes go back into the graph, the targets into the decision list, rendezvous
-        events into the bookkeeping, and numbering continues after the last record. The
-        next odometry reading is linked to the last keyframe: the dead-reckoning pose there
-        is the composition of the keyframe deltas (the stream started at the odometry
-        origin, step 0, as every lockstep robot's does), and the motion since, which
-        nobody recorded, gets the covariance of ``keyframe_interval_steps`` steps at full
-        speed (the vehicle moved for less than one interval before it stopped).
+        ``history``: its records from sequence 1 on, as its teammates hold them;
+        ``through_sequence``: the last sequence number its earlier process used (the
+        world's barrier entry), if more than the history holds; ``first_step``: the first
+        step this process processes. The own keyframes go back into the graph, the targets
+        into the decision list, rendezvous events into the bookkeeping, and numbering
+        continues after ``through_sequence`` (``TeamUpdateOutbox.restore``). The next
+        odometry reading is linked to the last keyframe: the dead-reckoning pose there is
+        the composition of the keyframe deltas (the stream started at the odometry origin,
+        step 0, as every lockstep robot's does), so the reading measures all the motion
+        since, which nobody recorded, and gets the covariance of that many steps at full
+        speed: ``keyframe_interval_steps`` when the history is complete (the vehicle moved
+        for less than one interval before it stopped), every step from the last keyframe
+        to ``first_step`` when records are missing.
         """
-        self.outbox.restore(history)
+        self.outbox.restore(history, through_sequence)
         odom_pose, last_keyframe = np.zeros(3), None
         for update in history:
             for keyframe in update.keyframes:
@@ -235,7 +241,10 @@ class RobotAgent:
         motion = self.params.motion
         per_step = odometry_covariance_per_step(motion.speed_mps * motion.time_step_s, True,
                                                 self.params.sensors)
-        self._gap_covariance = per_step * self.params.slam.keyframe_interval_steps
+        interval = self.params.slam.keyframe_interval_steps
+        moving_steps = interval if len(history) >= through_sequence else max(
+            first_step - last_keyframe.index * interval, interval)
+        self._gap_covariance = per_step * moving_steps
 
     def step(self, sensed: StepInput) -> MotionCommand:
         """Process one step of own sensor data; returns the motion for the next step."""

@@ -356,14 +356,23 @@ class TeamUpdateOutbox:
         self._sent.append(update)
         return update
 
-    def restore(self, history: list[TeamUpdate]) -> None:
+    def restore(self, history: list[TeamUpdate], through_sequence: int = 0) -> None:
         """Take back this robot's earlier records (sequence 1..n, in order, e.g. relayed by
-        teammates after a restart): re-sending serves them and numbering continues at n+1."""
+        teammates after a restart): re-sending serves them and numbering continues at n+1.
+
+        Records after n up to ``through_sequence`` were sent by the earlier process but no
+        teammate gave them back: they are kept as empty records (no keyframes, targets or
+        events; the last record's stamp), so that numbering continues after every sequence
+        number already used and a teammate missing one gets an empty record instead of
+        waiting for it for ever."""
         for expected, update in enumerate(history, start=1):
             if update.robot_id != self._robot_id or update.sequence != expected:
                 raise ValueError(f"history record {update.robot_id}/{update.sequence} is not "
                                  f"record {expected} of robot {self._robot_id}")
         self._sent = list(history)
+        stamp_s = history[-1].stamp_s if history else 0.0
+        self._sent += [TeamUpdate(self._robot_id, sequence, stamp_s)
+                       for sequence in range(len(history) + 1, through_sequence + 1)]
 
     def resend(self, first_sequence: int, last_sequence: int) -> list[TeamUpdate]:
         """Stored updates with sequence in [first, last] (last = 0: up to the latest)."""
