@@ -90,3 +90,22 @@ def test_suspect_robot_gets_the_short_timeout_until_trusted():
     barrier.close()
     barrier.open(2, now_s=20.0)                # trusted again: the long timeout
     assert barrier.expire(49.9) == [] and barrier.expire(50.0) == [0, 1]
+
+
+def test_a_restarted_robot_gets_the_short_timeout_on_the_open_step_only():
+    """A new process that reports its liveliness before the old one's loss was reported
+    (a restart within the lease) must not make the world wait ``robot_timeout_s`` for the
+    open step while the new process recovers (a test run's world waited 30 s and never
+    went on without the restarted robot)."""
+    barrier = LockstepBarrier(2, robot_timeout_s=30.0, suspect_timeout_s=4.0)
+    barrier.open(0, now_s=0.0)
+    barrier.answer(0, 0, GO, 0.5)
+    barrier.restarted(1, now_s=2.0)
+    assert barrier.expire(5.9) == [] and barrier.expire(6.0) == [1]
+    barrier.close()
+    barrier.open(1, now_s=10.0)
+    assert barrier.answer(1, 1, GO, 10.5) == LockstepBarrier.REJOINED
+    barrier.answer(0, 1, GO, 10.5)
+    barrier.close()
+    barrier.open(2, now_s=20.0)                # the steps after: the long timeout
+    assert barrier.expire(49.9) == [] and barrier.expire(50.0) == [0, 1]

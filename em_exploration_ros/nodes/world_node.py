@@ -328,7 +328,10 @@ class WorldNode(LeanNode):
     def _on_liveliness(self, robot: int, alive: bool, restarted: bool) -> None:
         if alive:
             self._unseen.seen(robot)
-            self.barrier.trust(robot)
+            if restarted:
+                self.barrier.restarted(robot, time.monotonic())
+            else:
+                self.barrier.trust(robot)
             self.get_logger().info(f"robot {robot}: liveliness asserted"
                                    + (" by a new process (restarted)" if restarted else ""))
             return

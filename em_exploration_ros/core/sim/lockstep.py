@@ -13,7 +13,8 @@ for step k). The barrier repairs itself before it gives up on anyone:
   alive again (``trust``): it gets only ``suspect_timeout_s`` to answer. A live robot
   answers within a second, so a liveliness report lost on a lossy network changes nothing,
   while a dead or wedged robot is given up after the lease plus ``suspect_timeout_s``
-  instead of ``robot_timeout_s``;
+  instead of ``robot_timeout_s``; so is a robot whose new process reports its liveliness
+  (``restarted``) for the open step;
 - a stopped robot that answers again (a wedged process that recovered, or a process
   restarted with the same id) *rejoins*: an answer to the open step is used at once, an
   answer to an earlier step puts it back on the list of robots the open step waits for,
@@ -97,6 +98,15 @@ class LockstepBarrier:
         """The robot's liveliness is reported again: from the next step on it gets
         ``robot_timeout_s`` again."""
         self.suspects.discard(robot)
+
+    def restarted(self, robot: int, now_s: float) -> None:
+        """A new process of the robot reported its liveliness at ``now_s``: the one that was
+        to answer is gone, even if its own loss was never reported (a process restarted
+        within its liveliness lease). The new one first recovers its stream from its
+        teammates, so, as after a loss, it has ``suspect_timeout_s`` from now to answer the
+        open step; later steps get ``robot_timeout_s`` again."""
+        self.suspect(robot, now_s)
+        self.trust(robot)
 
     def answer(self, robot_id: int, step: int, answer: StepAnswer, now_s: float) -> str:
         """File a robot's answer; returns how it was taken (ACCEPTED, REJOINED or why not).
