@@ -253,14 +253,16 @@ def robot_pid(domain: str, robot_id: int) -> int:
     return pids[0]
 
 
-def wait_for_liveliness(log: Path, robot_id: int, timeout_s: float) -> None:
+def wait_for_liveliness(log: Path, robot_id: int, timeout_s: float,
+                        while_waiting: Callable[[], None] | None = None) -> None:
     """Until ``log`` (the world's or the evaluator's, under a run's ``logs/``) says robot
     ``robot_id``'s liveliness was asserted. Before that, a killed or stopped robot is noticed
     only after ``robot_timeout_s`` (30 s), not ``liveliness_grace_s`` (4 s): a test that
     stops a robot early must wait for this (a 20x team is 20 simulated seconds in before
-    discovery has always matched)."""
+    discovery has always matched). ``while_waiting`` as in ``wait_until``."""
     wait_until(lambda: log.exists() and f"robot {robot_id}: liveliness asserted"
-               in log.read_text(), timeout_s, f"robot {robot_id}'s liveliness in {log.name}")
+               in log.read_text(), timeout_s, f"robot {robot_id}'s liveliness in {log.name}",
+               while_waiting=while_waiting)
 
 
 def finish_team_run(run: NodeProcess, timeout_s: float,

@@ -23,6 +23,7 @@ from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
 from em_exploration_ros.core.sim.links import FrameKind
 from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.nodes.conversions import time_to_seconds
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, finish_team_run, processes_in_domain,
                          robot_pid, start_team_run, wait_for_liveliness, wait_until)
@@ -148,8 +149,9 @@ OUT_OF_RANGE_M = COMM_RANGE_M + 10.0
 
 class GroundTruth:
     """The robots' true positions as the world publishes them, read by the test (a user
-    may read /world; a robot may not). Subscribe only once the world steps: the world takes
-    any ground-truth reader for the evaluator when it decides to start."""
+    may read /world; a robot may not), and the simulated time of the latest [s]. Created
+    while the team starts, so that it is matched before the world steps (the world then
+    counts it as a ground-truth reader besides the evaluator's)."""
 
     def __init__(self, robots: int) -> None:
         self.context = rclpy.Context()
@@ -158,13 +160,17 @@ class GroundTruth:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.positions: dict[int, np.ndarray] = {}
+        self.stamp_s = 0.0
         for robot in range(robots):
             self.node.create_subscription(
                 Odometry, f"/world/ground_truth/robot_{robot}",
-                lambda message, r=robot: self.positions.__setitem__(r, np.array(
-                    [message.pose.pose.position.x, message.pose.pose.position.y])),
-                GROUND_TRUTH_QOS)
+                lambda message, r=robot: self._on_truth(r, message), GROUND_TRUTH_QOS)
         self.robots = robots
+
+    def _on_truth(self, robot: int, message: Odometry) -> None:
+        self.positions[robot] = np.array([message.pose.pose.position.x,
+                                          message.pose.pose.position.y])
+        self.stamp_s = max(self.stamp_s, time_to_seconds(message.header.stamp))
 
     def spin(self) -> None:
         self.executor.spin_once(timeout_sec=0.02)
@@ -203,17 +209,23 @@ def test_a_robot_restarted_under_poor_links_resumes_at_the_worlds_open_step(tmp_
         "--max-sim-time", "900", "--respawn", "--comm-range", f"{COMM_RANGE_M:g}",
         "--comm-loss", "0.1",
         "--params", str(params), "--summary", str(summary_path))
+
     def kill_robot_1_mid_run() -> None:
-        wait_until(lambda: "t=   20.0 s" in run.output(), RUN_TIMEOUT_S, "mid-run")
-        wait_for_liveliness(summary_path.parent / "logs" / "world.log", 1, RUN_TIMEOUT_S)
-        # Killed only when out of both teammates' range: the world then holds the team at
-        # that step until it gives robot 1 up, so no teammate can answer the new process's
-        # requests before the world has gone on. Killed where a teammate was in range, it
-        # recovered within 3.5 s and the world went on only 3 steps (once in 3 runs).
+        # Killed mid-run and only when out of both teammates' range: the world then holds
+        # the team at that step until it gives robot 1 up, so no teammate can answer the new
+        # process's requests before the world has gone on. Killed where a teammate was in
+        # range, it recovered within 3.5 s and the world went on only 3 steps (once in 3
+        # runs); with a reader created mid-run, discovery made the kill late, at the end
+        # of the window (step 333 of 110-330).
         with GroundTruth(robots=3) as truth:
-            wait_until(lambda: truth.nearest_teammate_m(1) > OUT_OF_RANGE_M, RUN_TIMEOUT_S,
-                       "robot 1 out of its teammates' range", while_waiting=truth.spin)
-            os.kill(robot_pid(domain, 1), signal.SIGKILL)
+            wait_for_liveliness(summary_path.parent / "logs" / "world.log", 1, RUN_TIMEOUT_S,
+                                while_waiting=truth.spin)
+            pid = robot_pid(domain, 1)
+            wait_until(lambda: truth.stamp_s >= 20.0
+                       and truth.nearest_teammate_m(1) > OUT_OF_RANGE_M, RUN_TIMEOUT_S,
+                       "robot 1 mid-run and out of its teammates' range",
+                       while_waiting=truth.spin)
+            os.kill(pid, signal.SIGKILL)
 
     code = finish_team_run(run, RUN_TIMEOUT_S, kill_robot_1_mid_run)
     assert code == 0, run.output()[-3000:]
