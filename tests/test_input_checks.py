@@ -72,6 +72,12 @@ def test_barrier_needs_one_plausible_entry_per_robot():
     assert "2 barrier entries" in barrier_problem([0, 1], 3, expected, 100)
     assert "robot 1" in barrier_problem([0, 104, 0], 3, expected, 100)
     assert "robot 2" in barrier_problem([0, 0, 2**63], 3, expected, 100)
+    # The receiver's own entry, given the scan's step: one record per step at most (a
+    # restarted robot keeps an empty record for each number below it).
+    assert barrier_problem([0, 101, 100], 3, expected, 100, own=(0, 0)) is None
+    assert barrier_problem([51, 101, 100], 3, expected, 100, own=(0, 50)) is None
+    assert "own barrier entry" in barrier_problem([2**63, 101, 100], 3, expected, 100,
+                                                  own=(0, 50))
 
 
 def test_motion_commands_within_the_robots_kinematics():

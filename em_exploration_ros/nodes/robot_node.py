@@ -234,7 +234,7 @@ class RobotNode(LeanNode):
                 or self._sensor_step_problem(message.step, self._scans)
                 or stamp_step_problem(stamp_ns, message.step, self.time_step_s)
                 or barrier_problem(message.team_sequences, self.num_robots, expected_next,
-                                   MAX_SEQUENCE_LEAD)
+                                   MAX_SEQUENCE_LEAD, own=(robot, int(message.step)))
                 or size_problem(len(message.landmarks), MAX_READINGS_PER_KEYFRAME,
                                 "landmark readings")
                 or size_problem(len(message.teammates), self.num_robots - 1,

@@ -131,11 +131,15 @@ def sequence_entry_problem(entry: int, received_up_to: int, lead: int, what: str
 
 
 def barrier_problem(entries: Sequence[int], num_robots: int,
-                    expected_next: dict[int, int], lead: int) -> str | None:
+                    expected_next: dict[int, int], lead: int,
+                    own: tuple[int, int] | None = None) -> str | None:
     """Reason if a lockstep barrier (SonarScan.team_sequences) is unusable: it must be empty
     (real time) or hold one entry per robot, each at most ``lead`` ahead of the sequence
     number the receiver expects next from that robot (``expected_next``; robots missing
-    there, e.g. the receiver itself, are not bounded)."""
+    there are not bounded). ``own``: ``(receiver id, step of the scan)``; the receiver's
+    own entry is then at most the step plus one, as a robot sends at most one record per
+    step (a restarted robot numbers its new records after it, and keeps an empty record
+    for every number its teammates did not give back)."""
     if len(entries) not in (0, num_robots):
         return f"{len(entries)} barrier entries for {num_robots} robots"
     for robot, entry in enumerate(entries):
@@ -144,6 +148,10 @@ def barrier_problem(entries: Sequence[int], num_robots: int,
                                              f"barrier entry of robot {robot}")
             if problem:
                 return problem
+    if entries and own is not None:
+        robot, step = own
+        return sequence_entry_problem(int(entries[robot]), step, 1,
+                                      f"own barrier entry (robot {robot}, step {step})")
     return None
 
 
