@@ -8,12 +8,16 @@ import pytest
 from em_exploration_ros.core.geometry import range_bearing
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.sensors import OdometryReading, odometry_covariance_per_step
-from em_exploration_ros.core.slam.team_slam import OdometryAccumulator, TeamSlam, pose_key
+from em_exploration_ros.core.slam.team_slam import (OdometryAccumulator, TeamSlam,
+                                                    is_landmark_key, pose_key)
 from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
 from em_exploration_ros.core.planning.em_oracle import propagate_oracle
+import gtsam
+
 from em_exploration_ros.core.planning.em_scenario import (ScenarioBuilder, TeamSnapshot,
-                                                          VirtualNoise, virtual_waypoints)
-from em_exploration_ros.core.planning.em_step import DecisionFactorization
+                                                          VirtualNoise, graph_with_virtual,
+                                                          virtual_waypoints)
+from em_exploration_ros.core.planning.em_step import DecisionFactorization, _backward_scan
 
 PARAMS = ExplorationParams()
 #: Block-relative agreement required between the fast path and the oracle. Both solve
@@ -175,6 +179,68 @@ def test_fast_path_equals_the_oracle(team: dict, with_history: bool,
         if with_predicted:
             assert _block_error(fast.predicted_covariances,
                                 oracle.predicted_covariances) < ORACLE_TOLERANCE
+
+
+def test_history_marginals_and_cross_covariances_are_blocks_of_the_dense_inverse() -> None:
+    """Meetings link alpha's poses through the teammates' eliminated paths, so the history
+    splits into chain poses (recursion) and hub poses (dense block); both give the blocks
+    of the inverse of the whole linearized information matrix."""
+    trajectories = [straight((10.0, 50.0, 0.0), 25), straight((10.0, 53.0, 0.0), 25),
+                    straight((10.0, 47.0, 0.0), 25, turn=-0.02)]
+    landmarks = {0: np.array([14.0, 55.0]), 1: np.array([40.0, 58.0])}
+    slam = team_slam(trajectories, landmarks, meetings=(8, 16))
+    snapshot = TeamSnapshot.from_slam(slam, 0)
+    builder = ScenarioBuilder(snapshot, {1: np.array([70.0, 60.0]), 2: np.array([70.0, 40.0])},
+                              VirtualNoise(slam.noise, PARAMS.sensors, PARAMS.motion), 2.0,
+                              PARAMS.sensors.sonar_max_range_m)
+    scenarios = [builder.build(np.array([20.0, 55.0])), builder.build(np.array([62.0, 30.0]))]
+    boundary = sorted(set().union(*(s.boundary_keys for s in scenarios)))
+    factorization = DecisionFactorization(snapshot, builder.predicted, boundary)
+    graph, values = graph_with_virtual(snapshot, builder.predicted)
+    linear = graph.linearize(values)
+    keys = sorted(set(linear.keyVector()))
+    ordering = gtsam.Ordering()
+    for key in keys:
+        ordering.push_back(key)
+    information, _ = linear.hessian(ordering)
+    covariance = np.linalg.inv(information)
+    dims = [2 if is_landmark_key(key) else 3 for key in keys]
+    start = dict(zip(keys, np.cumsum([0] + dims[:-1]).tolist()))
+
+    def columns(key_list: list[int]) -> np.ndarray:
+        return np.concatenate([np.arange(start[k], start[k] + dims[keys.index(k)])
+                               for k in key_list])
+
+    chain = factorization._chain_keys(factorization._marginalize_untracked(linear))
+    meeting_poses = {pose_key(0, 8), pose_key(0, 16)}
+    assert meeting_poses <= set(snapshot.history_keys) - set(chain)  # hub poses
+    assert len(chain) > len(snapshot.history_keys) // 2                # chain poses
+    boundary_columns = columns(list(factorization.boundary_keys))
+    for index, key in enumerate(snapshot.history_keys):
+        own = columns([key])
+        expected = covariance[np.ix_(own, own)]
+        assert np.linalg.norm(factorization.tracked_covariances[index] - expected) \
+            < ORACLE_TOLERANCE * np.linalg.norm(expected)
+        cross = covariance[np.ix_(own, boundary_columns)]
+        assert np.linalg.norm(factorization.tracked_cross[index] - cross) \
+            < ORACLE_TOLERANCE * np.linalg.norm(expected)
+
+
+@pytest.mark.parametrize("sandwich", [False, True])
+def test_backward_scan_solves_the_recursion_it_stands_for(sandwich: bool) -> None:
+    """Recursive doubling gives what the step-by-step recursion gives, also across zero
+    gains (the ends of chain segments) and for lengths that are not powers of two."""
+    rng = np.random.default_rng(3)
+    for count in (1, 2, 7, 40):
+        gains = 0.5 * rng.normal(size=(count, 3, 3))
+        gains[rng.random(count) < 0.2] = 0.0
+        terms = rng.normal(size=(count, 3, 3 if sandwich else 5))
+        expected, later = np.zeros_like(terms), np.zeros(terms.shape[1:])
+        for k in range(count - 1, -1, -1):
+            reached = gains[k] @ later @ gains[k].T if sandwich else gains[k] @ later
+            later = expected[k] = terms[k] + reached
+        np.testing.assert_allclose(_backward_scan(gains, terms, sandwich), expected,
+                                   rtol=1e-12, atol=1e-12)
 
 
 def test_loop_closure_shrinks_the_history_and_exploration_does_not(team: dict) -> None:

@@ -30,6 +30,7 @@ version (copy the graph, add every virtual factor, ``gtsam.Marginals``).
 """
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass
 from typing import Callable, Sequence, TypeVar
@@ -166,6 +167,140 @@ def _retry_if_indeterminate(first: Callable[[], T], fallback: Callable[[], T]) -
         return fallback()
 
 
+class _KeyLayout:
+    """Where variables sit in a dense vector: ``keys`` in order, each taking its tangent
+    dimension (3 per pose, 2 per landmark) from ``offsets``."""
+
+    def __init__(self, keys: Sequence[int]) -> None:
+        self.keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        dims = _key_dims(self.keys)
+        self.offsets = (np.cumsum(dims) - dims).astype(np.int64)
+        self.dim = int(dims.sum())
+        self._order = np.argsort(self.keys)
+
+    def first_columns(self, keys: IntArray) -> IntArray:
+        """First column (K,) of each of ``keys``; every key must be in the layout."""
+        keys = np.asarray(keys, dtype=np.int64)
+        found = np.searchsorted(self.keys, keys, sorter=self._order)
+        found = self._order[np.minimum(found, len(self.keys) - 1)] if len(self.keys) else found
+        if len(keys) and (not len(self.keys) or np.any(self.keys[found] != keys)):
+            raise ValueError("a variable is missing from the layout")
+        return self.offsets[found]
+
+    def columns(self, keys: IntArray) -> IntArray:
+        """Every column of ``keys``, key by key."""
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        return _expand_columns(self.first_columns(keys), _key_dims(keys))
+
+
+def _expand_columns(first: IntArray, dims: IntArray) -> IntArray:
+    """``first[i], first[i] + 1, ..., first[i] + dims[i] - 1`` for every i, concatenated."""
+    total = int(dims.sum())
+    return np.repeat(first, dims) + np.arange(total) - np.repeat(np.cumsum(dims) - dims, dims)
+
+
+def _conditionals_by_key(bayes_net: gtsam.GaussianBayesNet) -> dict[int, gtsam.GaussianConditional]:
+    """The conditionals of a sequential Bayes net by frontal key (GTSAM emits them per
+    connected component, not always in elimination order)."""
+    conditionals = (bayes_net.at(index) for index in range(bayes_net.size()))
+    return {conditional.firstFrontalKey(): conditional for conditional in conditionals}
+
+
+def _hub_root(conditionals: dict[int, gtsam.GaussianConditional], hub: _KeyLayout) -> FloatArray:
+    """Upper-triangular square-root information ``R_HH`` (D, D) of the hub's marginal, from
+    the conditionals of the hub variables (eliminated last, so their parents are in it).
+
+    Conditionals with the same frontal dimension are scattered together: their ``[R S]``
+    blocks side by side, each column sent to its variable's column."""
+    root = np.zeros((hub.dim, hub.dim))
+    frontal_dims = _key_dims(hub.keys)
+    for frontal_dim in (2, 3):
+        group = frontal_dims == frontal_dim
+        if not np.any(group):
+            continue
+        members = [conditionals[key] for key in hub.keys[group].tolist()]
+        keys = [conditional.keys() for conditional in members]
+        flat = np.fromiter(itertools.chain.from_iterable(keys), dtype=np.int64)
+        first_row = np.repeat(hub.offsets[group], [len(k) for k in keys])
+        dims = _key_dims(flat)
+        blocks = np.concatenate([block for conditional in members
+                                 for block in (conditional.R(), conditional.S())], axis=1)
+        rows = np.repeat(first_row, dims)[:, None] + np.arange(frontal_dim)
+        root[rows, _expand_columns(hub.first_columns(flat), dims)[:, None]] = blocks.T
+    return root
+
+
+def _chain_selected_inverse(chain: Sequence[int],
+                            conditionals: dict[int, gtsam.GaussianConditional],
+                            hub: _KeyLayout, hub_covariance: FloatArray
+                            ) -> tuple[FloatArray, FloatArray]:
+    """Marginal covariances ``Sigma_kk`` (m, 3, 3) and hub cross-covariances ``Sigma_kH``
+    (m, 3, D) of chain poses eliminated first, in order, before the hub.
+
+    Pose k's conditional ``R_kk x_k + S_k [x_k+1; x_H] = d`` has as parents at most the next
+    chain pose and hub variables. With ``[a_k h_k] = -R_kk^-1 S_k`` (zero columns for
+    absent parents), the inverse's recursion from the last chain pose backwards is::
+
+        Sigma_kH = a_k Sigma_k+1,H + h_k Sigma_HH
+        Sigma_kk = R_kk^-1 R_kk^-T + a_k Sigma_k+1,k+1 a_k^T + h_k Sigma_HH h_k^T
+                   + a_k Sigma_k+1,H h_k^T + (a_k Sigma_k+1,H h_k^T)^T
+
+    (the parents' joint covariance sandwiched by the gain), exact for the linear system.
+    The parts that do not depend on the previous pose are batched over the chain.
+    """
+    count = len(chain)
+    if count == 0:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3, hub.dim))
+    chain_conditionals = [conditionals[key] for key in chain]
+    parents = [conditional.keys()[1:] for conditional in chain_conditionals]
+    flat = np.fromiter(itertools.chain.from_iterable(parents), dtype=np.int64)
+    owner = np.repeat(np.arange(count), [len(p) for p in parents])
+    next_key = np.array(list(chain[1:]) + [-1], dtype=np.int64)
+    is_next = flat == next_key[owner]
+    first = np.zeros(len(flat), dtype=np.int64)
+    first[~is_next] = 3 + hub.first_columns(flat[~is_next])
+    dims = _key_dims(flat)
+    gains = np.zeros((count, 3, 3 + hub.dim))  # columns: next chain pose, then the hub
+    gains[np.repeat(owner, dims), :, _expand_columns(first, dims)] = np.concatenate(
+        [conditional.S() for conditional in chain_conditionals], axis=1).T
+    inverse_roots = np.linalg.inv(np.array([conditional.R() for conditional in chain_conditionals]))
+    gains = -inverse_roots @ gains
+    to_next, to_hub = gains[:, :, :3], gains[:, :, 3:]
+    from_hub = (to_hub.reshape(-1, hub.dim) @ hub_covariance).reshape(count, 3, hub.dim)
+    rows = _backward_scan(to_next, from_hub, sandwich=False)
+    below = np.concatenate([rows[1:], np.zeros((1, 3, hub.dim))])
+    mixed = to_next @ below @ np.swapaxes(to_hub, 1, 2)
+    own = (inverse_roots @ np.swapaxes(inverse_roots, 1, 2) + mixed + np.swapaxes(mixed, 1, 2)
+           + from_hub @ np.swapaxes(to_hub, 1, 2))
+    marginals = _backward_scan(to_next, own, sandwich=True)
+    return 0.5 * (marginals + np.swapaxes(marginals, 1, 2)), rows
+
+
+def _backward_scan(gains: FloatArray, terms: FloatArray, sandwich: bool) -> FloatArray:
+    """Solve ``y_k = terms_k + gains_k y_k+1`` (or ``+ gains_k y_k+1 gains_k^T`` with
+    ``sandwich``) for k = n - 1 .. 0 with ``y_n = 0``: gains (n, 3, 3), terms (n, 3, c).
+
+    By recursive doubling (Hillis-Steele): after round j, ``y_k = terms_k + G_k y_k+2^j
+    (G_k^T)`` with ``G_k`` the product of the 2^j gains from k on, so log2(n) batched
+    rounds replace n small Python-level products.
+    """
+    count = len(terms)
+    terms, gains = terms.copy(), gains.copy()
+    span = 1
+    while span < count:
+        later = terms[span:]
+        reached = gains[:-span] @ later
+        if sandwich:
+            reached = reached @ np.swapaxes(gains[:-span], 1, 2)
+        terms[:-span] += reached
+        gains[:-span] = gains[:-span] @ gains[span:]
+        gains[-span:] = 0.0
+        span *= 2
+        if not gains.any():  # every chain segment is shorter than span
+            break
+    return terms
+
+
 class DecisionFactorization:
     """Once per decision: the team graph plus the teammates' predicted paths (shared by
     every candidate), linearized at the current estimate and factored once.
@@ -193,19 +328,40 @@ class DecisionFactorization:
             list(self.predicted_keys) if with_predicted else [])
         self.tracked_keys = tuple(tracked)
         graph, values = graph_with_virtual(snapshot, predicted)
-        linear = graph.linearize(values)
-        reduced = self._marginalize_untracked(linear)
-        ordering = self._boundary_last_ordering(reduced)
+        reduced = self._marginalize_untracked(graph.linearize(values))
+        chain = self._chain_keys(reduced)
+        chain_set = set(chain)
+        boundary = set(self.boundary_keys)
+        hub_keys = sorted(k for k in set(reduced.keyVector())
+                          if k not in chain_set and k not in boundary) + list(self.boundary_keys)
+        hub = _KeyLayout(hub_keys)
+        ordering = gtsam.Ordering()
+        for key in chain + hub_keys:
+            ordering.push_back(key)
         bayes_net = _retry_if_indeterminate(
             lambda: reduced.eliminateSequential(ordering),
             lambda: reduced.eliminateSequential(ordering, gtsam.EliminateQR))
-        inverse_root = np.linalg.inv(self._boundary_root(bayes_net, dims))
-        covariance = inverse_root @ inverse_root.T
+        conditionals = _conditionals_by_key(bayes_net)
+        inverse_root = np.linalg.inv(_hub_root(conditionals, hub))
+        hub_covariance = inverse_root @ inverse_root.T
+        hub_covariance = 0.5 * (hub_covariance + hub_covariance.T)
+        boundary_columns = np.arange(hub.dim - self.boundary_dim, hub.dim)
         #: ``P = Sigma_BB`` (|B|, |B|).
-        self.boundary_covariance = 0.5 * (covariance + covariance.T)
-        #: ``Sigma_iB`` (T, 3, |B|) and ``Sigma_ii`` (T, 3, 3) of the tracked poses.
-        self.tracked_cross = self._tracked_cross(bayes_net, reduced, inverse_root.T)
-        self.tracked_covariances = self._tracked_marginals(linear)
+        self.boundary_covariance = hub_covariance[np.ix_(boundary_columns, boundary_columns)]
+        chain_marginals, chain_rows = _chain_selected_inverse(chain, conditionals, hub,
+                                                              hub_covariance)
+        #: ``Sigma_ii`` (T, 3, 3) and ``Sigma_iB`` (T, 3, |B|) of the tracked poses.
+        self.tracked_covariances = np.zeros((len(self.tracked_keys), 3, 3))
+        self.tracked_cross = np.zeros((len(self.tracked_keys), 3, self.boundary_dim))
+        tracked = np.array(self.tracked_keys, dtype=np.int64)
+        is_chain = np.isin(tracked, np.array(chain, dtype=np.int64))
+        self.tracked_covariances[is_chain] = chain_marginals
+        self.tracked_cross[is_chain] = chain_rows[:, :, boundary_columns]
+        in_hub = hub.columns(tracked[~is_chain]).reshape(-1, 3)  # tracked keys are poses
+        self.tracked_covariances[~is_chain] = hub_covariance[in_hub[:, :, None],
+                                                             in_hub[:, None, :]]
+        self.tracked_cross[~is_chain] = hub_covariance[in_hub[:, :, None],
+                                                       boundary_columns[None, None, :]]
 
     def _marginalize_untracked(self, linear: gtsam.GaussianFactorGraph
                                ) -> gtsam.GaussianFactorGraph:
@@ -221,88 +377,32 @@ class DecisionFactorization:
             lambda: linear.eliminatePartialSequential(eliminated, gtsam.EliminateQR))
         return remaining
 
-    def _boundary_last_ordering(self, reduced: gtsam.GaussianFactorGraph) -> gtsam.Ordering:
-        """COLAMD order of the non-boundary variables, then the boundary keys in their order,
-        so that a boundary variable's conditional has only boundary variables as parents."""
-        boundary = set(self.boundary_keys)
-        colamd = gtsam.Ordering.ColamdGaussianFactorGraph(reduced)
-        ordering = gtsam.Ordering()
-        for key in (colamd.at(index) for index in range(colamd.size())):
-            if key not in boundary:
-                ordering.push_back(key)
-        for key in self.boundary_keys:
-            ordering.push_back(key)
-        return ordering
+    def _chain_keys(self, reduced: gtsam.GaussianFactorGraph) -> list[int]:
+        """The tracked poses, in their order, whose only tracked neighbours in ``reduced``
+        are the ones just before and after them, and that are not in the boundary.
 
-    def _boundary_root(self, bayes_net: gtsam.GaussianBayesNet, dims: list[int]) -> FloatArray:
-        """Upper-triangular square-root information ``R_BB`` of the boundary marginal, from
-        the boundary variables' conditionals (eliminated last within their component).
-
-        Conditionals are looked up by frontal key: GTSAM emits them per connected component
-        of the graph, so a boundary landmark in a component of its own does not come last.
+        Eliminated first and in this order, each one's conditional has as parents at most
+        the next chain pose and variables of the hub (everything else), which is what
+        :func:`_chain_selected_inverse` relies on: eliminating pose k - 1 links pose k only
+        to pose k and the hub variables pose k - 1 was linked to.
         """
-        conditionals = {}
-        missing = set(self.boundary_keys)
-        for index in range(bayes_net.size() - 1, -1, -1):  # boundary conditionals are late
-            conditional = bayes_net.at(index)
-            key = conditional.firstFrontalKey()
-            if key in missing:
-                conditionals[key] = conditional
-                missing.discard(key)
-                if not missing:
-                    break
-        root = np.zeros((self.boundary_dim, self.boundary_dim))
-        for key in self.boundary_keys:
-            conditional = conditionals[key]
-            row = self.boundary_offsets[key]
-            frontal = conditional.R()
-            size = frontal.shape[0]
-            root[row:row + size, row:row + size] = frontal
-            parents = conditional.S()
-            column = 0
-            for parent in list(conditional.keys())[1:]:
-                dim = _key_dim(parent)
-                offset = self.boundary_offsets[parent]
-                root[row:row + size, offset:offset + dim] = parents[:, column:column + dim]
-                column += dim
-        return root
-
-    def _tracked_cross(self, bayes_net: gtsam.GaussianBayesNet,
-                       reduced: gtsam.GaussianFactorGraph,
-                       boundary_rhs: FloatArray) -> FloatArray:
-        """``Sigma_iB`` (T, 3, |B|): one back-substitution ``R x = [0; R_BB^-T e_b]`` per
-        boundary dimension ``b``."""
-        if not self.tracked_keys:
-            return np.zeros((0, 3, self.boundary_dim))
-        # One right-hand side, zero off the boundary; its boundary part is replaced per b.
-        rhs = gtsam.VectorValues()
-        free = sorted(set(reduced.keyVector()) - set(self.boundary_keys))
-        for key, dim in zip(free, _key_dims(free).tolist()):
-            rhs.insert(key, np.zeros(dim))
-        for key, offset in self.boundary_offsets.items():
-            rhs.insert(key, np.zeros(_key_dim(key)))
-        tracked = gtsam.KeyVector(list(self.tracked_keys))
-        columns = np.empty((3 * len(self.tracked_keys), self.boundary_dim))
-        for b in range(self.boundary_dim):
-            boundary = gtsam.VectorValues()
-            for key, offset in self.boundary_offsets.items():
-                boundary.insert(key, boundary_rhs[offset:offset + _key_dim(key), b].copy())
-            rhs.update(boundary)
-            columns[:, b] = bayes_net.backSubstitute(rhs).vector(tracked)
-        return columns.reshape(len(self.tracked_keys), 3, self.boundary_dim)
-
-    def _tracked_marginals(self, linear: gtsam.GaussianFactorGraph) -> FloatArray:
-        """Marginal covariances (T, 3, 3) of the tracked poses, from a Bayes tree of the
-        whole graph (COLAMD): that of the graph without teammates is deep and slow to query
-        once many meetings have connected alpha's poses."""
-        if not self.tracked_keys:
-            return np.zeros((0, 3, 3))
-        def marginals(bayes_tree: gtsam.GaussianBayesTree) -> FloatArray:
-            return np.array([bayes_tree.marginalCovariance(k) for k in self.tracked_keys])
-
-        return _retry_if_indeterminate(
-            lambda: marginals(linear.eliminateMultifrontal()),
-            lambda: marginals(linear.eliminateMultifrontal(function=gtsam.EliminateQR)))
+        tracked = np.array(self.tracked_keys, dtype=np.int64)
+        order = np.argsort(tracked)
+        factors = (reduced.at(index) for index in range(reduced.size()))
+        keys = [factor.keys() for factor in factors if factor is not None]
+        flat = np.fromiter(itertools.chain.from_iterable(keys), dtype=np.int64)
+        owner = np.repeat(np.arange(len(keys)), [len(k) for k in keys])
+        found = order[np.minimum(np.searchsorted(tracked, flat, sorter=order),
+                                 max(len(tracked) - 1, 0))] if len(tracked) else flat * 0
+        is_tracked = (tracked[found] == flat) if len(tracked) else np.zeros(len(flat), bool)
+        place, owner = found[is_tracked], owner[is_tracked]
+        lowest = np.full(len(keys), len(tracked), dtype=np.int64)
+        highest = np.full(len(keys), -1, dtype=np.int64)
+        np.minimum.at(lowest, owner, place)
+        np.maximum.at(highest, owner, place)
+        spread = (highest - lowest > 1)[owner]
+        excluded = set(self.boundary_keys) | set(tracked[place[spread]].tolist())
+        return [key for key in self.tracked_keys if key not in excluded]
 
     def propagate(self, scenario: VirtualScenario) -> PropagationResult:
         """Covariances after adding the scenario's ``next`` measurements (the Woodbury update
