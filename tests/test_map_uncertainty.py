@@ -74,8 +74,8 @@ def covariance_intersection(covariances: np.ndarray) -> tuple[np.ndarray, np.nda
     information ``(1, 2, 2)`` and the observed flag ``(1,)``."""
     count = len(covariances)
     same_cell = np.zeros(count, dtype=np.int64)
-    observations = CellObservations(same_cell, same_cell, np.zeros((count, 3, 6)),
-                                    covariances[:, [0, 0, 1], [0, 1, 1]], 1)
+    observations = CellObservations(same_cell, same_cell, np.zeros((2, count)),
+                                    covariances[:, [0, 0, 1], [0, 1, 1]].T, np.zeros((1, 2, 2)))
     return observations.fused_information(np.zeros((1, 3, 3)), num_cells=1)
 
 

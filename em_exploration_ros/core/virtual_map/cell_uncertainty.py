@@ -57,8 +57,6 @@ CovarianceFrame = Literal["map", "body"]
 MIN_RANGE_M = 1e-3
 
 #: Upper-triangle entries ``(j, k)`` of a 3x3 pose covariance, and of a 2x2 cell covariance.
-_POSE_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-_CELL_ENTRIES = ((0, 0), (0, 1), (1, 1))
 
 
 def inverse_2x2(matrices: ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -73,6 +71,20 @@ def inverse_2x2(matrices: ArrayLike) -> tuple[FloatArray, FloatArray]:
     return inverse / det[..., None, None], det
 
 
+def position_gain(poses: ArrayLike, covariance_frame: CovarianceFrame = "map") -> FloatArray:
+    """The first two columns ``(K, 2, 2)`` of ``G = Hl^+ Hx`` (see
+    :func:`inverse_sensor_model`): they depend on the pose only, not on the point."""
+    poses = np.asarray(poses, dtype=float).reshape(-1, 3)
+    gain = np.zeros((len(poses), 2, 2))
+    if covariance_frame == "body":
+        cos_t, sin_t = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        gain[:, 0, 0], gain[:, 0, 1] = -cos_t, sin_t
+        gain[:, 1, 0], gain[:, 1, 1] = -sin_t, -cos_t
+    else:
+        gain[:, 0, 0] = gain[:, 1, 1] = -1.0
+    return gain
+
+
 def inverse_sensor_model(poses: ArrayLike, points: ArrayLike,
                          sensor_params: SensorParams,
                          covariance_frame: CovarianceFrame = "map"
@@ -85,12 +97,7 @@ def inverse_sensor_model(poses: ArrayLike, points: ArrayLike,
     dx = points[:, 0] - poses[:, 0]
     dy = points[:, 1] - poses[:, 1]
     gain = np.zeros((len(poses), 2, 3))
-    if covariance_frame == "body":
-        cos_t, sin_t = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-        gain[:, 0, 0], gain[:, 0, 1] = -cos_t, sin_t
-        gain[:, 1, 0], gain[:, 1, 1] = -sin_t, -cos_t
-    else:
-        gain[:, 0, 0] = gain[:, 1, 1] = -1.0
+    gain[:, :, :2] = position_gain(poses, covariance_frame)
     gain[:, 0, 2] = dy
     gain[:, 1, 2] = -dx
     distance = np.hypot(dx, dy)
@@ -106,29 +113,10 @@ def inverse_sensor_model(poses: ArrayLike, points: ArrayLike,
     return gain, noise
 
 
-def _pose_entries(covariances: FloatArray) -> FloatArray:
-    """Upper-triangle entries ``(K, 6)`` of symmetric 3x3 matrices ``(K, 3, 3)``."""
-    rows, cols = zip(*_POSE_ENTRIES)
-    return covariances[:, rows, cols]
-
-
 def _cell_matrices(entries: FloatArray) -> FloatArray:
     """Symmetric 2x2 matrices ``(..., 2, 2)`` from their entries ``(..., 3)`` (xx, xy, yy)."""
     xx, xy, yy = entries[..., 0], entries[..., 1], entries[..., 2]
     return np.stack([np.stack([xx, xy], axis=-1), np.stack([xy, yy], axis=-1)], axis=-2)
-
-
-def _quadratic_form_coefficients(gain: FloatArray) -> FloatArray:
-    """``(P, 3, 6)`` linear map from the pose covariance entries (``_POSE_ENTRIES``) to the
-    entries (xx, xy, yy) of ``G Sigma_x G^T`` for gains ``G`` ``(P, 2, 3)``: an
-    off-diagonal pose entry ``(j, k)`` stands for both ``(j, k)`` and ``(k, j)``."""
-    rows = [[np.ascontiguousarray(gain[:, a, j]) for j in range(3)] for a in range(2)]
-    columns = []
-    for a, b in _CELL_ENTRIES:
-        for j, k in _POSE_ENTRIES:
-            term = rows[a][j] * rows[b][k]
-            columns.append(term + rows[a][k] * rows[b][j] if j != k else term)
-    return np.stack(columns, axis=-1).reshape(-1, 3, 6)
 
 
 @dataclass(frozen=True)
@@ -188,15 +176,16 @@ class CovarianceIntersectionSums:
 
 def _intersection_sums(cell_index: IntArray, entries: FloatArray,
                        num_cells: int) -> CovarianceIntersectionSums:
-    """Covariance-intersection sums of 2x2 covariances given by entries ``(P, 3)``, with
-    weights ``det(Sigma)^-1 = det(I)`` (information-proportional)."""
-    xx, xy, yy = entries[:, 0], entries[:, 1], entries[:, 2]
+    """Covariance-intersection sums of 2x2 covariances given by entries ``(3, P)`` (xx, xy,
+    yy), with weights ``det(Sigma)^-1 = det(I)`` (information-proportional)."""
+    xx, xy, yy = entries
     weight = 1.0 / (xx * yy - xy * xy)
     # weight * information = weight * adj(Sigma) / det(Sigma) = adj(Sigma) * weight^2
     factor = weight * weight
 
     def cell_sum(value: FloatArray) -> FloatArray:
-        return np.bincount(cell_index, weights=value, minlength=num_cells).astype(float)
+        sums = np.bincount(cell_index, weights=value, minlength=num_cells)
+        return sums.astype(float, copy=False)  # integer when there is no pair
 
     return CovarianceIntersectionSums(
         cell_sum(weight),
@@ -210,19 +199,30 @@ class CellObservations:
 
     For pair ``p`` (pose ``pose_index[p]`` observing cell ``flat_cell[p]``: the cell's flat
     index ``row * cols + col``, or its slot when the observations were built for a subset of
-    the cells, see :meth:`from_poses`) the virtual landmark covariance ``G Sigma_x G^T + N`` (see
-    :func:`inverse_sensor_model`) is stored linearly in the pose covariance entries:
-    ``coefficients`` ``(P, 3, 6)`` maps the 6 upper-triangle entries of ``Sigma_x`` to the 3
-    entries (xx, xy, yy) of the cell covariance, ``noise`` ``(P, 3)`` holds those of ``N``
+    the cells, see :meth:`from_poses`) the virtual landmark covariance is
+    ``G Sigma_x G^T + N`` (see :func:`inverse_sensor_model`). ``G = [B | l]`` splits into a
+    block ``B`` that depends on the pose only (``position_gain`` ``(K, 2, 2)``) and the lever
+    ``l = (dy, -dx)`` of the pair (``lever`` ``(2, P)`` [m]); with ``Sigma_x`` split into
+    its position block ``S``, position-heading column ``s`` and heading variance ``t``::
+
+        G Sigma_x G^T = B S B^T + (B s) l^T + l (B s)^T + t l l^T
+
+    so a pose covariance hypothesis costs three small per-pose products and a few
+    multiply-adds per pair. ``noise`` ``(3, P)`` holds the entries (xx, xy, yy) of ``N``
     [m^2]. Built once per set of poses, so that many pose covariance hypotheses (EM
     candidates) are evaluated with array algebra only.
     """
 
     pose_index: IntArray
     flat_cell: IntArray
-    coefficients: FloatArray
+    lever: FloatArray
     noise: FloatArray
-    num_poses: int
+    position_gain: FloatArray
+
+    @property
+    def num_poses(self) -> int:
+        """Number of poses the covariances passed in are given for."""
+        return len(self.position_gain)
 
     @classmethod
     def from_poses(cls, geometry: GridGeometry, poses: ArrayLike, sensor_params: SensorParams,
@@ -251,20 +251,47 @@ class CellObservations:
         centres = geometry.cell_center(np.stack(np.divmod(flat_cell, geometry.cols), axis=-1))
         gain, noise = inverse_sensor_model(poses[pose_index], centres, sensor_params,
                                            covariance_frame)
-        return cls(pose_index, slot, _quadratic_form_coefficients(gain),
-                   noise[:, [0, 0, 1], [0, 1, 1]], len(poses))
+        return cls(pose_index, slot, np.ascontiguousarray(gain[:, :, 2].T),
+                   np.ascontiguousarray(noise[:, [0, 0, 1], [0, 1, 1]].T),
+                   position_gain(poses, covariance_frame))
 
     def of_poses(self, selected: NDArray[np.bool_]) -> "CellObservations":
         """The observations of the poses where ``selected`` ``(num_poses,)`` is True, pose
         numbering kept (covariances are still given for all ``num_poses``)."""
         keep = np.asarray(selected, dtype=bool)[self.pose_index]
         return CellObservations(self.pose_index[keep], self.flat_cell[keep],
-                                self.coefficients[keep], self.noise[keep], self.num_poses)
+                                self.lever[:, keep], self.noise[:, keep], self.position_gain)
 
     def _pair_entries(self, pose_covariances: ArrayLike) -> FloatArray:
-        """Cell covariance entries ``(P, 3)`` (xx, xy, yy) [m^2] of every pair."""
-        entries = _pose_entries(np.asarray(pose_covariances, dtype=float).reshape(-1, 3, 3))
-        return np.einsum("pqu,pu->pq", self.coefficients, entries[self.pose_index]) + self.noise
+        """Cell covariance entries ``(3, P)`` (xx, xy, yy) [m^2] of every pair."""
+        covariances = np.asarray(pose_covariances, dtype=float).reshape(-1, 3, 3)
+        gain = self.position_gain
+        position = gain @ covariances[:, :2, :2] @ np.swapaxes(gain, 1, 2)
+        heading = gain @ covariances[:, :2, 2:]
+        per_pose = np.stack([position[:, 0, 0], position[:, 0, 1], position[:, 1, 1],
+                             heading[:, 0, 0], heading[:, 1, 0], covariances[:, 2, 2]])
+        p_xx, p_xy, p_yy, h_x, h_y, t = np.take(per_pose, self.pose_index, axis=1)
+        l_x, l_y = self.lever
+        entries = np.empty_like(self.noise)
+        xx, xy, yy = entries  # filled in place: this runs for every EM candidate
+        np.multiply(t, l_x, out=xx)  # xx = p_xx + l_x (2 h_x + t l_x)
+        xx += h_x
+        xx += h_x
+        xx *= l_x
+        xx += p_xx
+        np.multiply(t, l_y, out=yy)  # yy = p_yy + l_y (2 h_y + t l_y)
+        yy += h_y
+        yy += h_y
+        yy *= l_y
+        yy += p_yy
+        np.multiply(t, l_y, out=xy)  # xy = p_xy + h_x l_y + l_x (h_y + t l_y)
+        xy += h_y
+        xy *= l_x
+        h_x *= l_y
+        xy += h_x
+        xy += p_xy
+        entries += self.noise
+        return entries
 
     def intersection_sums(self, pose_covariances: ArrayLike,
                           num_cells: int) -> CovarianceIntersectionSums:
