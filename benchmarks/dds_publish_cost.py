@@ -52,7 +52,7 @@ def topics() -> list[tuple[str, str, type, Any]]:
 
     from em_exploration_ros.nodes.qos import CLOCK_QOS, SENSOR_QOS, TEAM_QOS
     return [("rosgraph_msgs/Clock", "/dds_cost/clock", Clock, CLOCK_QOS),
-            ("nav_msgs/Odometry", "/dds_cost/odom", Odometry, SENSOR_QOS),
+            ("nav_msgs/Odometry (serialized)", "/dds_cost/odom", Odometry, SENSOR_QOS),
             ("em_exploration_msgs/SonarScan", "/dds_cost/sonar", SonarScan, SENSOR_QOS),
             ("em_exploration_msgs/TeamUpdate", "/dds_cost/team_updates", TeamUpdate, TEAM_QOS)]
 
@@ -65,7 +65,7 @@ def sample_messages() -> list[Any]:
 
     from em_exploration_ros.core.params_yaml import load_params
     from em_exploration_ros.core.sim.simulation import WorldSimulation
-    from em_exploration_ros.nodes.conversions import (dead_reckoning_to_msg, seconds_to_time,
+    from em_exploration_ros.nodes.conversions import (seconds_to_time, serialized_dead_reckoning,
                                                       sonar_scan_to_msg)
     params = load_params(PARAMS_FILE)
     sim = WorldSimulation(params)
@@ -82,7 +82,9 @@ def sample_messages() -> list[Any]:
         step=120, sequence=9, robot_id=0, keyframes=keyframes,
         targets=[em_msg.TargetRecord(decision_index=4, x=42.0, y=17.0, planning_time=0.04,
                                      frontier_type=em_msg.TargetRecord.EXPLORATION)])
-    return [Clock(clock=seconds_to_time(sim.stamp_s)), dead_reckoning_to_msg(frame), scan, update]
+    # Odometry as the world publishes it: already serialized (nodes.odometry_cdr).
+    return [Clock(clock=seconds_to_time(sim.stamp_s)), serialized_dead_reckoning(frame), scan,
+            update]
 
 
 def run_subscriber() -> int:

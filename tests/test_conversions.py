@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 from em_exploration_msgs.msg import TeamUpdate as TeamUpdateMsg
+from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 
 from em_exploration_ros.core.params import ExplorationParams
@@ -38,7 +39,7 @@ def test_sensor_frame_over_the_wire_equals_em_sim_input(running_team):
     for robot in range(PARAMS.world.num_robots):
         frame = running_team.simulation.sense(robot)
         scan = through_dds(conv.sonar_scan_to_msg(frame, 7.5, [3, 0, 5]))
-        odom = through_dds(conv.dead_reckoning_to_msg(frame))
+        odom = deserialize_message(conv.serialized_dead_reckoning(frame), Odometry)
         expected = step_input(frame, dt)
         assert scan.step == expected.step and list(scan.team_sequences) == [3, 0, 5]
         assert conv.time_to_seconds(scan.header.stamp) == expected.stamp_s == sim_time_s(

@@ -26,6 +26,7 @@ from rclpy.executors import SingleThreadedExecutor
 from em_exploration_msgs.msg import MotionCommand, SonarScan, TeamUpdate, WorldStatus
 from nav_msgs.msg import Odometry
 from rclpy.parameter import Parameter
+from rclpy.serialization import serialize_message
 from std_msgs.msg import Header
 
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, LATCHED_QOS, SENSOR_QOS, TEAM_QOS
@@ -246,6 +247,60 @@ def test_a_robot_never_seen_alive_is_not_waited_for_the_robot_timeout(tmp_path):
     assert "robot 1: no liveliness seen 3 s into the run; given 4 s to answer" in output
     assert "robot 0 lost" not in output, output
     assert given_up_after_s < 20.0  # about 3 + 4 s; robot_timeout_s would be 60 s
+
+
+def bad_odometry(frame_id: str, child_frame_id: str) -> list[Odometry | bytes]:
+    """Odometry a robot's dead reckoning or ground truth must never be taken from: another
+    child frame, a NaN position, a stamp off the 0.2 s step grid, and truncated bytes."""
+    def message(child: str = child_frame_id, x: float = 1.0, nanosec: int = 0) -> Odometry:
+        odometry = Odometry()
+        odometry.header.stamp.sec, odometry.header.stamp.nanosec = 1, nanosec
+        odometry.header.frame_id, odometry.child_frame_id = frame_id, child
+        odometry.pose.pose.position.x, odometry.pose.pose.orientation.w = x, 1.0
+        return odometry
+    return [message(child="robot_9/base_link"), message(x=float("nan")),
+            message(nanosec=100_000_000), serialize_message(message())[:40]]
+
+
+def test_odometry_the_fast_reader_does_not_take_is_checked_and_dropped_with_its_reason(tmp_path):
+    """The robot's dead reckoning and the evaluator's ground truth are read in one struct
+    when they are in the world's own form (nodes/odometry_cdr.py); anything else goes
+    through the message checks and is dropped with their reasons."""
+    robot = NodeProcess.start_module(ROBOT, ros_args(params=dict(ONE_ROBOT, robot_id=0),
+                                                     namespace="/robot_0"),
+                                     log_path=tmp_path / "robot.log")
+    evaluator = NodeProcess.start_module(EVALUATOR, ros_args(params=dict(
+        ONE_ROBOT, summary_path=str(tmp_path / "summary.json"), use_sim_time=True)),
+        log_path=tmp_path / "evaluator.log")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("odometry_forger", context=context)
+    reasons = ("child_frame_id 'robot_9/base_link' is not 'robot_0/base_link'",
+               "a number is not finite (nan)", "malformed Odometry")
+    try:
+        with robot, evaluator:
+            odom = node.create_publisher(Odometry, "/robot_0/odom", SENSOR_QOS)
+            truth = node.create_publisher(Odometry, "/world/ground_truth/robot_0",
+                                          GROUND_TRUTH_QOS)
+            deadline = time.monotonic() + START_S
+            while odom.get_subscription_count() < 1 or truth.get_subscription_count() < 1:
+                assert time.monotonic() < deadline, "the robot or the evaluator never listened"
+                time.sleep(0.1)
+            for _ in range(20):  # best-effort sensor QoS: send more than once
+                for message in bad_odometry("robot_0/odom", "robot_0/base_link"):
+                    odom.publish(message)
+                for message in bad_odometry("world", "robot_0/base_link"):
+                    truth.publish(message)
+                time.sleep(0.1)
+            for process, topic in ((robot, "/robot_0/odom"),
+                                   (evaluator, "/world/ground_truth/robot_0")):
+                for reason in reasons:
+                    process.wait_for_output(f"dropped a message on {topic}: " + reason,
+                                            START_S)
+            robot.wait_for_output("dropped a message on /robot_0/odom: stamp 1.1", START_S)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
 
 
 def spin_for(executor: SingleThreadedExecutor, seconds: float) -> None:

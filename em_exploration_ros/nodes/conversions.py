@@ -6,6 +6,7 @@ Frames follow REP-103/105: sensor data in ``robot_<i>/base_link``, dead reckonin
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -29,6 +30,7 @@ from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, Landmark
                                                      TargetRecord, TeamUpdate, check_record_sizes)
 from em_exploration_ros.core.agent.team_wire import (TeamWireFormat, covariance_from_upper,
                                                      covariance_upper)
+from em_exploration_ros.nodes.odometry_cdr import OdometryCodec, PlanarOdometry
 from em_exploration_ros.nodes.path_cdr import DecodedPath, encode_path
 
 MAP_FRAME = "map"
@@ -43,9 +45,15 @@ def robot_namespace(robot_id: int) -> str:
     return f"robot_{robot_id}"
 
 
+def time_parts(seconds: float) -> tuple[int, int]:
+    """(sec, nanosec) of a simulation time [s] (rounded to the nanosecond)."""
+    sec, nanosec = divmod(seconds_to_nanoseconds(seconds), NANOSECONDS_PER_SECOND)
+    return int(sec), int(nanosec)
+
+
 def seconds_to_time(seconds: float) -> Time:
     """A simulation time [s] as builtin_interfaces/Time (rounded to the nanosecond)."""
-    sec, nanosec = divmod(seconds_to_nanoseconds(seconds), NANOSECONDS_PER_SECOND)
+    sec, nanosec = time_parts(seconds)
     return Time(sec=sec, nanosec=nanosec)
 
 
@@ -113,31 +121,29 @@ def sonar_scan_to_msg(frame: SensorFrame, max_range_m: float,
     return message
 
 
-def odometry_to_msg(robot_id: int, stamp_s: float, pose: np.ndarray, frame_id: str,
-                    child_frame_id: str, twist_covariance: np.ndarray | None = None,
-                    pose_covariance: np.ndarray | None = None) -> Odometry:
-    """A planar pose (x [m], y [m], theta [rad]) as nav_msgs/Odometry; covariances are 6x6."""
-    message = Odometry()
-    message.header.stamp = seconds_to_time(stamp_s)
-    message.header.frame_id = frame_id
-    message.child_frame_id = child_frame_id
-    message.pose.pose.position.x = float(pose[0])
-    message.pose.pose.position.y = float(pose[1])
-    message.pose.pose.orientation = yaw_to_quaternion(float(pose[2]))
-    if twist_covariance is not None:
-        message.twist.covariance = _flat(twist_covariance)
-    if pose_covariance is not None:
-        message.pose.covariance = _flat(pose_covariance)
-    return message
+@functools.lru_cache(maxsize=256)
+def odometry_codec(frame_id: str, child_frame_id: str) -> OdometryCodec:
+    """The serialized form of nav_msgs/Odometry with these frames (``nodes.odometry_cdr``)."""
+    return OdometryCodec(frame_id, child_frame_id)
 
 
-def dead_reckoning_to_msg(frame: SensorFrame) -> Odometry:
-    """The dead-reckoning part of a sensor frame, REP-105 odom -> base_link, with the
-    covariance of its accumulated noise (pose) and of the last step's velocity (twist)."""
+def serialized_odometry(stamp_s: float, pose: np.ndarray, frame_id: str, child_frame_id: str,
+                        twist_covariance: np.ndarray | None = None,
+                        pose_covariance: np.ndarray | None = None) -> bytes:
+    """A planar pose (x [m], y [m], theta [rad]) as serialized nav_msgs/Odometry, zero
+    twist, 6x6 covariances (zero when None); publishers take the bytes as they are."""
+    return odometry_codec(frame_id, child_frame_id).encode(time_parts(stamp_s), pose,
+                                                           pose_covariance, twist_covariance)
+
+
+def serialized_dead_reckoning(frame: SensorFrame) -> bytes:
+    """The dead-reckoning part of a sensor frame as serialized Odometry, REP-105 odom ->
+    base_link, with the covariance of its accumulated noise (pose) and of the last step's
+    velocity (twist)."""
     namespace = robot_namespace(frame.robot_id)
-    return odometry_to_msg(frame.robot_id, frame.stamp_s, frame.odom_pose, f"{namespace}/odom",
-                           f"{namespace}/base_link", frame.twist_covariance,
-                           planar_covariance_to_6x6(frame.odom_pose_covariance))
+    return serialized_odometry(frame.stamp_s, frame.odom_pose, f"{namespace}/odom",
+                               f"{namespace}/base_link", frame.twist_covariance,
+                               planar_covariance_to_6x6(frame.odom_pose_covariance))
 
 
 def odometry_pose(message: Odometry) -> np.ndarray:
@@ -149,6 +155,13 @@ def odometry_pose(message: Odometry) -> np.ndarray:
 def odometry_twist_covariance(message: Odometry) -> np.ndarray:
     """The 6x6 twist covariance of an Odometry message."""
     return _matrix(message.twist.covariance, 6)
+
+
+def planar_odometry_from_msg(message: Odometry) -> PlanarOdometry:
+    """An Odometry message in the form :meth:`OdometryCodec.decode` reads (no checks)."""
+    stamp = message.header.stamp
+    return PlanarOdometry((stamp.sec, stamp.nanosec), odometry_pose(message),
+                          _matrix(message.pose.covariance, 6), odometry_twist_covariance(message))
 
 
 # -- team data (robot <-> robot) ----------------------------------------------------------

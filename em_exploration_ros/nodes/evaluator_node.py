@@ -87,19 +87,20 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_
                                                   WORLD_STATUS_TOPIC, given_up_from_msg,
                                                   landmark_array_to_msg,
                                                   landmark_positions_from_msg,
-                                                  odometry_pose, planar_path,
+                                                  odometry_codec, odometry_pose, planar_path,
                                                   robot_namespace, serialized_path,
                                                   seconds_to_time,
                                                   time_to_seconds)
 from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
+from em_exploration_ros.nodes.odometry_cdr import OdometryCodec
 from em_exploration_ros.nodes.path_cdr import PathDecodeError, decode_path
 from em_exploration_ros.nodes.qos import (ESTIMATE_READER_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
                                           LIVELINESS_LEASE_S, SENSOR_QOS, STREAM_QOS,
                                           TEAM_QOS)
 from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard, checked_team_update,
-                                                  content_problem, header_problem,
+                                                  content_problem, deserialized, header_problem,
                                                   path_problem, publish_or_log, serialized_size,
                                                   size_limited)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
@@ -236,8 +237,12 @@ class EvaluatorNode(LeanNode):
             LandmarkEstimate(0, np.zeros(2), np.eye(2))] * MAX_LANDMARKS_PER_UPDATE))
         for robot in range(self.num_robots):
             ns = robot_namespace(robot)
-            self.create_subscription(Odometry, f"/world/ground_truth/{ns}",
-                                     lambda m, r=robot: self._on_truth(r, m), GROUND_TRUTH_QOS)
+            truth_topic = f"/world/ground_truth/{ns}"
+            truth_codec = odometry_codec(WORLD_FRAME, f"{ns}/base_link")
+            self.create_subscription(Odometry, truth_topic, size_limited(
+                self.inputs, truth_topic, Odometry, truth_codec.size,
+                lambda data, r=robot, c=truth_codec: self._on_truth_data(r, c, data), raw=True),
+                GROUND_TRUTH_QOS, raw=True)
             path_topic, landmarks_topic = f"/{ns}/estimated_path", f"/{ns}/landmarks"
             self.create_subscription(
                 PathMsg, path_topic, size_limited(
@@ -300,22 +305,39 @@ class EvaluatorNode(LeanNode):
             landmark_truth(self.params.world, ids, positions, message.radius), self.params)
         self._process()
 
-    def _on_truth(self, robot: int, message: Odometry) -> None:
-        step, problem = self._stamp_problem(message.header.stamp)
+    def _on_truth_data(self, robot: int, codec: OdometryCodec, data: bytes) -> None:
+        """A robot's serialized ground truth: read in one struct when it is in the world's
+        own form (``nodes.odometry_cdr``), otherwise as a message with every check."""
+        truth = codec.decode(data)
+        if truth is not None:
+            self._take_truth(robot, Time(sec=truth.stamp[0], nanosec=truth.stamp[1]),
+                             truth.pose)
+            return
+        message = deserialized(self.inputs, f"/world/ground_truth/{robot_namespace(robot)}",
+                               Odometry, data)
+        if message is None:
+            return
+        self._take_truth(robot, message.header.stamp, odometry_pose(message),
+                         header_problem(message.header, WORLD_FRAME),
+                         frame_problem(message.child_frame_id,
+                                       f"{robot_namespace(robot)}/base_link", "child_frame_id"),
+                         content_problem(message))
+
+    def _take_truth(self, robot: int, stamp: Time, pose: np.ndarray,
+                    *message_problems: str | None) -> None:
+        """A robot's true pose at a step, unless ``message_problems`` (frames, numbers) or
+        its stamp give a reason to drop it."""
+        step, problem = self._stamp_problem(stamp)
         if not self.inputs.check(
-                f"/world/ground_truth/{robot_namespace(robot)}",
-                header_problem(message.header, WORLD_FRAME),
-                frame_problem(message.child_frame_id, f"{robot_namespace(robot)}/base_link",
-                              "child_frame_id"),
+                f"/world/ground_truth/{robot_namespace(robot)}", *message_problems,
                 problem, step_problem(step, self.recorded_step + 1, self.monitor.final_step,
                                       EVALUATOR_STEP_LEAD),
                 "duplicate" if step in self._complete_steps or robot in self._truth.get(
-                    step, {}) else None,
-                content_problem(message)):
+                    step, {}) else None):
             return
         self._last_data_wall_s = time.monotonic()
         poses = self._truth.setdefault(step, {})
-        poses[robot] = odometry_pose(message)
+        poses[robot] = pose
         if len(poses) == self.num_robots:
             self._complete_steps.append(step)
             if self._first_step_wall_s is None:

@@ -86,14 +86,21 @@ def size_limited(guard: InputGuard, topic: str, message_class: type, max_bytes: 
         if raw:
             callback(data)
             return
-        try:
-            message = deserialize_message(data, message_class)
-        except RMWError as error:  # a raw writer can send bytes that are not the type
-            guard.drop(topic, f"malformed {message_class.__name__}: "
-                              f"{str(error).splitlines()[0][:80]}")
-            return
-        callback(message)
+        message = deserialized(guard, topic, message_class, data)
+        if message is not None:
+            callback(message)
     return on_serialized
+
+
+def deserialized(guard: InputGuard, topic: str, message_class: type, data: bytes) -> Any | None:
+    """``data`` as a ``message_class`` message, or None (dropped, with the reason) if the
+    bytes are not one: a raw writer can send anything."""
+    try:
+        return deserialize_message(data, message_class)
+    except RMWError as error:
+        guard.drop(topic, f"malformed {message_class.__name__}: "
+                          f"{str(error).splitlines()[0][:80]}")
+        return None
 
 
 def serialized_size(message: Any) -> int:

@@ -29,8 +29,8 @@ waits until it holds it up to the sequence number the world's barrier names for 
 resumes (``RobotAgent.resume``): its graph, targets and numbering continue where its stream
 left off and its published path holds its whole history.
 
-Every message is checked before it touches any state (``scan_problem``,
-``odometry_problem``, ``core.agent.input_checks``); unusable ones are dropped with a
+Every message is checked before it touches any state (``scan_problem``, the dead
+reckoning's frames, stamp and numbers, ``core.agent.input_checks``); unusable ones are dropped with a
 throttled WARN, so the sensor data kept for coming steps stays bounded. Requests for
 re-sends are rate-limited per requester and merged (``core.agent.resend``). A world that
 leaves the ROS graph is logged at once; after ``world_lost_timeout_s`` the robot exits
@@ -73,25 +73,27 @@ from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.node_settings import RobotNodeSettings
 from em_exploration_ros.core.sim.links import FrameKind, perfect_links
-from em_exploration_ros.core.sim.wire_model import (command_to_twist, sim_time_s,
-                                                twist_to_increment_covariance)
+from em_exploration_ros.core.sim.wire_model import (command_to_twist, nanoseconds_to_seconds,
+                                                sim_time_s, twist_to_increment_covariance)
 from em_exploration_ros.nodes import tf_publishing, visualization
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, given_up_to_msg,
                                                   landmark_array_to_msg,
                                                   landmark_reading_from_msg,
-                                                  odometry_pose, odometry_twist_covariance,
+                                                  odometry_codec, planar_odometry_from_msg,
                                                   quaternion_to_yaw,
                                                   robot_namespace, seconds_to_time, serialized_path,
                                                   team_update_to_msg,
-                                                  teammate_reading_from_msg, time_to_seconds)
+                                                  teammate_reading_from_msg)
 from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveliness
 from em_exploration_ros.nodes.node_main import run_node
+from em_exploration_ros.nodes.odometry_cdr import PlanarOdometry
 from em_exploration_ros.nodes.recorder_presence import topics_not_recorded
 from em_exploration_ros.nodes.qos import ESTIMATE_QOS, LATCHED_QOS, SENSOR_QOS, TEAM_QOS
 from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
                                                   checked_team_update, content_problem,
-                                                  header_problem, listened, publish_or_log)
+                                                  deserialized, header_problem, listened,
+                                                  publish_or_log, size_limited)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
@@ -140,7 +142,7 @@ class RobotNode(LeanNode):
         self.exit_code = EXIT_OK
         self.done = Future()
         self._scans: dict[int, SonarScan] = {}
-        self._odometry: dict[int, Odometry] = {}
+        self._odometry: dict[int, PlanarOdometry] = {}
         self._next_step: int | None = None
         self._waiting_since: float | None = None
         self._last_request = 0.0
@@ -171,7 +173,11 @@ class RobotNode(LeanNode):
         self.create_subscription(PoseStamped, "/mission/anchor_pose", self._on_anchor,
                                  LATCHED_QOS)
         self.create_subscription(SonarScan, f"/{ns}/sonar", self._on_scan, SENSOR_QOS)
-        self.create_subscription(Odometry, f"/{ns}/odom", self._on_odometry, SENSOR_QOS)
+        odom_topic = f"/{ns}/odom"
+        self._odom_codec = odometry_codec(f"{ns}/odom", f"{ns}/base_link")
+        self.create_subscription(Odometry, odom_topic, size_limited(
+            self.inputs, odom_topic, Odometry, self._odom_codec.size, self._on_odometry_data,
+            raw=True), SENSOR_QOS, raw=True)
         self.create_subscription(TeamUpdateRequest, "/team/update_requests",
                                  self._on_update_request, TEAM_QOS)
         teammates = [r for r in range(self.num_robots) if r != self.robot_id]
@@ -248,17 +254,6 @@ class RobotNode(LeanNode):
                                  if not 0 <= r.robot_id < self.num_robots
                                  or r.robot_id == robot))
 
-    def odometry_problem(self, message: Odometry, step: int) -> str | None:
-        """Reason to drop dead reckoning: wrong frames, stamp off the step grid,
-        implausible step or numbers."""
-        ns = robot_namespace(self.robot_id)
-        stamp_ns = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
-        return (header_problem(message.header, f"{ns}/odom")
-                or frame_problem(message.child_frame_id, f"{ns}/base_link", "child_frame_id")
-                or self._sensor_step_problem(step, self._odometry)
-                or stamp_step_problem(stamp_ns, step, self.time_step_s)
-                or content_problem(message))
-
     def _on_teammate_liveliness(self, teammate: int, alive: bool, restarted: bool) -> None:
         if alive:
             self.get_logger().info(f"teammate {teammate}: liveliness asserted"
@@ -285,15 +280,34 @@ class RobotNode(LeanNode):
         self._world_heard()
         self._process_ready_steps()
 
-    def _on_odometry(self, message: Odometry) -> None:
-        stamp_s = time_to_seconds(message.header.stamp)
+    def _on_odometry_data(self, data: bytes) -> None:
+        """Serialized dead reckoning: read in one struct when it is in the world's own form
+        (``nodes.odometry_cdr``), otherwise as a message with every check."""
+        odometry = self._odom_codec.decode(data)
+        if odometry is not None:
+            self._take_odometry(odometry)
+            return
+        ns = robot_namespace(self.robot_id)
+        message = deserialized(self.inputs, f"/{ns}/odom", Odometry, data)
+        if message is not None:
+            self._take_odometry(
+                planar_odometry_from_msg(message), header_problem(message.header, f"{ns}/odom"),
+                frame_problem(message.child_frame_id, f"{ns}/base_link", "child_frame_id"),
+                content_problem(message))
+
+    def _take_odometry(self, odometry: PlanarOdometry, *message_problems: str | None) -> None:
+        """Dead reckoning of a step, unless ``message_problems`` (frames, numbers), its stamp
+        off the step grid or an implausible step give a reason to drop it."""
+        stamp_ns = odometry.stamp[0] * 1_000_000_000 + odometry.stamp[1]
+        stamp_s = nanoseconds_to_seconds(stamp_ns)
         step = int(round(stamp_s / self.time_step_s)) if math.isfinite(stamp_s) else -1
         if self._processed(step):
             return  # a re-sent step this robot already answered
-        if not self.inputs.check(f"/{robot_namespace(self.robot_id)}/odom",
-                                 self.odometry_problem(message, step)):
+        if not self.inputs.check(f"/{robot_namespace(self.robot_id)}/odom", *message_problems,
+                                 self._sensor_step_problem(step, self._odometry),
+                                 stamp_step_problem(stamp_ns, step, self.time_step_s)):
             return
-        self._odometry[step] = message
+        self._odometry[step] = odometry
         self._drop_stale_while_recovering(step)
         self._process_ready_steps()
 
@@ -598,7 +612,8 @@ class RobotNode(LeanNode):
         self._recorder_listens = True
         return True
 
-    def _step(self, scan: SonarScan, odometry: Odometry, limits: dict[int, int] | None) -> None:
+    def _step(self, scan: SonarScan, odometry: PlanarOdometry,
+              limits: dict[int, int] | None) -> None:
         agent = self.agent
         step = int(scan.step)
         stamp_s = sim_time_s(step, self.time_step_s)
@@ -607,8 +622,8 @@ class RobotNode(LeanNode):
         self.archive.keep(released)
         decisions_before, given_up_before = len(agent.decisions), len(agent.given_up)
         command = agent.step(StepInput(
-            step, stamp_s, odometry_pose(odometry),
-            twist_to_increment_covariance(odometry_twist_covariance(odometry), self.time_step_s),
+            step, stamp_s, odometry.pose,
+            twist_to_increment_covariance(odometry.twist_covariance, self.time_step_s),
             tuple(landmark_reading_from_msg(r) for r in scan.landmarks),
             tuple(teammate_reading_from_msg(r) for r in scan.teammates)))
         update = agent.take_outgoing()
@@ -650,12 +665,11 @@ class RobotNode(LeanNode):
 
     # -- what users see --------------------------------------------------------------------
 
-    def _publish_transforms(self, stamp_s: float, odometry: Odometry) -> None:
+    def _publish_transforms(self, stamp_s: float, odometry: PlanarOdometry) -> None:
         """/tf ``map`` -> ``odom`` -> ``base_link`` of this step, once the robot is anchored."""
         pose = self.agent.current_pose()
         if pose is not None and listened(self.tf_pub):
-            transforms = tf_publishing.robot_transforms(self.robot_id, pose,
-                                                        odometry_pose(odometry))
+            transforms = tf_publishing.robot_transforms(self.robot_id, pose, odometry.pose)
             publish_or_log(self.tf_pub, tf_publishing.tf_message(stamp_s, transforms), self,
                            "the robot's transforms")
 

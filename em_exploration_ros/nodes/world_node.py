@@ -66,9 +66,9 @@ from em_exploration_ros.core.agent.team_data import LandmarkEstimate
 from em_exploration_ros.core.sim.world import World
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_NODE_NAME,
                                                   WORLD_STATUS_TOPIC,
-                                                  dead_reckoning_to_msg, landmark_array_to_msg,
-                                                  odometry_to_msg, robot_namespace,
-                                                  seconds_to_time, sonar_scan_to_msg,
+                                                  landmark_array_to_msg, robot_namespace,
+                                                  seconds_to_time, serialized_dead_reckoning,
+                                                  serialized_odometry, sonar_scan_to_msg,
                                                   yaw_to_quaternion)
 from em_exploration_ros.nodes import tf_publishing
 from em_exploration_ros.nodes.lean_node import LeanNode
@@ -145,7 +145,8 @@ class WorldNode(LeanNode):
         self.sim = WorldSimulation(self.params)
         self.barrier = LockstepBarrier(self.num_robots, robot_timeout_s, step_resend_s,
                                        liveliness_grace_s)
-        self._step_messages: list[tuple[SonarScan, Odometry] | None] = [None] * self.num_robots
+        #: Per robot, the current step's sonar scan and serialized dead reckoning.
+        self._step_messages: list[tuple[SonarScan, bytes] | None] = [None] * self.num_robots
         self._unseen = UnseenLiveliness(self.num_robots, LIVELINESS_LEASE_S)
         self._latest = [STAND_STILL] * self.num_robots
         self.running = False
@@ -451,10 +452,10 @@ class WorldNode(LeanNode):
             if self.relay is not None:
                 scan.delivered_updates, scan.delivered_requests = \
                     self.relay.delivered_counts(robot)
-            self._step_messages[robot] = (scan, dead_reckoning_to_msg(frame))
+            self._step_messages[robot] = (scan, serialized_dead_reckoning(frame))
             self._send_step_messages(robot)
-            self.truth_pubs[robot].publish(odometry_to_msg(
-                robot, sim.stamp_s, sim.true_pose(robot), WORLD_FRAME,
+            self.truth_pubs[robot].publish(serialized_odometry(
+                sim.stamp_s, sim.true_pose(robot), WORLD_FRAME,
                 f"{robot_namespace(robot)}/base_link"))
         if listened(self.tf_pub):
             self.tf_pub.publish(tf_publishing.tf_message(
