@@ -11,10 +11,13 @@ linearizes once at the current estimate and factors once: teammates' other poses
 eliminated (COLAMD), then the rest with the boundary ``B`` last. ``B`` holds what the
 candidates' own measurements (``X_next``: alpha's path, its landmark readings and its
 readings with teammates) touch: alpha's latest pose, landmarks, teammates' latest poses or
-predicted waypoints. This gives ``P = Sigma_BB`` (from the boundary's square-root block
-``R_BB``), the cross-covariances ``C_i = Sigma_iB`` of the tracked poses (alpha's history
-for EM, predicted waypoints for BSP) by one back-substitution per boundary dimension, and
-their marginals ``Sigma_ii`` (Bayes tree). Per candidate (:meth:`propagate`) only small
+predicted waypoints. The tracked poses (alpha's history for EM, predicted waypoints for
+BSP) are eliminated first, in their order, except those linked to a non-adjacent tracked
+pose (through an eliminated teammate path); with them, the landmarks and ``B`` last they
+form the hub ``H``. This gives ``P = Sigma_BB`` (from the hub's square-root block
+``R_HH``), and the tracked poses' marginals ``Sigma_ii`` and cross-covariances
+``C_i = Sigma_iB`` by one backward recursion along the chain (selected inversion,
+:func:`_chain_selected_inverse`). Per candidate (:meth:`propagate`) only small
 dense algebra remains: the whitened Jacobian ``[J_W J_B]`` of ``X_next``'s measurements
 is QR-factored with alpha's new waypoints ``W`` first, leaving ``R_WW``, ``R_WB`` and the
 square root ``U^T`` of the information added to ``B`` (``Delta = U U^T``). With
