@@ -88,18 +88,25 @@ def run(tmp_path: Path, name: str, attack: bool) -> dict:
     memory = MemoryWatch(domain)
     report, after_mb = None, {}
     with team:
-        if attack:  # mid-run, so that the team runs before the attack (it may end during it)
-            started = time.monotonic()
-            while "t=   20.0 s" not in team.output() and team.running():
-                assert time.monotonic() - started < RUN_TIMEOUT_S, team.output()[-3000:]
-                memory.sample()
-                time.sleep(0.2)
-            report_path = tmp_path / name / "fuzz.json"
+        if attack:
+            # Mid-run, so that the team runs before the attack (it may end during it). The
+            # fuzzer starts with the team and reads the graph until the go file appears: a
+            # fuzzer started at t = 20 s needed its own start-up and graph discovery (3-4 s),
+            # and the faster team had finished by then.
+            report_path, go_file = tmp_path / name / "fuzz.json", tmp_path / name / "fuzz.go"
             fuzzer = NodeProcess([sys.executable, "-m", "em_exploration_ros.tools.fuzz",
                                   "--duration", str(FUZZ_S), "--rate", str(FUZZ_RATE_HZ),
-                                  "--seed", "1", "--report", str(report_path)],
+                                  "--seed", "1", "--report", str(report_path),
+                                  "--start-file", str(go_file),
+                                  "--start-timeout", str(RUN_TIMEOUT_S)],
                                  tmp_path / name / "fuzz.out")
             with fuzzer:
+                started = time.monotonic()
+                while "t=   20.0 s" not in team.output() and team.running():
+                    assert time.monotonic() - started < RUN_TIMEOUT_S, team.output()[-3000:]
+                    memory.sample()
+                    time.sleep(0.2)
+                go_file.touch()
                 while fuzzer.running():
                     memory.sample()
                     time.sleep(0.2)
@@ -153,3 +160,12 @@ def test_fuzzed_team_keeps_running_its_result_and_its_memory(tmp_path):
               f"({attacked['after_mb'].get(name, float('nan')):.0f} MB right after it)")
     for name, peak in attacked["peak_mb"].items():
         assert peak <= clean["peak_mb"][name] + RSS_MARGIN_MB, (name, peak, clean["peak_mb"])
+
+
+def test_a_start_file_that_never_appears_ends_the_fuzzer_with_code_1(tmp_path):
+    fuzzer = NodeProcess([sys.executable, "-m", "em_exploration_ros.tools.fuzz",
+                          "--duration", "1", "--start-file", str(tmp_path / "never"),
+                          "--start-timeout", "3"], tmp_path / "fuzz.out")
+    with fuzzer:
+        assert fuzzer.wait(RUN_TIMEOUT_S) == 1
+    assert "did not appear within 3 s; nothing sent" in fuzzer.output()

@@ -22,7 +22,12 @@ turn, so that the rate holds even for messages with thousands of nested ones.
 
     em-fuzz --duration 20 --rate 500 --seed 1        # then: messages sent per topic
 
-Exit code 0; the last stdout line is a JSON report (``--report FILE`` writes it too).
+With ``--start-file FILE`` it reads the graph until FILE exists and attacks then, without
+the settling pause: a test starts it with the team and attacks mid-run even when the run
+lasts only seconds.
+
+Exit code 0 (1: the start file did not appear in time); the last stdout line is a JSON
+report (``--report FILE`` writes it too).
 """
 from __future__ import annotations
 
@@ -227,10 +232,25 @@ class Fuzzer(Node):
                                          self.create_publisher(message_class, topic, qos),
                                          subscribers=names)
 
-    def attack(self, duration_s: float, rate_hz: float) -> None:
+    def wait_for(self, start_file: Path, timeout_s: float) -> bool:
+        """Read the graph every ``REDISCOVER_S`` until ``start_file`` exists; False if it
+        does not within ``timeout_s`` wall seconds."""
+        deadline = time.monotonic() + timeout_s
+        next_discovery = time.monotonic() + GRAPH_SETTLE_S
+        while not start_file.exists():
+            now = time.monotonic()
+            if now > deadline:
+                return False
+            if now >= next_discovery:
+                self.discover()
+                next_discovery = now + REDISCOVER_S
+            time.sleep(0.05)
+        return True
+
+    def attack(self, duration_s: float, rate_hz: float, settle_s: float = GRAPH_SETTLE_S) -> None:
         """Publish round robin over the targets for ``duration_s`` wall seconds (after
-        ``GRAPH_SETTLE_S`` for this new participant to learn the graph)."""
-        time.sleep(GRAPH_SETTLE_S)
+        ``settle_s`` for this new participant to learn the graph)."""
+        time.sleep(settle_s)
         start = time.monotonic()
         next_discovery = start
         sent = 0
@@ -272,13 +292,28 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--nodes", nargs="+", default=list(SYSTEM_NODES),
                         help=f"node names whose subscriptions are attacked {SYSTEM_NODES}")
     parser.add_argument("--report", type=Path, help="also write the JSON report here")
+    parser.add_argument("--start-file", type=Path,
+                        help="read the graph until this file exists, then attack at once: a "
+                        "script starts the fuzzer early (discovery takes seconds) and chooses "
+                        "the moment of the attack")
+    parser.add_argument("--start-timeout", type=float, default=600.0,
+                        help="wall seconds to wait for --start-file (600); exit code 1 after")
     args = parser.parse_args(argv)
-    if args.duration <= 0 or args.rate <= 0:
-        parser.error("--duration and --rate must be positive")
+    if args.duration <= 0 or args.rate <= 0 or args.start_timeout <= 0:
+        parser.error("--duration, --rate and --start-timeout must be positive")
     rclpy.init()
     fuzzer = Fuzzer(tuple(args.nodes), args.seed)
     try:
-        fuzzer.attack(args.duration, args.rate)
+        if args.start_file is None:
+            fuzzer.attack(args.duration, args.rate)
+        elif fuzzer.wait_for(args.start_file, args.start_timeout):
+            fuzzer.attack(args.duration, args.rate, settle_s=0.0)
+        else:
+            print(f"em-fuzz: error: {args.start_file} did not appear within "
+                  f"{args.start_timeout:g} s; nothing sent", file=sys.stderr, flush=True)
+            fuzzer.destroy_node()
+            rclpy.try_shutdown()
+            return 1
     except KeyboardInterrupt:
         pass
     report = fuzzer.report(args.duration)
