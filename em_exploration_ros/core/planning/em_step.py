@@ -181,14 +181,21 @@ class _KeyLayout:
         self.dim = int(dims.sum())
         self._order = np.argsort(self.keys)
 
+    def index_of(self, keys: IntArray) -> IntArray:
+        """Position (K,) of each of ``keys`` in the layout, -1 for a key not in it."""
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        if not len(self.keys):
+            return np.full(len(keys), -1, dtype=np.int64)
+        found = self._order[np.minimum(np.searchsorted(self.keys, keys, sorter=self._order),
+                                       len(self.keys) - 1)]
+        return np.where(self.keys[found] == keys, found, -1)
+
     def first_columns(self, keys: IntArray) -> IntArray:
         """First column (K,) of each of ``keys``; every key must be in the layout."""
-        keys = np.asarray(keys, dtype=np.int64)
-        found = np.searchsorted(self.keys, keys, sorter=self._order)
-        found = self._order[np.minimum(found, len(self.keys) - 1)] if len(self.keys) else found
-        if len(keys) and (not len(self.keys) or np.any(self.keys[found] != keys)):
+        index = self.index_of(keys)
+        if np.any(index < 0):
             raise ValueError("a variable is missing from the layout")
-        return self.offsets[found]
+        return self.offsets[index]
 
     def columns(self, keys: IntArray) -> IntArray:
         """Every column of ``keys``, key by key."""
@@ -389,22 +396,18 @@ class DecisionFactorization:
         :func:`_chain_selected_inverse` relies on: eliminating pose k - 1 links pose k only
         to pose k and the hub variables pose k - 1 was linked to.
         """
-        tracked = np.array(self.tracked_keys, dtype=np.int64)
-        order = np.argsort(tracked)
         factors = (reduced.at(index) for index in range(reduced.size()))
         keys = [factor.keys() for factor in factors if factor is not None]
         flat = np.fromiter(itertools.chain.from_iterable(keys), dtype=np.int64)
         owner = np.repeat(np.arange(len(keys)), [len(k) for k in keys])
-        found = order[np.minimum(np.searchsorted(tracked, flat, sorter=order),
-                                 max(len(tracked) - 1, 0))] if len(tracked) else flat * 0
-        is_tracked = (tracked[found] == flat) if len(tracked) else np.zeros(len(flat), bool)
-        place, owner = found[is_tracked], owner[is_tracked]
-        lowest = np.full(len(keys), len(tracked), dtype=np.int64)
+        place = _KeyLayout(self.tracked_keys).index_of(flat)  # -1: not tracked
+        place, owner = place[place >= 0], owner[place >= 0]
+        lowest = np.full(len(keys), len(self.tracked_keys), dtype=np.int64)
         highest = np.full(len(keys), -1, dtype=np.int64)
         np.minimum.at(lowest, owner, place)
         np.maximum.at(highest, owner, place)
         spread = (highest - lowest > 1)[owner]
-        excluded = set(self.boundary_keys) | set(tracked[place[spread]].tolist())
+        excluded = set(self.boundary_keys) | {self.tracked_keys[i] for i in place[spread].tolist()}
         return [key for key in self.tracked_keys if key not in excluded]
 
     def propagate(self, scenario: VirtualScenario) -> PropagationResult:

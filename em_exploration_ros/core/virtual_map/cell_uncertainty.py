@@ -56,8 +56,6 @@ CovarianceFrame = Literal["map", "body"]
 #: Below this pose-to-cell distance [m] the range direction is taken along map x.
 MIN_RANGE_M = 1e-3
 
-#: Upper-triangle entries ``(j, k)`` of a 3x3 pose covariance, and of a 2x2 cell covariance.
-
 
 def inverse_2x2(matrices: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Closed-form inverses and determinants of 2x2 matrices ``(..., 2, 2)``.
@@ -93,13 +91,20 @@ def inverse_sensor_model(poses: ArrayLike, points: ArrayLike,
     ``Sigma_v = G Sigma_x G^T + N`` with ``G = Hl^+ Hx`` ``(P, 2, 3)`` for pose covariances
     in ``covariance_frame`` and ``N = Hl^+ R Hl^+^T`` ``(P, 2, 2)`` [m^2]."""
     poses = np.asarray(poses, dtype=float).reshape(-1, 3)
+    lever, noise = _lever_and_noise(poses, points, sensor_params)
+    gain = np.empty((len(poses), 2, 3))
+    gain[:, :, :2] = position_gain(poses, covariance_frame)
+    gain[:, :, 2] = lever.T
+    return gain, noise
+
+
+def _lever_and_noise(poses: FloatArray, points: ArrayLike,
+                     sensor_params: SensorParams) -> tuple[FloatArray, FloatArray]:
+    """The point-dependent parts of :func:`inverse_sensor_model`: the last column of ``G``,
+    ``(dy, -dx)`` ``(2, P)`` [m], and ``N`` ``(P, 2, 2)`` [m^2]."""
     points = np.asarray(points, dtype=float).reshape(-1, 2)
     dx = points[:, 0] - poses[:, 0]
     dy = points[:, 1] - poses[:, 1]
-    gain = np.zeros((len(poses), 2, 3))
-    gain[:, :, :2] = position_gain(poses, covariance_frame)
-    gain[:, 0, 2] = dy
-    gain[:, 1, 2] = -dx
     distance = np.hypot(dx, dy)
     near = distance < MIN_RANGE_M
     ux = np.where(near, 1.0, dx / np.where(near, 1.0, distance))
@@ -110,7 +115,7 @@ def inverse_sensor_model(poses: ArrayLike, points: ArrayLike,
     noise[:, 0, 0] = bearing_var * dy * dy + range_var * ux * ux
     noise[:, 0, 1] = noise[:, 1, 0] = -bearing_var * dx * dy + range_var * ux * uy
     noise[:, 1, 1] = bearing_var * dx * dx + range_var * uy * uy
-    return gain, noise
+    return np.stack([dy, -dx]), noise
 
 
 def _cell_matrices(entries: FloatArray) -> FloatArray:
@@ -249,10 +254,8 @@ class CellObservations:
             kept = slot >= 0
             pose_index, flat_cell, slot = pose_index[kept], flat_cell[kept], slot[kept]
         centres = geometry.cell_center(np.stack(np.divmod(flat_cell, geometry.cols), axis=-1))
-        gain, noise = inverse_sensor_model(poses[pose_index], centres, sensor_params,
-                                           covariance_frame)
-        return cls(pose_index, slot, np.ascontiguousarray(gain[:, :, 2].T),
-                   np.ascontiguousarray(noise[:, [0, 0, 1], [0, 1, 1]].T),
+        lever, noise = _lever_and_noise(poses[pose_index], centres, sensor_params)
+        return cls(pose_index, slot, lever, np.ascontiguousarray(noise[:, [0, 0, 1], [0, 1, 1]].T),
                    position_gain(poses, covariance_frame))
 
     def of_poses(self, selected: NDArray[np.bool_]) -> "CellObservations":
