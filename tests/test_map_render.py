@@ -7,7 +7,8 @@ from matplotlib.image import imread
 
 import dataclasses
 
-from em_exploration_ros.core.evaluation.map_render import EXPLORED_RGBA, TeamMapLayers, render_team_map
+from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers
+from em_exploration_ros.core.evaluation.map_render import EXPLORED_RGBA, render_team_map
 from em_exploration_ros.core.evaluation.rendezvous_stats import RendezvousOutcome
 from em_exploration_ros.core.evaluation.summary import TargetEntry
 

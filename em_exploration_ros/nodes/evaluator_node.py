@@ -66,8 +66,8 @@ from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
                                                      TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics, landmark_truth,
                                                           stamp_key)
-from em_exploration_ros.core.evaluation.map_render import (TeamMapLayers, evaluation_layers,
-                                                            render_team_map)
+from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, evaluation_layers
+from em_exploration_ros.core.evaluation.map_render import render_team_map
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
 from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, first_problem,
                                                         frame_problem, id_problem,

@@ -47,8 +47,8 @@ from mcap_ros2.decoder import DecoderFactory
 from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, ChannelInfo, SchemaInfo
 from em_exploration_ros.bag_format.mcap_ros2_schema import same_layout
 from em_exploration_ros.core.planning.frontiers import FrontierType
-from em_exploration_ros.core.evaluation.map_render import (TeamMapLayers, UncertaintyEllipses,
-                                                render_team_map)
+from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, UncertaintyEllipses
+from em_exploration_ros.core.evaluation.map_render import render_team_map
 from em_exploration_ros.core.params import MapParams
 from em_exploration_ros.core.evaluation.summary import TARGET_TYPES, TargetEntry
 from em_exploration_ros.core.sim.wire_model import nanoseconds_to_seconds

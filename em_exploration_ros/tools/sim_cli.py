@@ -25,7 +25,6 @@ from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.params import (ExplorationParams, PlannerParams,
                                             current_planner_name)
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
-from em_exploration_ros.core.evaluation.map_render import render_team_map
 from em_exploration_ros.core.evaluation.summary import activity_line
 from em_exploration_ros.core.sim.team_runner import Progress, TeamRunner
 
@@ -144,6 +143,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.summary:
         summary.write(args.summary)
     if args.map:
+        # Imported here: matplotlib takes about 0.4 s to load, half of a trial's start-up,
+        # and only a run that draws its map needs it.
+        from em_exploration_ros.core.evaluation.map_render import render_team_map
         render_team_map(runner.map_layers(), args.map)
     say(f"done ({summary.stop_reason}): explored {summary.explored_ratio:.3f}, "
         f"distance {summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, "

@@ -1,7 +1,7 @@
 """Picture of a team's final map: a PNG drawn with matplotlib's Agg backend (no display).
 
-Layers, all in the mission rectangle ``[0, width] x [0, height]`` (the map frame, which is
-the world frame in simulation), metres:
+Layers (:class:`map_layers.TeamMapLayers`), all in the mission rectangle
+``[0, width] x [0, height]`` (the map frame, which is the world frame in simulation), metres:
 
 - the explored area of the team virtual map (explored cells shaded);
 - true landmarks (circles of their radius) and each robot's landmark estimates (crosses);
@@ -16,9 +16,7 @@ the world frame in simulation), metres:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 from matplotlib import colormaps
@@ -29,73 +27,13 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle
 
-from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator
-from em_exploration_ros.core.evaluation.rendezvous_stats import RendezvousOutcome
-from em_exploration_ros.core.evaluation.summary import TARGET_TYPES, TargetEntry
+from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers
+from em_exploration_ros.core.evaluation.summary import TARGET_TYPES
 
 #: Marker of each target type.
 TARGET_MARKERS = {"exploration": "^", "revisiting": "s", "rendezvous": "*"}
 #: Shade of explored cells (RGBA); unexplored cells are left transparent.
 EXPLORED_RGBA = (0.80, 0.90, 0.80, 1.0)
-
-
-@dataclass(frozen=True)
-class UncertaintyEllipses:
-    """Virtual-map cell uncertainty ellipses: ``centres`` (K, 2) [m]; ``axes`` (K, 2) full
-    lengths (major, minor) [m] at a stated sigma scale; ``angles`` (K,) [rad] of the major
-    axis from map x."""
-
-    centres: np.ndarray
-    axes: np.ndarray
-    angles: np.ndarray
-
-    @property
-    def count(self) -> int:
-        """Number of ellipses."""
-        return len(self.centres)
-
-
-@dataclass(frozen=True)
-class TeamMapLayers:
-    """What the picture shows (see the module docstring); robots are keyed by id.
-
-    ``explored``: (rows, cols) boolean mask of the virtual map, row 0 at y = 0, cells of
-    ``cell_size_m``; trajectories: (K, 3) poses (x [m], y [m], theta [rad]); landmark
-    positions: (M, 2) [m].
-    """
-
-    width_m: float
-    height_m: float
-    cell_size_m: float
-    explored: np.ndarray
-    true_landmarks: np.ndarray
-    landmark_radius_m: float
-    true_paths: Mapping[int, np.ndarray] = field(default_factory=dict)
-    estimated_paths: Mapping[int, np.ndarray] = field(default_factory=dict)
-    estimated_landmarks: Mapping[int, np.ndarray] = field(default_factory=dict)
-    targets: Mapping[int, Sequence[TargetEntry]] = field(default_factory=dict)
-    uncertainty_ellipses: Mapping[int, UncertaintyEllipses] = field(default_factory=dict)
-    frontiers: Mapping[int, Sequence[TargetEntry]] = field(default_factory=dict)
-    rendezvous: Sequence[RendezvousOutcome] = ()
-    title: str = ""
-
-
-def evaluation_layers(evaluator: TeamEvaluator, estimated_paths: Mapping[int, np.ndarray],
-                      estimated_landmarks: Mapping[int, np.ndarray],
-                      targets: Mapping[int, Sequence[TargetEntry]],
-                      rendezvous: Sequence[RendezvousOutcome], title: str) -> TeamMapLayers:
-    """The final map of a run watched by ``evaluator``: its world's truth and explored
-    area, with the robots' estimated paths (K, 3) and landmarks (M, 2), chosen targets and
-    requested rendezvous."""
-    world = evaluator.world
-    return TeamMapLayers(
-        width_m=world.width_m, height_m=world.height_m,
-        cell_size_m=evaluator.grid.geometry.cell_size_m,
-        explored=evaluator.grid.explored_mask(), true_landmarks=world.landmarks,
-        landmark_radius_m=world.landmark_radius_m,
-        true_paths={r: evaluator.true_trajectory(r) for r in range(len(world.start_poses))},
-        estimated_paths=dict(estimated_paths), estimated_landmarks=dict(estimated_landmarks),
-        targets=dict(targets), rendezvous=tuple(rendezvous), title=title)
 
 
 def _robot_colour(robot: int) -> tuple[float, float, float, float]:

@@ -29,7 +29,7 @@ from em_exploration_ros.core.agent.link_sender import LinkSender
 from em_exploration_ros.core.agent.team_data import (MissingRange, RendezvousEvent,
                                                      TeamUpdate, TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
-from em_exploration_ros.core.evaluation.map_render import TeamMapLayers, evaluation_layers
+from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, evaluation_layers
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
 from em_exploration_ros.core.evaluation.run_monitor import (METRICS_INTERVAL_STEPS,
                                                             DecisionEntry,
