@@ -133,3 +133,34 @@ def test_a_single_angle_wraps_to_the_same_bits_as_an_array_of_angles() -> None:
     # Within one rounding of (-pi, pi]: the float nearest -3 pi wraps to one ulp above pi.
     assert np.all((as_array > -np.pi) & (as_array <= np.nextafter(np.pi, 4.0)))
     assert wrap_angle(-np.pi) == np.pi and np.shape(wrap_angle(1.0)) == ()
+
+
+def test_single_poses_give_the_same_bits_as_a_batch_of_poses() -> None:
+    """compose, between and compose_jacobians take a Python-float path for one pose
+    pair; it must round exactly like the array path (the agents' decisions depend on it)."""
+    rng = np.random.default_rng(5)
+    a = _random_poses(rng, 3000)
+    b = _random_poses(rng, 3000)
+    a[:10, 2] = [np.pi, -np.pi, 0.0, -0.0, 1e-300, 40.0, -40.0, np.pi / 2, -np.pi / 2, 1e8]
+    composed, relative, (j_a, j_b) = compose(a, b), between(a, b), compose_jacobians(a, b)
+    for index in range(len(a)):
+        np.testing.assert_array_equal(compose(a[index], b[index]), composed[index])
+        np.testing.assert_array_equal(between(a[index], b[index]), relative[index])
+        single_j_a, single_j_b = compose_jacobians(a[index], b[index])
+        np.testing.assert_array_equal(single_j_a, j_a[index])
+        np.testing.assert_array_equal(single_j_b, j_b[index])
+    # Lists and tuples are single poses too.
+    np.testing.assert_array_equal(compose(list(a[0]), tuple(b[0])), composed[0])
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_non_finite_single_pose_gives_nan_like_a_batch_instead_of_raising(bad: float) -> None:
+    pose = np.array([1.0, 2.0, bad])
+    other = np.array([0.5, -0.5, 0.3])
+    with np.errstate(invalid="ignore"):
+        for single, batch in ((compose(pose, other), compose(pose[None], other[None])[0]),
+                              (between(pose, other), between(pose[None], other[None])[0]),
+                              (wrap_angle(bad), wrap_angle(np.array([bad]))[0])):
+            np.testing.assert_array_equal(single, batch)
+        single_j_a, _ = compose_jacobians(pose, other)
+        np.testing.assert_array_equal(single_j_a, compose_jacobians(pose[None], other[None])[0][0])
