@@ -368,6 +368,29 @@ def test_teammate_keyframe_waits_for_its_predecessor_and_duplicates_are_ignored(
     np.testing.assert_allclose(slam.pose(1, 2), poses[(1, 2)], atol=1e-6)
 
 
+def test_trajectories_follow_every_update_and_a_caller_cannot_change_them(
+        noisy_run: TeamRun) -> None:
+    """The poses of the estimate are extracted once per update and shared by every
+    robot's trajectory: a later update must replace them, and writing into a returned
+    trajectory must not reach the next caller."""
+    slam = TeamSlam(0, 3, PARAMS.slam, noisy_run.anchor)
+    half = len(noisy_run.keyframes) // 2
+    _feed(slam, noisy_run.keyframes[:half])
+    for robot in range(3):
+        indices, poses = slam.trajectory(robot)
+        for index, pose in zip(indices, poses):
+            np.testing.assert_array_equal(pose, slam.pose(robot, int(index)))
+        poses[:] = 1e6
+    before = slam.trajectory(0)[1]
+    assert np.all(before < 1e6)
+    _feed(slam, noisy_run.keyframes[half:])
+    indices, poses = slam.trajectory(0)
+    assert len(indices) > len(before)
+    for index, pose in zip(indices, poses):
+        np.testing.assert_array_equal(pose, slam.pose(0, int(index)))
+    assert not np.array_equal(poses[:len(before)], before)  # the old rows were re-estimated
+
+
 def test_unanchored_first_keyframe_and_observation_of_unknown_keyframe_wait() -> None:
     poses = _line_poses(3, 2)
     slam = TeamSlam(2, 3, PARAMS.slam, poses[(0, 0)])

@@ -434,13 +434,16 @@ class TeamSlam:
         self._graph = _TeamGraph(num_robots, self.noise, anchor_pose)
         self._isam = gtsam.ISAM2(_isam_params(slam_params))
         self._estimate = gtsam.Values()
-        #: Landmark positions (L, 2) extracted from ``_estimate``, None until asked for
-        #: after the estimate changed (extracting scans every variable of the graph).
+        #: Landmark positions (L, 2) and the poses of every robot (P, 3) extracted from
+        #: ``_estimate``, None until asked for after the estimate changed (each extraction
+        #: scans every variable of the graph).
         self._landmark_points: np.ndarray | None = None
+        self._pose_rows: np.ndarray | None = None
 
     def _set_estimate(self, estimate: gtsam.Values) -> None:
         self._estimate = estimate
         self._landmark_points = None
+        self._pose_rows = None
 
     # -- input -------------------------------------------------------------------------
 
@@ -530,8 +533,11 @@ class TeamSlam:
         indices = self._graph.indices[robot_id]
         # Values iterate in key order: robot r's poses follow those of robots < r.
         start = sum(len(self._graph.indices[r]) for r in range(robot_id))
-        poses = gtsam.utilities.extractPose2(self._estimate)
-        return np.array(indices, dtype=int), poses[start:start + len(indices)].reshape(-1, 3)
+        if self._pose_rows is None:
+            self._pose_rows = gtsam.utilities.extractPose2(self._estimate).reshape(-1, 3)
+            self._pose_rows.setflags(write=False)
+        poses = self._pose_rows[start:start + len(indices)].copy()
+        return np.array(indices, dtype=int), poses
 
     def landmark_estimates(self) -> dict[int, np.ndarray]:
         """Map-frame position ``(2,)`` [m] of every landmark in the graph, by id."""
