@@ -102,8 +102,8 @@ def between(a: ArrayLike, b: ArrayLike) -> FloatArray:
     if _is_single(a, b):
         (ax, ay, at), (bx, by, bt) = a.tolist(), b.tolist()
         cos_t, sin_t = _cos_sin(at)
-        dx, dy = bx - ax, by - ay
-        return np.array([cos_t * dx - -sin_t * dy, -sin_t * dx + cos_t * dy,
+        neg_sin, dx, dy = -sin_t, bx - ax, by - ay  # as _rotate(cos_t, -sin_t, dx, dy)
+        return np.array([cos_t * dx - neg_sin * dy, neg_sin * dx + cos_t * dy,
                          _wrap_float(bt - at)])
     xy = inverse_transform_points(a, b[..., :2])
     return np.concatenate([xy, wrap_angle(b[..., 2] - a[..., 2])[..., None]], axis=-1)
