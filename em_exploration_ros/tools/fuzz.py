@@ -304,21 +304,22 @@ def main(argv: list[str] | None = None) -> int:
     rclpy.init()
     fuzzer = Fuzzer(tuple(args.nodes), args.seed)
     try:
-        if args.start_file is None:
-            fuzzer.attack(args.duration, args.rate)
-        elif fuzzer.wait_for(args.start_file, args.start_timeout):
-            fuzzer.attack(args.duration, args.rate, settle_s=0.0)
-        else:
-            print(f"em-fuzz: error: {args.start_file} did not appear within "
-                  f"{args.start_timeout:g} s; nothing sent", file=sys.stderr, flush=True)
-            fuzzer.destroy_node()
-            rclpy.try_shutdown()
-            return 1
-    except KeyboardInterrupt:
-        pass
-    report = fuzzer.report(args.duration)
-    fuzzer.destroy_node()
-    rclpy.try_shutdown()
+        try:
+            started = args.start_file is None or fuzzer.wait_for(args.start_file,
+                                                                 args.start_timeout)
+            if started:
+                fuzzer.attack(args.duration, args.rate,
+                              settle_s=GRAPH_SETTLE_S if args.start_file is None else 0.0)
+        except KeyboardInterrupt:
+            started = True  # report what was sent until then
+        report = fuzzer.report(args.duration) if started else None
+    finally:
+        fuzzer.destroy_node()
+        rclpy.try_shutdown()
+    if report is None:
+        print(f"em-fuzz: error: {args.start_file} did not appear within "
+              f"{args.start_timeout:g} s; nothing sent", file=sys.stderr, flush=True)
+        return 1
     text = json.dumps(report, sort_keys=True)
     if args.report:
         args.report.write_text(text + "\n", encoding="utf-8")
