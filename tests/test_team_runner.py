@@ -83,7 +83,9 @@ def test_em_sim_whose_reader_goes_away_still_writes_its_summary(tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["--robots", "0"], "num_robots"), (["--planner", "XX"], "invalid choice"),
-    (["--params", "/nonexistent.yaml"], "cannot read"), (["--map-size", "-5"], "width_m")])
+    (["--params", "/nonexistent.yaml"], "cannot read"), (["--map-size", "-5"], "width_m"),
+    (["--summary", "/nonexistent/s.json"], "--summary /nonexistent/s.json: the folder"),
+    (["--map", "/nonexistent/map.png"], "--map /nonexistent/map.png: the folder")])
 def test_em_sim_refuses_bad_arguments(args, message):
     result = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.sim_cli", *args],
                             capture_output=True, text=True, timeout=60)

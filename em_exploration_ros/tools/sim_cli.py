@@ -120,8 +120,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         params = params_from_args(args, args.seed)
     except (ParamsFileError, ValueError) as error:
         parser.error(str(error))
-    if args.summary is not None:
-        problem = output_path_problem(args.summary, "--summary")
+    for path, option in ((args.summary, "--summary"), (args.map, "--map")):
+        problem = output_path_problem(path, option) if path is not None else None
         if problem:
             parser.error(problem)
     log = logging.getLogger("em-sim")
