@@ -84,12 +84,15 @@ def test_em_sim_whose_reader_goes_away_still_writes_its_summary(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--robots", "0"], "num_robots"), (["--planner", "XX"], "invalid choice"),
     (["--params", "/nonexistent.yaml"], "cannot read"), (["--map-size", "-5"], "width_m"),
-    (["--summary", "/nonexistent/s.json"], "--summary /nonexistent/s.json: the folder"),
-    (["--map", "/nonexistent/map.png"], "--map /nonexistent/map.png: the folder")])
-def test_em_sim_refuses_bad_arguments(args, message):
+    (["--summary", "{absent}/s.json"], "--summary {absent}/s.json: the folder"),
+    (["--map", "{absent}/map.png"], "--map {absent}/map.png: the folder")])
+def test_em_sim_refuses_bad_arguments(args, message, tmp_path):
+    absent = tmp_path / "absent"  # a folder that does not exist
+    args = [arg.format(absent=absent) for arg in args]
     result = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.sim_cli", *args],
                             capture_output=True, text=True, timeout=60)
-    assert result.returncode == 2 and message in result.stderr
+    assert result.returncode == 2 and message.format(absent=absent) in result.stderr
+    assert not absent.exists()
 
 
 def _motors_dead(robot_id: int, linear_x: float, angular_z: float) -> None:
