@@ -469,6 +469,114 @@ def test_accessors_agree_with_each_other_and_with_full_marginals(noisy_run: Team
     np.testing.assert_allclose(virtual, PARAMS.slam.virtual_robot_obs_sigmas)
 
 
+# -- diverging and failing updates ------------------------------------------------------
+
+#: The iSAM2 guard switched off: no update is ever checked.
+UNGUARDED_SLAM = dataclasses.replace(PARAMS.slam, divergence_check_step=1e6)
+
+
+def _loop_closure_keyframes(seed: int) -> list[KeyframeMeasurements]:
+    """One robot drives a 30 m circle in 30 keyframes with loose odometry (0.05 m, 0.1 rad
+    per keyframe) and reads one landmark at its first and last keyframe: a long drift,
+    then a sharp loop closure (the sonar's 1 mm, 4 mrad sigmas)."""
+    rng = np.random.default_rng(seed)
+    angles = np.linspace(0.0, 2.0 * np.pi, 31)
+    truth = np.stack([30.0 * np.sin(angles), 30.0 * (1.0 - np.cos(angles)), angles], axis=1)
+    landmark = np.array([3.0, -2.0])
+    covariance = np.diag([0.05 ** 2, 0.05 ** 2, 0.1 ** 2])
+    sensors = PARAMS.sensors
+    keyframes = []
+    for index, pose in enumerate(truth):
+        first = index == 0
+        reading = ()
+        if index in (0, len(truth) - 1):
+            offset = landmark - pose[:2]
+            reading = (LandmarkReading(0, float(np.hypot(*offset)),
+                                       float(wrap_angle(np.arctan2(offset[1], offset[0])
+                                                        - pose[2])),
+                                       sensors.sonar_range_sigma_m ** 2,
+                                       sensors.sonar_bearing_sigma_rad ** 2),)
+        delta = (np.zeros(3) if first else between(truth[index - 1], pose)
+                 + rng.multivariate_normal(np.zeros(3), covariance))
+        keyframes.append(KeyframeMeasurements(0, index, float(index), first, index - 1, delta,
+                                              np.zeros((3, 3)) if first else covariance,
+                                              reading, ()))
+    return keyframes
+
+
+def test_a_diverging_update_is_resolved_in_batch_and_isam2_restarted() -> None:
+    """Seed 0's loop closure makes iSAM2's Gauss-Newton step diverge (found in a 200 m
+    mission, BSP seed 44, where it ended in an IndeterminateSystemException): the
+    guarded update notices the rise of the error and re-solves the graph in batch."""
+    keyframes = _loop_closure_keyframes(seed=0)
+    unguarded = TeamSlam(0, 1, UNGUARDED_SLAM, np.zeros(3))
+    _feed(unguarded, keyframes)
+    guarded = TeamSlam(0, 1, PARAMS.slam, np.zeros(3))
+    _feed(guarded, keyframes)
+    optimum, landmarks = batch_solve(keyframes, 1, PARAMS.slam, np.zeros(3))
+    optimum_error = guarded.graph().error(_values_of(optimum, landmarks))
+    assert unguarded.graph().error(unguarded.values()) > 1e4 * optimum_error
+    assert not unguarded.recoveries
+    [recovery] = guarded.recoveries
+    assert "raised the error" in recovery.reason and recovery.estimate_size == 32
+    assert recovery.error_after > PARAMS.slam.divergence_error_ratio * recovery.error_before
+    assert recovery.error_resolved == pytest.approx(optimum_error, rel=1e-3)
+    for index in range(31):
+        np.testing.assert_allclose(guarded.pose(0, index), optimum[(0, index)], atol=1e-4)
+    more = _loop_closure_keyframes(seed=0)[-1]  # the restarted iSAM2 takes new keyframes
+    guarded.add_keyframe(dataclasses.replace(more, index=31, previous_index=30))
+    assert guarded.update() == 1 and len(guarded.recoveries) == 1
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_updates_that_do_not_diverge_keep_isam2s_estimate_bit_for_bit(seed: int) -> None:
+    """Loop closures iSAM2 handles (large steps, so the error is checked) are left as
+    they are: same estimate as with the guard off, no recovery."""
+    keyframes = _loop_closure_keyframes(seed)
+    slams = [TeamSlam(0, 1, slam_params, np.zeros(3))
+             for slam_params in (PARAMS.slam, UNGUARDED_SLAM)]
+    for slam in slams:
+        _feed(slam, keyframes)
+    assert not slams[0].recoveries
+    np.testing.assert_array_equal(slams[0].trajectory(0)[1], slams[1].trajectory(0)[1])
+
+
+def test_an_update_that_raises_is_resolved_in_batch(noisy_run: TeamRun) -> None:
+    """iSAM2 raising (as GTSAM's IndeterminateSystemException did at the end of a
+    divergence) does not leave the robot without an estimate."""
+
+    class FailingIsam:
+        def update(self, *args: object) -> None:
+            raise RuntimeError("Indeterminate linear system detected while working\n"
+                               "near variable 7")
+
+    half = len(noisy_run.keyframes) // 2
+    slam = TeamSlam(0, 3, PARAMS.slam, noisy_run.anchor)
+    _feed(slam, noisy_run.keyframes[:half])
+    slam._isam = FailingIsam()
+    slam.add_keyframe(noisy_run.keyframes[half])
+    assert slam.update() == 1
+    [recovery] = slam.recoveries
+    assert recovery.reason == ("Indeterminate linear system detected while working near "
+                               "variable 7")
+    assert math.isnan(recovery.error_after) and recovery.error_resolved <= recovery.error_before
+    _feed(slam, noisy_run.keyframes[half + 1:])
+    optimum, _ = batch_solve(noisy_run.keyframes, 3, PARAMS.slam, noisy_run.anchor)
+    for (robot, index), pose in optimum.items():
+        np.testing.assert_allclose(slam.pose(robot, index), pose, atol=0.05)
+
+
+def _values_of(poses: dict[tuple[int, int], np.ndarray],
+               landmarks: dict[int, np.ndarray]) -> gtsam.Values:
+    """Graph values of keyframe poses and landmark positions (``batch_solve``'s result)."""
+    values = gtsam.Values()
+    for (robot, index), pose in poses.items():
+        values.insert(pose_key(robot, index), gtsam.Pose2(*pose))
+    for landmark_id, point in landmarks.items():
+        values.insert(landmark_key(landmark_id), gtsam.Point2(point))
+    return values
+
+
 def test_invalid_robot_ids_are_rejected() -> None:
     poses = _line_poses(2, 1)
     slam = TeamSlam(0, 2, PARAMS.slam, poses[(0, 0)])

@@ -24,7 +24,7 @@ and in the GTSAM body (tangent) frame with ``frame="body"``.
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Iterable, Literal
 
 import gtsam
@@ -402,6 +402,29 @@ class _Batch:
         return _pose_array(source.atPose2(key))
 
 
+@dataclass(frozen=True)
+class SlamRecovery:
+    """An update whose iSAM2 result failed or diverged and was replaced by a batch re-solve.
+
+    Errors are the graph's total nonlinear error (half the sum of squared whitened
+    residuals): ``error_before`` at the previous estimate with the new variables' initial
+    values, ``error_after`` after the iSAM2 update (NaN when it raised), ``error_resolved``
+    after the re-solve. ``estimate_size`` counts the variables (poses and landmarks).
+    """
+
+    estimate_size: int
+    reason: str
+    error_before: float
+    error_after: float
+    error_resolved: float = float("nan")
+
+    def describe(self) -> str:
+        """One line for a log: why, and the graph's error before and after the re-solve."""
+        return (f"iSAM2 update re-solved in batch ({self.reason}): graph error "
+                f"{self.error_before:.4g} before the update, {self.error_resolved:.4g} after "
+                f"the re-solve, {self.estimate_size} variables")
+
+
 def _isam_params(slam_params: SlamParams) -> gtsam.ISAM2Params:
     """iSAM2 with QR factorization, relinearization checked at every update."""
     params = gtsam.ISAM2Params()
@@ -439,6 +462,8 @@ class TeamSlam:
         #: scans every variable of the graph).
         self._landmark_points: np.ndarray | None = None
         self._pose_rows: np.ndarray | None = None
+        #: Updates whose iSAM2 result was replaced by a batch re-solve, in order.
+        self.recoveries: list[SlamRecovery] = []
 
     def _set_estimate(self, estimate: gtsam.Values) -> None:
         self._estimate = estimate
@@ -457,18 +482,69 @@ class TeamSlam:
 
         One iSAM2 update with the new factors and values, then up to
         ``slam_params.extra_update_iterations`` plain updates while iSAM2 still
-        relinearizes variables.
+        relinearizes variables. iSAM2 takes plain Gauss-Newton steps, and a sharp loop
+        closure after a long drift can send them diverging, with nothing to bring the
+        estimate back. So an update that raises, or that steps more than
+        ``divergence_check_step`` and raises the graph's error (:meth:`_diagnose`), is
+        replaced by a batch Levenberg-Marquardt solve of the whole graph from the previous
+        estimate, iSAM2 restarts from its solution, and :attr:`recoveries` records it.
+        Every other update keeps iSAM2's estimate as it is.
         """
         factors, values, added = self._graph.collect(self._estimate)
         if factors.size() == 0:
             return added
-        result = self._isam.update(factors, values)
-        for _ in range(self.slam_params.extra_update_iterations):
-            if result.getVariablesRelinearized() == 0:
-                break
-            result = self._isam.update()
-        self._set_estimate(self._isam.calculateEstimate())
+        previous = self._estimate
+        try:
+            result = self._isam.update(factors, values)
+            for _ in range(self.slam_params.extra_update_iterations):
+                if result.getVariablesRelinearized() == 0:
+                    break
+                result = self._isam.update()
+            estimate = self._isam.calculateEstimate()
+        except RuntimeError as error:  # e.g. GTSAM's IndeterminateSystemException
+            estimate, failure = None, " ".join(str(error).split())[:160]
+        else:
+            failure = None
+        if failure is not None or self._largest_step() > self.slam_params.divergence_check_step:
+            initial = gtsam.Values(previous)
+            initial.insert(values)
+            recovery = self._diagnose(initial, estimate, failure)
+            if recovery is not None:
+                estimate = self._resolve(initial)
+                self.recoveries.append(replace(
+                    recovery, error_resolved=self._graph.factors.error(estimate)))
+        self._set_estimate(estimate)
         return added
+
+    def _largest_step(self) -> float:
+        """Largest component of iSAM2's last step (m or rad); NaN if it is not finite."""
+        delta = self._isam.getDelta().vector()
+        return float(np.max(np.abs(delta), initial=0.0))
+
+    def _diagnose(self, initial: gtsam.Values, estimate: gtsam.Values | None,
+                  failure: str | None) -> SlamRecovery | None:
+        """What was wrong with an iSAM2 update that raised (``failure``) or took a large
+        step, None if it was fine: a step is wrong when it raised the graph's error from
+        ``initial`` (the previous estimate with the new variables' initial values) more
+        than ``divergence_error_ratio`` times, rises of an error below 1 (a one-sigma
+        residual) aside."""
+        before = self._graph.factors.error(initial)
+        if failure is not None:
+            return SlamRecovery(initial.size(), failure, before, float("nan"))
+        after = self._graph.factors.error(estimate)
+        if after <= self.slam_params.divergence_error_ratio * max(before, 1.0):
+            return None
+        return SlamRecovery(initial.size(), f"a step of {self._largest_step():.3g} raised "
+                            f"the error {after / before:.3g} times", before, after)
+
+    def _resolve(self, initial: gtsam.Values) -> gtsam.Values:
+        """Re-solve the whole graph in batch (Levenberg-Marquardt) from ``initial`` and
+        restart iSAM2 from the solution; returns iSAM2's new estimate."""
+        solution = gtsam.LevenbergMarquardtOptimizer(
+            self._graph.factors, initial, gtsam.LevenbergMarquardtParams()).optimize()
+        self._isam = gtsam.ISAM2(_isam_params(self.slam_params))
+        self._isam.update(self._graph.factors, solution)
+        return self._isam.calculateEstimate()
 
     def converge(self, tolerance: float = 1e-9, max_iterations: int = 50) -> int:
         """Iterate iSAM2 until no variable is relinearized, the largest remaining
