@@ -52,10 +52,11 @@ def test_targets_given_up_count_when_made_before_the_step_where_the_rule_fired()
     monitor.observe(20, metrics(20, 0.803))
     given_up = [GivenUpEntry(float(step), 0.0, step * STEP_S, "blocked") for step in (5, 19, 20)]
     summary = monitor.summary([[], []], wall_s=1.0, progress=[
-        RobotProgressRecord(tuple(given_up), 3.2), RobotProgressRecord((), 0.0)])
+        RobotProgressRecord(tuple(given_up), 3.2, 1), RobotProgressRecord((), 0.0)])
     # the watcher's list may hold targets given up after the stop step (the world went on)
     assert [g.x for g in summary.robots[0].given_up] == [5.0, 19.0]
     assert [r.blocked_s for r in summary.robots] == [3.2, 0.0]
+    assert [r.slam_recoveries for r in summary.robots] == [1, None]  # None: not known
     assert summary.robots[1].given_up == []
     assert check_summary(summary.to_dict()) == []
 

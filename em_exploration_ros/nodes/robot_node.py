@@ -139,6 +139,7 @@ class RobotNode(LeanNode):
         self._served_history: dict[int, float] = {}
         self._last_reply: MotionCommand | None = None
         self.rejected_updates = 0
+        self._slam_recoveries_logged = 0
         self.exit_code = EXIT_OK
         self.done = Future()
         self._scans: dict[int, SonarScan] = {}
@@ -537,6 +538,7 @@ class RobotNode(LeanNode):
                 f"re-sent empty, and the motion since the last keyframe recovered is linked "
                 f"with the odometry covariance of every step since")
         self.agent.resume(history, recovery.needed_sequence, self._next_step)
+        self._log_slam_recoveries()
         keyframes = np.array([keyframe.index for update in history
                               for keyframe in update.keyframes], dtype=int)
         self.get_logger().info(
@@ -651,6 +653,14 @@ class RobotNode(LeanNode):
             self._publish_estimates(stamp_s)
         if len(agent.decisions) != decisions_before:
             self._publish_decision(stamp_s)
+        self._log_slam_recoveries()
+
+    def _log_slam_recoveries(self) -> None:
+        """A warning for every SLAM update re-solved in batch since the last call."""
+        recoveries = self.agent.slam.recoveries
+        for recovery in recoveries[self._slam_recoveries_logged:]:
+            self.get_logger().warning(recovery.describe())
+        self._slam_recoveries_logged = len(recoveries)
 
     def _send_frames(self, step: int, update: TeamUpdate | None) -> None:
         """Relay mode: publish what this robot sends at ``step`` (``LinkSender``, as em-sim):

@@ -152,6 +152,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"landmark RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, "
         f"wall {summary.wall_s:.1f} s, sim {summary.sim_time_s:.1f} s")
     say(activity_line(summary.to_dict()))
+    for agent in runner.agents:
+        for recovery in agent.slam.recoveries:
+            log.warning("robot %d: %s", agent.robot_id, recovery.describe())
     if args.summary:
         say(f"summary: {args.summary}")
     if args.map:

@@ -88,10 +88,12 @@ class DecisionEntry:
 @dataclass(frozen=True)
 class RobotProgressRecord:
     """What a robot knows of its own progress (em-sim reads it from the agents): the
-    targets it gave up and the time [s] its odometry showed it blocked."""
+    targets it gave up, the time [s] its odometry showed it blocked and, when known, how
+    many of its SLAM updates were re-solved in batch (``TeamSlam.recoveries``)."""
 
     given_up: tuple[GivenUpEntry, ...]
     blocked_s: float
+    slam_recoveries: int | None = None
 
 
 class StallWatch:
@@ -220,7 +222,7 @@ class RunMonitor:
         nothing was measured). Events and meetings count when stamped before the final
         evaluation, as decisions do. ``progress`` (indexed by robot id), when the watcher
         knows it, fills each robot's ``given_up`` (those stamped before the final evaluation,
-        as decisions) and ``blocked_s`` (else they stay null)."""
+        as decisions), ``blocked_s`` and ``slam_recoveries`` (else they stay null)."""
         world = self.params.world
         summary = RunSummary(seed=self.params.run.seed, planner=self.params.planner.name,
                              num_robots=world.num_robots,
@@ -240,6 +242,7 @@ class RunMonitor:
         for robot, record in zip(summary.robots, progress or ()):
             robot.given_up = [g for g in record.given_up if g.stamp_s < end_s]
             robot.blocked_s = record.blocked_s
+            robot.slam_recoveries = record.slam_recoveries
         times = [d.planning_time_s for chosen in counted for d in chosen]
         summary.decisions = len(times)
         for chosen in counted:

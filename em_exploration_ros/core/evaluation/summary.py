@@ -8,9 +8,11 @@ Top-level keys (units in the names): ``explored_ratio``, ``distance_m`` (all rob
 (active / finished / lost / rejoined at the end), ``status_changes`` (``status``,
 ``sim_time_s``, ``wall_s``, ``reason``), ``downtime_s`` and ``downtime_wall_s`` (simulated and
 wall seconds lost), ``given_up`` (targets the robot gave up, in order: ``x``, ``y`` [m, map
-frame], ``stamp_s``, ``reason``: blocked / no progress / deadline) and ``blocked_s``
+frame], ``stamp_s``, ``reason``: blocked / no progress / deadline), ``blocked_s``
 (simulation time during which the robot's odometry showed it blocked while it commanded
-forward motion; ``given_up`` and ``blocked_s`` are null where the writer cannot know them)),
+forward motion) and ``slam_recoveries`` (SLAM updates that diverged or failed and were
+re-solved in batch); ``given_up``, ``blocked_s`` and ``slam_recoveries`` are null where the
+writer cannot know them),
 plus ``seed``,
 ``planner``, ``num_robots``, ``map_size_m``, ``num_landmarks``, ``stop_reason`` and
 ``history``: samples of the metrics against distance travelled; ``decisions_by_type``
@@ -72,6 +74,7 @@ class RobotSummary:
     downtime_wall_s: float = 0.0
     given_up: list[GivenUpEntry] | None = None
     blocked_s: float = math.nan
+    slam_recoveries: int | None = None
 
 
 @dataclass

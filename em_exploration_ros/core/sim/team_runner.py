@@ -187,7 +187,8 @@ class TeamRunner:
         decisions = self._decision_entries()
         progress = [RobotProgressRecord(
             tuple(GivenUpEntry(float(g.position[0]), float(g.position[1]), g.stamp_s,
-                               g.reason.value) for g in agent.given_up), agent.blocked_s)
+                               g.reason.value) for g in agent.given_up), agent.blocked_s,
+            len(agent.slam.recoveries))
             for agent in self.agents]
         meetings = sorted((MeetingEntry(agent.robot_id, e.partner_id, e.rendezvous_id,
                                         e.requested_at_s, e.stamp_s, e.trace_before_m2,
