@@ -518,7 +518,8 @@ def test_a_diverging_update_is_resolved_in_batch_and_isam2_restarted() -> None:
     assert unguarded.graph().error(unguarded.values()) > 1e4 * optimum_error
     assert not unguarded.recoveries
     [recovery] = guarded.recoveries
-    assert "raised the error" in recovery.reason and recovery.estimate_size == 32
+    assert recovery.reason.startswith("a step of ") and recovery.estimate_size == 32
+    assert recovery.reason.endswith(f"raised the error to {recovery.error_after:.4g}")
     assert recovery.error_after > PARAMS.slam.divergence_error_ratio * recovery.error_before
     assert recovery.error_resolved == pytest.approx(optimum_error, rel=1e-3)
     for index in range(31):

@@ -535,7 +535,7 @@ class TeamSlam:
         if after <= self.slam_params.divergence_error_ratio * max(before, 1.0):
             return None
         return SlamRecovery(initial.size(), f"a step of {self._largest_step():.3g} raised "
-                            f"the error {after / before:.3g} times", before, after)
+                            f"the error to {after:.4g}", before, after)
 
     def _resolve(self, initial: gtsam.Values) -> gtsam.Values:
         """Re-solve the whole graph in batch (Levenberg-Marquardt) from ``initial`` and
