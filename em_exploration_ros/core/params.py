@@ -158,7 +158,7 @@ class SlamParams:
     divergence_check_step: float = param_field(
         1.0, "An iSAM2 update whose largest step exceeds this (m or rad) is checked: if it "
         "raised the graph's error more than divergence_error_ratio times, the estimate is "
-        "re-solved in batch (Levenberg-Marquardt) and iSAM2 restarted from it.", 0.0, 1e6)
+        "re-solved in batch (Powell's dogleg) and iSAM2 restarted from it.", 0.0, 1e6)
     divergence_error_ratio: float = param_field(
         2.0, "Rise of the graph's total error over one update that counts as a diverging "
         "Gauss-Newton step (ratio of the error after to the error before).", 1.0, 1e6)

@@ -486,7 +486,7 @@ class TeamSlam:
         closure after a long drift can send them diverging, with nothing to bring the
         estimate back. So an update that raises, or that steps more than
         ``divergence_check_step`` and raises the graph's error (:meth:`_diagnose`), is
-        replaced by a batch Levenberg-Marquardt solve of the whole graph from the previous
+        replaced by a batch solve (Powell's dogleg) of the whole graph from the previous
         estimate, iSAM2 restarts from its solution, and :attr:`recoveries` records it.
         Every other update keeps iSAM2's estimate as it is.
         """
@@ -538,10 +538,14 @@ class TeamSlam:
                             f"the error to {after:.4g}", before, after)
 
     def _resolve(self, initial: gtsam.Values) -> gtsam.Values:
-        """Re-solve the whole graph in batch (Levenberg-Marquardt) from ``initial`` and
-        restart iSAM2 from the solution; returns iSAM2's new estimate."""
-        solution = gtsam.LevenbergMarquardtOptimizer(
-            self._graph.factors, initial, gtsam.LevenbergMarquardtParams()).optimize()
+        """Re-solve the whole graph in batch from ``initial`` and restart iSAM2 from the
+        solution; returns iSAM2's new estimate. Powell's dogleg: on the 1492-variable graph
+        of a diverged 200 m mission (CE, seed 19) it converged in 35 iterations (0.6-0.8 s),
+        where GTSAM's default Levenberg-Marquardt stopped at its 100-iteration limit short
+        of the optimum (2.2-3.0 s), and iSAM2's first step from that point raised the error
+        from 272 to 1305."""
+        solution = gtsam.DoglegOptimizer(self._graph.factors, initial,
+                                         gtsam.DoglegParams()).optimize()
         self._isam = gtsam.ISAM2(_isam_params(self.slam_params))
         self._isam.update(self._graph.factors, solution)
         return self._isam.calculateEstimate()
