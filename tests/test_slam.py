@@ -567,6 +567,38 @@ def test_an_update_that_raises_is_resolved_in_batch(noisy_run: TeamRun) -> None:
         np.testing.assert_allclose(slam.pose(robot, index), pose, atol=0.05)
 
 
+def test_an_update_that_gives_nan_is_resolved_in_batch(noisy_run: TeamRun) -> None:
+    """A non-finite step and estimate (what a diverging iSAM2 ends in) count as a
+    divergence, though NaN compares false with every threshold."""
+
+    class NanIsam:
+        def __init__(self, real: gtsam.ISAM2) -> None:
+            self.real = real
+
+        def update(self, *args: object) -> gtsam.ISAM2Result:
+            return self.real.update(*args)
+
+        def calculateEstimate(self) -> gtsam.Values:
+            estimate = gtsam.Values(self.real.calculateEstimate())
+            estimate.update(pose_key(0, 0), gtsam.Pose2(math.nan, math.nan, math.nan))
+            return estimate
+
+        def getDelta(self) -> gtsam.VectorValues:
+            delta = gtsam.VectorValues()
+            delta.insert(pose_key(0, 0), np.full(3, math.nan))
+            return delta
+
+    half = len(noisy_run.keyframes) // 2
+    slam = TeamSlam(0, 3, PARAMS.slam, noisy_run.anchor)
+    _feed(slam, noisy_run.keyframes[:half])
+    slam._isam = NanIsam(slam._isam)
+    slam.add_keyframe(noisy_run.keyframes[half])
+    slam.update()
+    [recovery] = slam.recoveries
+    assert recovery.reason == "a step of nan raised the error to nan"
+    assert np.all(np.isfinite(slam.trajectory(0)[1])) and math.isfinite(recovery.error_resolved)
+
+
 def _values_of(poses: dict[tuple[int, int], np.ndarray],
                landmarks: dict[int, np.ndarray]) -> gtsam.Values:
     """Graph values of keyframe poses and landmark positions (``batch_solve``'s result)."""

@@ -505,7 +505,9 @@ class TeamSlam:
             estimate, failure = None, " ".join(str(error).split())[:160]
         else:
             failure = None
-        if failure is not None or self._largest_step() > self.slam_params.divergence_check_step:
+        # "not <=": a NaN step is checked too
+        if failure is not None or not (self._largest_step()
+                                       <= self.slam_params.divergence_check_step):
             initial = gtsam.Values(previous)
             initial.insert(values)
             recovery = self._diagnose(initial, estimate, failure)
