@@ -85,6 +85,7 @@ def test_summary_json_has_counts_finals_and_paired_differences(bench_out):
         activity = entry["activity"]
         assert sum(activity["decisions_by_type"].values()) > 0
         assert set(activity["rendezvous"]) == {"requested", "met", "timed_out", "open"}
+        assert activity["slam_recoveries"] == 0
         assert len(entry["code_versions"]) == 1
         assert (bad["planners"][planner]["trials_done"],
                 bad["planners"][planner]["trials_failed"]) == (0, 2)
@@ -101,6 +102,7 @@ def test_plots_and_markdown_are_written(bench_out):
     markdown = (bench_out / "results.md").read_text()
     assert "| NEAREST | 2 (0) |" in markdown and "| CE | 2 (0) |" in markdown
     assert "| CE − NEAREST |" in markdown
+    assert "| open | SLAM re-solves |" in markdown
     assert "![40m_cell2m_loc_rmse](40m_cell2m_loc_rmse.png)" in markdown
     assert "NEAREST seed 1: `ValueError" in markdown
 

@@ -60,7 +60,10 @@ def test_summary_counts_types_failures_and_rendezvous_before_the_stop():
     assert activity_line(summary) == (
         "decisions: 2 exploration, 1 revisiting, 1 rendezvous; planner failed 1; "
         "rendezvous: 4 requested, 1 met, 2 timed out, 1 open")
-    totals = activity_totals([summary, summary, {"explored_ratio": 0.9}])
+    summary["robots"][1]["slam_recoveries"] = 2
+    unknown = {"robots": [{"id": 0, "slam_recoveries": None}]}  # run_team.sh cannot know
+    totals = activity_totals([summary, summary, {"explored_ratio": 0.9}, unknown])
+    assert totals["slam_recoveries"] == 4
     assert totals["decisions_by_type"]["exploration"] == 4
     assert totals["rendezvous"]["met"] == 2 and totals["planner_failures"] == 2
     assert totals["meetings"] == 2

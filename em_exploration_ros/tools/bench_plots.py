@@ -116,11 +116,12 @@ def _with_ci(stat: Mapping[str, Any], decimals: int) -> str:
 def _activity_row(planner: str, activity: Mapping[str, Any] | None) -> str:
     """One row of the decisions-and-rendezvous table (n/a for results made before it)."""
     if not activity:
-        return f"| {planner} |" + " n/a |" * 8
+        return f"| {planner} |" + " n/a |" * 9
     kinds, meetings = activity["decisions_by_type"], activity["rendezvous"]
     cells = [kinds.get(k, 0) for k in ("exploration", "revisiting", "rendezvous")]
     cells += [activity["planner_failures"]]
     cells += [meetings[k] for k in ("requested", "met", "timed_out", "open")]
+    cells += [activity.get("slam_recoveries", "n/a")]
     return f"| {planner} | " + " | ".join(str(c) for c in cells) + " |"
 
 
@@ -148,10 +149,12 @@ def results_markdown(summary: Mapping[str, Any], plots: Mapping[str, Sequence[Pa
                 + "".join(f"| {_with_ci(entry['final'][key], digits)} "
                           for key, _, digits in TABLE_COLUMNS)
                 + f"| {'n/a' if wall is None else f'{wall:.1f}'} |")
-        lines += ["", "Decisions and rendezvous, summed over the finished trials:", "",
+        lines += ["", "Decisions, rendezvous and SLAM updates re-solved in batch (every "
+                  "robot's), summed over the finished trials:", "",
                   "| planner | exploration | revisiting | rendezvous | planner failed "
-                  "(nearest frontier) | rendezvous requested | met | timed out | open |",
-                  "|---" * 9 + "|"]
+                  "(nearest frontier) | rendezvous requested | met | timed out | open "
+                  "| SLAM re-solves |",
+                  "|---" * 10 + "|"]
         for name, entry in planners.items():
             lines.append(_activity_row(name, entry.get("activity")))
         versions = "; ".join(f"{name}: {', '.join(entry['code_versions']) or 'n/a'}"

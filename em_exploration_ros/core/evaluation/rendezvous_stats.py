@@ -82,12 +82,13 @@ def activity_totals(summaries: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
     """Sums over run summaries (``RunSummary.to_dict`` data): ``decisions_by_type``,
     ``planner_failures`` and ``rendezvous`` (same keys as in one summary), and ``meetings``
     (how many meetings recorded an inter-robot factor), ``team_updates`` (teammate updates
-    sent, delivered on time / late / never, over the links). Summaries written before these
-    fields existed count as zero."""
+    sent, delivered on time / late / never, over the links) and ``slam_recoveries`` (SLAM
+    updates re-solved in batch, every robot's). Summaries written before these fields
+    existed, and robots whose count is not known (null), count as zero."""
     by_type: dict[str, int] = {}
     team_updates = {"sent": 0, "on_time": 0, "late": 0, "never": 0}
     rendezvous = asdict(RendezvousCounts())
-    failures = meetings = 0
+    failures = meetings = slam_recoveries = 0
     for summary in summaries:
         for kind, count in (summary.get("decisions_by_type") or {}).items():
             by_type[kind] = by_type.get(kind, 0) + int(count)
@@ -96,8 +97,11 @@ def activity_totals(summaries: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
                 rendezvous[key] += int(count)
         failures += int(summary.get("planner_failures") or 0)
         meetings += len(summary.get("meetings") or ())
+        slam_recoveries += sum(int(robot.get("slam_recoveries") or 0)
+                               for robot in summary.get("robots") or ())
         for key, count in (summary.get("team_updates") or {}).items():
             if key in team_updates:
                 team_updates[key] += int(count)
     return {"decisions_by_type": by_type, "planner_failures": failures,
-            "rendezvous": rendezvous, "meetings": meetings, "team_updates": team_updates}
+            "rendezvous": rendezvous, "meetings": meetings, "team_updates": team_updates,
+            "slam_recoveries": slam_recoveries}
