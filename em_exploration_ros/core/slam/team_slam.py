@@ -24,7 +24,8 @@ and in the GTSAM body (tangent) frame with ``frame="body"``.
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass, replace
+import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Iterable, Literal
 
 import gtsam
@@ -416,7 +417,7 @@ class SlamRecovery:
     reason: str
     error_before: float
     error_after: float
-    error_resolved: float = float("nan")
+    error_resolved: float
 
     def describe(self) -> str:
         """One line for a log: why, and the graph's error before and after the re-solve."""
@@ -485,7 +486,7 @@ class TeamSlam:
         relinearizes variables. iSAM2 takes plain Gauss-Newton steps, and a sharp loop
         closure after a long drift can send them diverging, with nothing to bring the
         estimate back. So an update that raises, or that steps more than
-        ``divergence_check_step`` and raises the graph's error (:meth:`_diagnose`), is
+        ``divergence_check_step`` and raises the graph's error (:meth:`_divergence`), is
         replaced by a batch solve (Powell's dogleg) of the whole graph from the previous
         estimate, iSAM2 restarts from its solution, and :attr:`recoveries` records it.
         Every other update keeps iSAM2's estimate as it is.
@@ -505,16 +506,17 @@ class TeamSlam:
             estimate, failure = None, " ".join(str(error).split())[:160]
         else:
             failure = None
-        # "not <=": a NaN step is checked too
-        if failure is not None or not (self._largest_step()
-                                       <= self.slam_params.divergence_check_step):
+        step = math.nan if failure is not None else self._largest_step()
+        if not step <= self.slam_params.divergence_check_step:  # NaN is checked too
             initial = gtsam.Values(previous)
             initial.insert(values)
-            recovery = self._diagnose(initial, estimate, failure)
-            if recovery is not None:
+            before = self._graph.factors.error(initial)
+            after = math.nan if estimate is None else self._graph.factors.error(estimate)
+            reason = failure or self._divergence(step, before, after)
+            if reason is not None:
                 estimate = self._resolve(initial)
-                self.recoveries.append(replace(
-                    recovery, error_resolved=self._graph.factors.error(estimate)))
+                self.recoveries.append(SlamRecovery(initial.size(), reason, before, after,
+                                                    self._graph.factors.error(estimate)))
         self._set_estimate(estimate)
         return added
 
@@ -523,21 +525,14 @@ class TeamSlam:
         delta = self._isam.getDelta().vector()
         return float(np.max(np.abs(delta), initial=0.0))
 
-    def _diagnose(self, initial: gtsam.Values, estimate: gtsam.Values | None,
-                  failure: str | None) -> SlamRecovery | None:
-        """What was wrong with an iSAM2 update that raised (``failure``) or took a large
-        step, None if it was fine: a step is wrong when it raised the graph's error from
-        ``initial`` (the previous estimate with the new variables' initial values) more
-        than ``divergence_error_ratio`` times, rises of an error below 1 (a one-sigma
-        residual) aside."""
-        before = self._graph.factors.error(initial)
-        if failure is not None:
-            return SlamRecovery(initial.size(), failure, before, float("nan"))
-        after = self._graph.factors.error(estimate)
+    def _divergence(self, step: float, before: float, after: float) -> str | None:
+        """Why an update that took a large ``step`` diverged, None if it did not: it did
+        when it raised the graph's error from ``before`` (at the previous estimate with the
+        new variables' initial values) to ``after`` more than ``divergence_error_ratio``
+        times, rises of an error below 1 (a one-sigma residual) aside; a NaN error counts."""
         if after <= self.slam_params.divergence_error_ratio * max(before, 1.0):
             return None
-        return SlamRecovery(initial.size(), f"a step of {self._largest_step():.3g} raised "
-                            f"the error to {after:.4g}", before, after)
+        return f"a step of {step:.3g} raised the error to {after:.4g}"
 
     def _resolve(self, initial: gtsam.Values) -> gtsam.Values:
         """Re-solve the whole graph in batch from ``initial`` and restart iSAM2 from the
