@@ -17,7 +17,8 @@ import gtsam
 from em_exploration_ros.core.planning.em_scenario import (ScenarioBuilder, TeamSnapshot,
                                                           VirtualNoise, graph_with_virtual,
                                                           virtual_waypoints)
-from em_exploration_ros.core.planning.em_step import DecisionFactorization, _backward_scan
+from em_exploration_ros.core.planning.em_step import (DENSE_HUB_MAX_DIM, DecisionFactorization,
+                                                     _backward_scan)
 
 PARAMS = ExplorationParams()
 #: Block-relative agreement required between the fast path and the oracle. Both solve
@@ -150,9 +151,10 @@ def test_rendezvous_candidate_creates_inter_robot_readings(team: dict) -> None:
                                np.diag(1 / np.array(PARAMS.slam.virtual_robot_obs_sigmas)))
 
 
+@pytest.mark.parametrize("dense_hub_max_dim", [DENSE_HUB_MAX_DIM, 0], ids=["hub", "sparse"])
 @pytest.mark.parametrize("with_history,with_predicted", [(True, False), (False, True)])
 def test_fast_path_equals_the_oracle(team: dict, with_history: bool,
-                                     with_predicted: bool) -> None:
+                                     with_predicted: bool, dense_hub_max_dim: int) -> None:
     builder, snapshot = team["builder"], team["snapshot"]
     candidates = [np.array([20.0, 55.0]),            # landmark loop closure
                   team["targets"][1],                 # rendezvous with robot 1
@@ -161,7 +163,8 @@ def test_fast_path_equals_the_oracle(team: dict, with_history: bool,
     scenarios = [builder.build(c) for c in candidates]
     boundary = sorted(set().union(*(s.boundary_keys for s in scenarios)))
     factorization = DecisionFactorization(snapshot, builder.predicted, boundary,
-                                          with_history, with_predicted)
+                                          with_history, with_predicted, dense_hub_max_dim)
+    assert factorization.sparse == (dense_hub_max_dim == 0)
     # All candidates in one batch (paths of different lengths, one of none) and each
     # alone give the oracle's covariances.
     alone = [factorization.propagate(scenario) for scenario in scenarios]
@@ -181,10 +184,13 @@ def test_fast_path_equals_the_oracle(team: dict, with_history: bool,
                                 oracle.predicted_covariances) < ORACLE_TOLERANCE
 
 
-def test_history_marginals_and_cross_covariances_are_blocks_of_the_dense_inverse() -> None:
+@pytest.mark.parametrize("dense_hub_max_dim", [DENSE_HUB_MAX_DIM, 0], ids=["hub", "sparse"])
+def test_history_marginals_and_cross_covariances_are_blocks_of_the_dense_inverse(
+        dense_hub_max_dim: int) -> None:
     """Meetings link alpha's poses through the teammates' eliminated paths, so the history
     splits into chain poses (recursion) and hub poses (dense block); both give the blocks
-    of the inverse of the whole linearized information matrix."""
+    of the inverse of the whole linearized information matrix, and so does the sparse
+    selected inversion that replaces them when the hub is large."""
     trajectories = [straight((10.0, 50.0, 0.0), 25), straight((10.0, 53.0, 0.0), 25),
                     straight((10.0, 47.0, 0.0), 25, turn=-0.02)]
     landmarks = {0: np.array([14.0, 55.0]), 1: np.array([40.0, 58.0])}
@@ -195,7 +201,9 @@ def test_history_marginals_and_cross_covariances_are_blocks_of_the_dense_inverse
                               PARAMS.sensors.sonar_max_range_m)
     scenarios = [builder.build(np.array([20.0, 55.0])), builder.build(np.array([62.0, 30.0]))]
     boundary = sorted(set().union(*(s.boundary_keys for s in scenarios)))
-    factorization = DecisionFactorization(snapshot, builder.predicted, boundary)
+    factorization = DecisionFactorization(snapshot, builder.predicted, boundary,
+                                          dense_hub_max_dim=dense_hub_max_dim)
+    assert factorization.sparse == (dense_hub_max_dim == 0)
     graph, values = graph_with_virtual(snapshot, builder.predicted)
     linear = graph.linearize(values)
     keys = sorted(set(linear.keyVector()))
@@ -216,6 +224,9 @@ def test_history_marginals_and_cross_covariances_are_blocks_of_the_dense_inverse
     assert meeting_poses <= set(snapshot.history_keys) - set(chain)  # hub poses
     assert len(chain) > len(snapshot.history_keys) // 2                # chain poses
     boundary_columns = columns(list(factorization.boundary_keys))
+    expected_boundary = covariance[np.ix_(boundary_columns, boundary_columns)]
+    assert np.linalg.norm(factorization.boundary_covariance - expected_boundary) \
+        < ORACLE_TOLERANCE * np.linalg.norm(expected_boundary)
     for index, key in enumerate(snapshot.history_keys):
         own = columns([key])
         expected = covariance[np.ix_(own, own)]

@@ -17,10 +17,13 @@ pose (through an eliminated teammate path); with them, the landmarks and ``B`` l
 form the hub ``H``. This gives ``P = Sigma_BB`` (from the hub's square-root block
 ``R_HH``), and the tracked poses' marginals ``Sigma_ii`` and cross-covariances
 ``C_i = Sigma_iB`` by one backward recursion along the chain (selected inversion,
-:func:`_chain_selected_inverse`). Per candidate (:meth:`propagate`) only small
-dense algebra remains: the whitened Jacobian ``[J_W J_B]`` of ``X_next``'s measurements
-is QR-factored with alpha's new waypoints ``W`` first, leaving ``R_WW``, ``R_WB`` and the
-square root ``U^T`` of the information added to ``B`` (``Delta = U U^T``). With
+:func:`_chain_selected_inverse`). Many meetings make the hub large and dense; above
+``DENSE_HUB_MAX_DIM`` the same covariances come instead from a selected inversion of the
+whole graph's sparse factorization (:func:`_sparse_selected_inverse`). Per candidate
+(:meth:`propagate`) only small dense algebra remains: the whitened Jacobian ``[J_W J_B]``
+of ``X_next``'s measurements is QR-factored with alpha's new waypoints ``W`` first, leaving
+``R_WW``, ``R_WB`` and the square root ``U^T`` of the information added to ``B``
+(``Delta = U U^T``). With
 ``M = I + U^T P U`` (Woodbury)::
 
     P'         = P - P U M^-1 U^T P
@@ -240,6 +243,13 @@ def _hub_root(conditionals: dict[int, gtsam.GaussianConditional], hub: _KeyLayou
     return root
 
 
+def _covariance_of_root(root: FloatArray) -> FloatArray:
+    """``(R^T R)^-1`` (symmetric) of an upper-triangular square-root information ``R``."""
+    inverse_root = np.linalg.inv(root)
+    covariance = inverse_root @ inverse_root.T
+    return 0.5 * (covariance + covariance.T)
+
+
 def _chain_selected_inverse(chain: Sequence[int],
                             conditionals: dict[int, gtsam.GaussianConditional],
                             hub: _KeyLayout, hub_covariance: FloatArray
@@ -311,6 +321,140 @@ def _backward_scan(gains: FloatArray, terms: FloatArray, sandwich: bool) -> Floa
     return terms
 
 
+#: Hub dimension above which :class:`DecisionFactorization` leaves the chain-and-hub method
+#: for :func:`_sparse_selected_inverse`. The hub is dense: its cost grows with the cube of
+#: its dimension, while the sparse method's grows with the number of variables. Many meetings
+#: make the hub large (on the 200 m map late in a mission it reaches 700-1000); on the
+#: 100 m map it stays far below this.
+DENSE_HUB_MAX_DIM = 400
+
+
+@dataclass(frozen=True)
+class _EliminationTree:
+    """The non-boundary variables of a sequential Bayes net, from the last eliminated to the
+    first, that :func:`_sparse_selected_inverse` visits: the tracked ones and their
+    ancestors. ``parents[j]``: j's parents in its conditional's order; ``outside[j]``: those
+    outside the boundary; ``first_parent[j]``: the first eliminated of them (j's parent in
+    the tree); ``children[j]``: how many visited variables have j as ``first_parent``."""
+
+    visit: list[int]
+    parents: dict[int, list[int]]
+    outside: dict[int, list[int]]
+    first_parent: dict[int, int]
+    children: dict[int, int]
+
+    @classmethod
+    def build(cls, order: Sequence[int], conditionals: dict[int, gtsam.GaussianConditional],
+              boundary: set[int], tracked: set[int]) -> "_EliminationTree":
+        position = {key: index for index, key in enumerate(order)}
+        parents = {key: list(conditionals[key].keys())[1:] for key in order}
+        outside = {key: [p for p in parents[key] if p not in boundary] for key in order}
+        first_parent = {key: min(outside[key], key=position.__getitem__)
+                        for key in order if outside[key]}
+        needed: set[int] = set()
+        for key in order:  # children before parents
+            if key in tracked or key in needed:
+                needed.add(key)
+                if key in first_parent:
+                    needed.add(first_parent[key])
+        children: dict[int, int] = {}
+        for key in needed:
+            if key in first_parent:
+                children[first_parent[key]] = children.get(first_parent[key], 0) + 1
+        visit = [key for key in reversed(order) if key in needed]
+        return cls(visit, parents, outside, first_parent, children)
+
+
+def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Sequence[int],
+                             boundary_keys: Sequence[int]
+                             ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``Sigma_BB`` (|B|, |B|), ``Sigma_ii`` (T, 3, 3) and ``Sigma_iB`` (T, 3, |B|) of the
+    tracked poses ``i``, by selected inversion of the whole graph's sparse factorization.
+
+    The graph is eliminated in COLAMD order with the boundary last. Variable j's conditional
+    ``R_j x_j + S_j x_Pj = d`` gives, with ``G_j = R_j^-1 S_j`` and any set X of variables
+    eliminated after j (Takahashi's recurrence, exact for the linear system)::
+
+        Sigma_jX = -G_j Sigma_Pj,X,      Sigma_jj = R_j^-1 R_j^-T - Sigma_j,Pj G_j^T
+
+    It runs from the last variable to the first (:class:`_EliminationTree`) with
+    ``X = U_j + B``, ``U_j`` the parents outside the boundary. In the filled graph ``U_j``
+    minus its first-eliminated member u lies in u's own ``U_u``, so ``Sigma`` over
+    ``U_j + B`` is a block of the matrix kept for u; each matrix is dropped once its last
+    child has used it.
+    """
+    boundary_set = set(boundary_keys)
+    ordering = gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(
+        linear, gtsam.KeyVector(list(boundary_keys)), True)
+    bayes_net = _retry_if_indeterminate(
+        lambda: linear.eliminateSequential(ordering),
+        lambda: linear.eliminateSequential(ordering, gtsam.EliminateQR))
+    conditionals = _conditionals_by_key(bayes_net)
+    boundary = _KeyLayout(boundary_keys)
+    boundary_covariance = _covariance_of_root(_hub_root(conditionals, boundary))
+    boundary_offsets = dict(zip(boundary.keys.tolist(), boundary.offsets.tolist()))
+    order = [key for key in (ordering.at(i) for i in range(ordering.size()))
+             if key not in boundary_set]
+    tracked = set(tracked_keys)
+    tree = _EliminationTree.build(order, conditionals, boundary_set, tracked)
+
+    # kept[u]: (offset of u and of each of U_u in the matrix, Sigma over u, U_u and B)
+    kept: dict[int, tuple[dict[int, int], FloatArray]] = {}
+    marginals: dict[int, FloatArray] = {}
+    cross: dict[int, FloatArray] = {}
+    for key in tree.visit:
+        offsets: dict[int, int] = {}  # of U_j and B in sigma_x
+        dim = 0  # of U_j
+        if key in tree.first_parent:
+            parent = tree.first_parent[key]
+            parent_offsets, parent_sigma = kept[parent]
+            rows = []
+            for other in tree.outside[key]:
+                start = parent_offsets[other]
+                rows.append(np.arange(start, start + _key_dim(other)))
+                offsets[other] = dim
+                dim += _key_dim(other)
+            rows.append(np.arange(len(parent_sigma) - boundary.dim, len(parent_sigma)))
+            rows_array = np.concatenate(rows)
+            sigma_x = parent_sigma[np.ix_(rows_array, rows_array)]
+            tree.children[parent] -= 1
+            if not tree.children[parent]:
+                del kept[parent]
+        else:
+            sigma_x = boundary_covariance
+        for other, start in boundary_offsets.items():
+            offsets[other] = dim + start
+        parent_columns = np.array([column for p in tree.parents[key]
+                                   for column in range(offsets[p], offsets[p] + _key_dim(p))],
+                                  dtype=np.int64)
+        conditional = conditionals[key]
+        inverse_r = np.linalg.inv(conditional.R())
+        gain = inverse_r @ conditional.S()
+        sigma_jx = -gain @ sigma_x[parent_columns]
+        sigma_jj = inverse_r @ inverse_r.T - sigma_jx[:, parent_columns] @ gain.T
+        sigma_jj = 0.5 * (sigma_jj + sigma_jj.T)
+        if key in tracked:
+            marginals[key] = sigma_jj
+            cross[key] = sigma_jx[:, dim:]
+        if tree.children.get(key):
+            size = len(sigma_jj)
+            matrix = np.empty((size + len(sigma_x), size + len(sigma_x)))
+            matrix[:size, :size] = sigma_jj
+            matrix[:size, size:] = sigma_jx
+            matrix[size:, :size] = sigma_jx.T
+            matrix[size:, size:] = sigma_x
+            kept[key] = ({key: 0, **{other: size + offsets[other]
+                                     for other in tree.outside[key]}}, matrix)
+    for key in tracked & boundary_set:  # tracked poses that the candidates touch as well
+        start = boundary_offsets[key]
+        marginals[key] = boundary_covariance[start:start + 3, start:start + 3]
+        cross[key] = boundary_covariance[start:start + 3]
+    count = len(tracked_keys)
+    return (boundary_covariance,
+            np.array([marginals[k] for k in tracked_keys]).reshape(count, 3, 3),
+            np.array([cross[k] for k in tracked_keys]).reshape(count, 3, boundary.dim))
+
+
 class DecisionFactorization:
     """Once per decision: the team graph plus the teammates' predicted paths (shared by
     every candidate), linearized at the current estimate and factored once.
@@ -322,11 +466,15 @@ class DecisionFactorization:
             the scenarios' ``boundary_keys``).
         with_history: keep alpha's history marginals and cross-covariances (EM's U_M).
         with_predicted: keep those of the predicted waypoints (BSP).
+        dense_hub_max_dim: largest hub (dimension) handled densely; above it the covariances
+            come from :func:`_sparse_selected_inverse` of the whole graph (the same values to
+            round-off, in less time for a large hub).
     """
 
     def __init__(self, snapshot: TeamSnapshot, predicted: VirtualFactors,
                  boundary_keys: Sequence[int], with_history: bool = True,
-                 with_predicted: bool = False) -> None:
+                 with_predicted: bool = False,
+                 dense_hub_max_dim: int = DENSE_HUB_MAX_DIM) -> None:
         self.predicted_keys = tuple(int(k) for k in predicted.waypoint_keys)
         self.boundary_keys = tuple(int(k) for k in boundary_keys)
         dims = [_key_dim(k) for k in self.boundary_keys]
@@ -338,13 +486,20 @@ class DecisionFactorization:
             list(self.predicted_keys) if with_predicted else [])
         self.tracked_keys = tuple(tracked)
         graph, values = graph_with_virtual(snapshot, predicted)
-        reduced = self._marginalize_untracked(graph.linearize(values))
+        linear = graph.linearize(values)
+        reduced = self._marginalize_untracked(linear)
         chain = self._chain_keys(reduced)
         chain_set = set(chain)
         boundary = set(self.boundary_keys)
         hub_keys = sorted(k for k in set(reduced.keyVector())
                           if k not in chain_set and k not in boundary) + list(self.boundary_keys)
         hub = _KeyLayout(hub_keys)
+        #: Whether the covariances came from :func:`_sparse_selected_inverse` (a large hub).
+        self.sparse = hub.dim > dense_hub_max_dim
+        if self.sparse:
+            self.boundary_covariance, self.tracked_covariances, self.tracked_cross = \
+                _sparse_selected_inverse(linear, self.tracked_keys, self.boundary_keys)
+            return
         ordering = gtsam.Ordering()
         for key in chain + hub_keys:
             ordering.push_back(key)
@@ -352,9 +507,7 @@ class DecisionFactorization:
             lambda: reduced.eliminateSequential(ordering),
             lambda: reduced.eliminateSequential(ordering, gtsam.EliminateQR))
         conditionals = _conditionals_by_key(bayes_net)
-        inverse_root = np.linalg.inv(_hub_root(conditionals, hub))
-        hub_covariance = inverse_root @ inverse_root.T
-        hub_covariance = 0.5 * (hub_covariance + hub_covariance.T)
+        hub_covariance = _covariance_of_root(_hub_root(conditionals, hub))
         boundary_columns = np.arange(hub.dim - self.boundary_dim, hub.dim)
         #: ``P = Sigma_BB`` (|B|, |B|).
         self.boundary_covariance = hub_covariance[np.ix_(boundary_columns, boundary_columns)]
