@@ -400,33 +400,33 @@ def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Se
 
     # kept[u]: (offset of u and of each of U_u in the matrix, Sigma over u, U_u and B)
     kept: dict[int, tuple[dict[int, int], FloatArray]] = {}
+    children_left = dict(tree.children)
     marginals: dict[int, FloatArray] = {}
     cross: dict[int, FloatArray] = {}
     for key in tree.visit:
-        offsets: dict[int, int] = {}  # of U_j and B in sigma_x
-        dim = 0  # of U_j
-        if key in tree.first_parent:
+        outside = tree.outside[key]
+        outside_dims = _key_dims(outside)
+        outside_dim = int(outside_dims.sum())
+        # offsets of U_j and B in sigma_x, Sigma over U_j + B
+        offsets = dict(zip(outside, (np.cumsum(outside_dims) - outside_dims).tolist()))
+        if outside:
             parent = tree.first_parent[key]
             parent_offsets, parent_sigma = kept[parent]
-            rows = []
-            for other in tree.outside[key]:
-                start = parent_offsets[other]
-                rows.append(np.arange(start, start + _key_dim(other)))
-                offsets[other] = dim
-                dim += _key_dim(other)
-            rows.append(np.arange(len(parent_sigma) - boundary.dim, len(parent_sigma)))
-            rows_array = np.concatenate(rows)
-            sigma_x = parent_sigma[np.ix_(rows_array, rows_array)]
-            tree.children[parent] -= 1
-            if not tree.children[parent]:
+            rows = np.concatenate([
+                _expand_columns(np.array([parent_offsets[other] for other in outside]),
+                                outside_dims),
+                np.arange(len(parent_sigma) - boundary.dim, len(parent_sigma))])
+            sigma_x = parent_sigma[np.ix_(rows, rows)]
+            children_left[parent] -= 1
+            if not children_left[parent]:
                 del kept[parent]
         else:
             sigma_x = boundary_covariance
         for other, start in boundary_offsets.items():
-            offsets[other] = dim + start
-        parent_columns = np.array([column for p in tree.parents[key]
-                                   for column in range(offsets[p], offsets[p] + _key_dim(p))],
-                                  dtype=np.int64)
+            offsets[other] = outside_dim + start
+        parents = tree.parents[key]
+        parent_columns = _expand_columns(np.array([offsets[p] for p in parents], dtype=np.int64),
+                                         _key_dims(parents))
         conditional = conditionals[key]
         inverse_r = np.linalg.inv(conditional.R())
         gain = inverse_r @ conditional.S()
@@ -435,7 +435,7 @@ def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Se
         sigma_jj = 0.5 * (sigma_jj + sigma_jj.T)
         if key in tracked:
             marginals[key] = sigma_jj
-            cross[key] = sigma_jx[:, dim:]
+            cross[key] = sigma_jx[:, outside_dim:]
         if tree.children.get(key):
             size = len(sigma_jj)
             matrix = np.empty((size + len(sigma_x), size + len(sigma_x)))
@@ -443,8 +443,8 @@ def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Se
             matrix[:size, size:] = sigma_jx
             matrix[size:, :size] = sigma_jx.T
             matrix[size:, size:] = sigma_x
-            kept[key] = ({key: 0, **{other: size + offsets[other]
-                                     for other in tree.outside[key]}}, matrix)
+            kept[key] = ({key: 0, **{other: size + offsets[other] for other in outside}},
+                         matrix)
     for key in tracked & boundary_set:  # tracked poses that the candidates touch as well
         start = boundary_offsets[key]
         marginals[key] = boundary_covariance[start:start + 3, start:start + 3]
