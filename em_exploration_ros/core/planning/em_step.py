@@ -39,7 +39,7 @@ from __future__ import annotations
 import itertools
 import logging
 from dataclasses import dataclass
-from typing import Callable, Sequence, TypeVar
+from typing import Callable, Iterable, Sequence, TypeVar
 
 import gtsam
 import numpy as np
@@ -210,6 +210,12 @@ def _expand_columns(first: IntArray, dims: IntArray) -> IntArray:
     """``first[i], first[i] + 1, ..., first[i] + dims[i] - 1`` for every i, concatenated."""
     total = int(dims.sum())
     return np.repeat(first, dims) + np.arange(total) - np.repeat(np.cumsum(dims) - dims, dims)
+
+
+def _index_ranges(blocks: Iterable[tuple[int, int]]) -> list[int]:
+    """``start, start + 1, ..., start + dim - 1`` of every ``(start, dim)``, concatenated:
+    :func:`_expand_columns` for a few blocks, in plain Python."""
+    return [index for start, dim in blocks for index in range(start, start + dim)]
 
 
 def _conditionals_by_key(bayes_net: gtsam.GaussianBayesNet) -> dict[int, gtsam.GaussianConditional]:
@@ -398,6 +404,11 @@ def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Se
     tracked = set(tracked_keys)
     tree = _EliminationTree.build(order, conditionals, boundary_set, tracked)
 
+    # The loop visits up to a few thousand variables per decision, each with a handful of
+    # parents: its index bookkeeping is plain Python (NumPy's per-call cost on arrays of
+    # a few elements was most of the loop's time).
+    dim_of = dict(zip(order + list(boundary_keys), _key_dims(order + list(boundary_keys))
+                      .tolist()))
     # kept[u]: (offset of u and of each of U_u in the matrix, Sigma over u, U_u and B)
     kept: dict[int, tuple[dict[int, int], FloatArray]] = {}
     children_left = dict(tree.children)
@@ -405,18 +416,19 @@ def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Se
     cross: dict[int, FloatArray] = {}
     for key in tree.visit:
         outside = tree.outside[key]
-        outside_dims = _key_dims(outside)
-        outside_dim = int(outside_dims.sum())
-        # offsets of U_j and B in sigma_x, Sigma over U_j + B
-        offsets = dict(zip(outside, (np.cumsum(outside_dims) - outside_dims).tolist()))
+        offsets: dict[int, int] = {}  # of U_j and B in sigma_x, Sigma over U_j + B
+        outside_dim = 0
+        for other in outside:
+            offsets[other] = outside_dim
+            outside_dim += dim_of[other]
         if outside:
             parent = tree.first_parent[key]
             parent_offsets, parent_sigma = kept[parent]
-            rows = np.concatenate([
-                _expand_columns(np.array([parent_offsets[other] for other in outside]),
-                                outside_dims),
-                np.arange(len(parent_sigma) - boundary.dim, len(parent_sigma))])
-            sigma_x = parent_sigma[np.ix_(rows, rows)]
+            size = len(parent_sigma)
+            rows = np.array(_index_ranges((parent_offsets[other], dim_of[other])
+                                          for other in outside)
+                            + list(range(size - boundary.dim, size)))
+            sigma_x = parent_sigma[rows[:, None], rows]
             children_left[parent] -= 1
             if not children_left[parent]:
                 del kept[parent]
@@ -424,9 +436,8 @@ def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Se
             sigma_x = boundary_covariance
         for other, start in boundary_offsets.items():
             offsets[other] = outside_dim + start
-        parents = tree.parents[key]
-        parent_columns = _expand_columns(np.array([offsets[p] for p in parents], dtype=np.int64),
-                                         _key_dims(parents))
+        parent_columns = np.array(_index_ranges((offsets[p], dim_of[p])
+                                                for p in tree.parents[key]))
         conditional = conditionals[key]
         inverse_r = np.linalg.inv(conditional.R())
         gain = inverse_r @ conditional.S()
