@@ -28,11 +28,22 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def bench_out(tmp_path_factory) -> Path:
+def bench_run(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     out = tmp_path_factory.mktemp("bench")
     result = run_cli(*SHORT_RUN, *GOOD_AND_BAD, "--out", str(out))
     assert result.returncode == 0, result.stderr
-    return out
+    return out, result
+
+
+@pytest.fixture(scope="module")
+def bench_out(bench_run) -> Path:
+    return bench_run[0]
+
+
+def test_trials_from_the_fork_server_print_no_warning(bench_run):
+    """Each trial re-runs the main module (here ``python -m ...bench``); the fork server
+    must not have imported it already, or every trial warns that it was."""
+    assert "Warning" not in bench_run[1].stderr, bench_run[1].stderr
 
 
 def test_every_trial_has_a_record(bench_out):

@@ -341,11 +341,19 @@ def trial_context() -> multiprocessing.context.BaseContext:
     (NumPy, GTSAM, the simulation and the planners: about 0.5 s of CPU) once, so that each
     trial, still a process of its own, starts from a fork of it instead of importing them
     again; set up after the single-thread environment, which the server and every trial
-    then share."""
+    then share.
+
+    The server imports the modules of this package that this process has imported, by
+    name. Each trial then runs the main module again (as multiprocessing does); under
+    ``python -m`` that is this module, which this process imported as ``__main__`` only, so
+    it is not among them (were it preloaded, every trial would warn that runpy found it
+    imported already).
+    """
     for name in _SINGLE_THREAD_ENV:
         os.environ.setdefault(name, "1")
     context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(["em_exploration_ros.tools.bench"])
+    context.set_forkserver_preload(sorted(
+        name for name in sys.modules if name.startswith("em_exploration_ros.")))
     return context
 
 
