@@ -18,7 +18,7 @@ from em_exploration_ros.core.planning.em_scenario import (ScenarioBuilder, TeamS
                                                           VirtualNoise, graph_with_virtual,
                                                           virtual_waypoints)
 from em_exploration_ros.core.planning.em_step import (DENSE_HUB_MAX_DIM, DecisionFactorization,
-                                                     _backward_scan)
+                                                     _backward_scan, _sparse_selected_inverse)
 
 PARAMS = ExplorationParams()
 #: Block-relative agreement required between the fast path and the oracle. Both solve
@@ -343,3 +343,32 @@ def test_scenarios_built_together_equal_scenarios_built_alone_and_the_definition
         readings = scenario.next.robot_observations
         assert list(zip(readings.key1.tolist(), readings.key2.tolist())) == expected
     assert len(together[2].next.robot_observations.key1) > 0  # passes the idle robot 3
+
+
+def test_sparse_selected_inverse_of_a_pose_without_parents() -> None:
+    """A tracked pose whose part of the graph never reaches the boundary is eliminated
+    without parents: its marginal is its own, its cross-covariance with the boundary zero,
+    as in the dense inverse."""
+    rng = np.random.default_rng(3)
+    alone, anchor, linked = pose_key(0, 0), pose_key(1, 0), pose_key(1, 1)
+    unit = gtsam.noiseModel.Unit.Create(3)
+
+    def block() -> np.ndarray:
+        return np.eye(3) + 0.3 * rng.standard_normal((3, 3))
+
+    linear = gtsam.GaussianFactorGraph()
+    linear.add(gtsam.JacobianFactor(alone, block(), np.zeros(3), unit))
+    linear.add(gtsam.JacobianFactor(anchor, block(), np.zeros(3), unit))
+    linear.add(gtsam.JacobianFactor(anchor, block(), linked, block(), np.zeros(3), unit))
+    boundary_covariance, marginals, cross = _sparse_selected_inverse(
+        linear, [alone, linked], [anchor])
+    keys = [alone, anchor, linked]
+    ordering = gtsam.Ordering()
+    for key in keys:
+        ordering.push_back(key)
+    covariance = np.linalg.inv(linear.hessian(ordering)[0])
+    np.testing.assert_allclose(boundary_covariance, covariance[3:6, 3:6], rtol=1e-10)
+    np.testing.assert_allclose(marginals[0], covariance[0:3, 0:3], rtol=1e-10)
+    np.testing.assert_allclose(marginals[1], covariance[6:9, 6:9], rtol=1e-10)
+    np.testing.assert_array_equal(cross[0], np.zeros((3, 3)))
+    np.testing.assert_allclose(cross[1], covariance[6:9, 3:6], rtol=1e-10, atol=1e-12)

@@ -427,7 +427,7 @@ def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Se
             size = len(parent_sigma)
             rows = np.array(_index_ranges((parent_offsets[other], dim_of[other])
                                           for other in outside)
-                            + list(range(size - boundary.dim, size)))
+                            + list(range(size - boundary.dim, size)), dtype=np.int64)
             sigma_x = parent_sigma[rows[:, None], rows]
             children_left[parent] -= 1
             if not children_left[parent]:
@@ -437,7 +437,7 @@ def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Se
         for other, start in boundary_offsets.items():
             offsets[other] = outside_dim + start
         parent_columns = np.array(_index_ranges((offsets[p], dim_of[p])
-                                                for p in tree.parents[key]))
+                                                for p in tree.parents[key]), dtype=np.int64)
         conditional = conditionals[key]
         inverse_r = np.linalg.inv(conditional.R())
         gain = inverse_r @ conditional.S()
