@@ -407,8 +407,8 @@ def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Se
     # The loop visits up to a few thousand variables per decision, each with a handful of
     # parents: its index bookkeeping is plain Python (NumPy's per-call cost on arrays of
     # a few elements was most of the loop's time).
-    dim_of = dict(zip(order + list(boundary_keys), _key_dims(order + list(boundary_keys))
-                      .tolist()))
+    all_keys = order + list(boundary_keys)
+    dim_of = dict(zip(all_keys, _key_dims(all_keys).tolist()))
     # kept[u]: (offset of u and of each of U_u in the matrix, Sigma over u, U_u and B)
     kept: dict[int, tuple[dict[int, int], FloatArray]] = {}
     children_left = dict(tree.children)
@@ -424,10 +424,11 @@ def _sparse_selected_inverse(linear: gtsam.GaussianFactorGraph, tracked_keys: Se
         if outside:
             parent = tree.first_parent[key]
             parent_offsets, parent_sigma = kept[parent]
-            size = len(parent_sigma)
+            parent_size = len(parent_sigma)
             rows = np.array(_index_ranges((parent_offsets[other], dim_of[other])
                                           for other in outside)
-                            + list(range(size - boundary.dim, size)), dtype=np.int64)
+                            + list(range(parent_size - boundary.dim, parent_size)),
+                            dtype=np.int64)
             sigma_x = parent_sigma[rows[:, None], rows]
             children_left[parent] -= 1
             if not children_left[parent]:
