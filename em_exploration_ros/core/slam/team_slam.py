@@ -521,7 +521,8 @@ class TeamSlam:
         return added
 
     def _largest_step(self) -> float:
-        """Largest component of iSAM2's last step (m or rad); NaN if it is not finite."""
+        """Largest absolute component of iSAM2's last step (m or rad); infinite or NaN
+        when the step is."""
         delta = self._isam.getDelta().vector()
         return float(np.max(np.abs(delta), initial=0.0))
 
@@ -562,7 +563,7 @@ class TeamSlam:
         while iterations < max_iterations and self._isam.size() > 0:
             result = self._isam.update()
             iterations += 1
-            largest_step = float(np.max(np.abs(self._isam.getDelta().vector()), initial=0.0))
+            largest_step = self._largest_step()
             if (result.getVariablesRelinearized() == 0 or largest_step < tolerance
                     or largest_step >= previous_step):
                 break
