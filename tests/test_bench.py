@@ -1,6 +1,7 @@
 """Tests of em-bench: a short planner comparison through the real CLI, resuming, re-plotting,
 failed trials, and the progress/ETA bookkeeping."""
 import csv
+import dataclasses
 import io
 import json
 import subprocess
@@ -179,6 +180,9 @@ def test_worker_that_dies_without_a_record_is_recorded_as_failed(tmp_path):
     record = bench.record_after_exit(spec, -9, 12.5)
     assert record["status"] == "failed" and "code -9" in record["error"]
     assert bench.read_record(spec.path) == record
+    spec = dataclasses.replace(spec, path=tmp_path / "seed_4.json", seed=4)
+    lost = bench.record_after_exit(spec, bench.FORK_SERVER_LOST_EXIT_CODE, 3.0)
+    assert "code 255" in lost["error"] and "fork server" in lost["error"]
 
 
 def test_progress_reports_each_trial_and_estimates_time_left(tmp_path):

@@ -62,6 +62,9 @@ TTY_REFRESH_S = 1.0
 #: A failed trial's error is summarized in at most this many characters (the record also
 #: keeps the traceback).
 ERROR_CHARS = 200
+#: The exit code multiprocessing reports for a trial when it cannot learn the real one
+#: because the fork server that started the trial died.
+FORK_SERVER_LOST_EXIT_CODE = 255
 #: Math libraries in the workers use one thread each: --jobs sets the parallelism.
 _SINGLE_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -392,8 +395,10 @@ def record_after_exit(spec: TrialSpec, exitcode: int | None, wall_s: float) -> d
     """The record a finished worker wrote, or a failed record if it wrote none."""
     record = read_record(spec.path)
     if record is None:
-        record = failed_record(
-            spec, f"worker process exited with code {exitcode} without a result", wall_s)
+        error = f"worker process exited with code {exitcode} without a result"
+        if exitcode == FORK_SERVER_LOST_EXIT_CODE:
+            error += " (or the fork server it came from died)"
+        record = failed_record(spec, error, wall_s)
         write_json(spec.path, record)
     return record
 
