@@ -4,6 +4,8 @@ import csv
 import dataclasses
 import io
 import json
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.tools import bench, bench_plots
+from em_exploration_ros.tools import bench, bench_plots, math_platform
 
 REPO = Path(__file__).resolve().parents[1]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -23,9 +25,10 @@ GOOD = ["--map-size", "40", "--cell-size", "2"]
 GOOD_AND_BAD = ["--map-size", "40", "12", "--cell-size", "2", "2"]
 
 
-def run_cli(*args: str) -> subprocess.CompletedProcess:
+def run_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.bench", *args],
-                          cwd=REPO, capture_output=True, text=True, timeout=300, check=False)
+                          cwd=REPO, capture_output=True, text=True, timeout=300, check=False,
+                          env=env)
 
 
 @pytest.fixture(scope="module")
@@ -136,6 +139,42 @@ def test_rerun_skips_finished_trials_and_plot_remakes_outputs(bench_out):
     assert result.returncode == 0, result.stderr
     assert len(list(bench_out.glob("40m_cell2m_*.png"))) == 3
     assert "| CE | 2 (0) |" in (bench_out / "results.md").read_text()
+
+
+def test_records_name_the_numerical_kernels_they_ran_on(bench_out):
+    here = math_platform.describe()
+    for planner in ("NEAREST", "CE"):
+        record = json.loads((bench_out / "trials/40m_cell2m" / planner / "seed_1.json")
+                            .read_text())
+        assert record["math_platform"] == here
+    summary = json.loads((bench_out / "summary.json").read_text())
+    for entry in summary["settings"]["40m_cell2m"]["planners"].values():
+        assert entry["math_platforms"] == [here]
+    assert summary["settings"]["12m_cell2m"]["planners"]["CE"]["math_platforms"] == []
+    assert bench.mixed_provenance(summary) == []
+    assert f"Their numerical kernels: {here}." in (bench_out / "results.md").read_text()
+
+
+def test_a_trial_rerun_on_other_kernels_is_flagged(bench_out, tmp_path):
+    """A resumed run (or a cluster) whose trials ran on other SIMD kernels: every record
+    keeps its own, and em-bench warns that the setting mixes them."""
+    out = tmp_path / "out"
+    shutil.copytree(bench_out, out)
+    (out / "trials/40m_cell2m/CE/seed_0.json").unlink()
+    result = run_cli(*SHORT_RUN, *GOOD, "--out", str(out),
+                     env={**os.environ, "OPENBLAS_CORETYPE": "Haswell"})
+    assert result.returncode == 0, result.stderr
+    assert "4 trials: 3 finished earlier, 1 to run" in result.stderr
+    rerun = json.loads((out / "trials/40m_cell2m/CE/seed_0.json").read_text())
+    assert rerun["status"] == "done"
+    assert rerun["math_platform"].endswith("; OPENBLAS_CORETYPE=Haswell")
+    assert "OpenBLAS core Haswell" in rerun["math_platform"]
+    summary = json.loads((out / "summary.json").read_text())
+    planners = summary["settings"]["40m_cell2m"]["planners"]
+    assert planners["CE"]["math_platforms"] == sorted([math_platform.describe(),
+                                                       rerun["math_platform"]])
+    assert planners["NEAREST"]["math_platforms"] == [math_platform.describe()]
+    assert "40m_cell2m: the finished trials ran on 2 sets of numerical kernels" in result.stderr
 
 
 def test_rerun_with_other_parameters_is_refused(bench_out):

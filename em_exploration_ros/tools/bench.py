@@ -7,7 +7,8 @@ and noise draws under every planner (paired comparison). Results are kept per tr
 they finish, so a rerun with the same arguments only runs what is missing (failed trials
 are retried). Layout of ``--out``::
 
-    trials/<setting>/<planner>/seed_<n>.json   one record per trial (status, params, summary)
+    trials/<setting>/<planner>/seed_<n>.json   one record per trial (status, params, summary,
+                                               code version, numerical kernels)
     results.csv       one row per trial and metrics sample (the curves against distance)
     summary.json      per setting and planner: trials done/failed, final values with 95% CI
     <setting>_<metric>.png, results.md          see bench_plots.py
@@ -44,7 +45,7 @@ from em_exploration_ros.core.params_yaml import ParamsFileError
 from em_exploration_ros.core.sim.team_runner import TeamRunner
 from em_exploration_ros.core.evaluation.rendezvous_stats import activity_totals
 from em_exploration_ros.core.evaluation.trial_stats import mean_ci, paired_difference
-from em_exploration_ros.tools import bench_plots
+from em_exploration_ros.tools import bench_plots, math_platform
 from em_exploration_ros.tools.latency_bench import LATENCY_HELP, add_latency_arguments
 from em_exploration_ros.tools.sim_cli import (PLANNER_NAMES, PLANNER_TYPE, add_run_arguments,
                                               params_from_args)
@@ -189,9 +190,11 @@ def _base_record(spec: TrialSpec) -> dict[str, Any]:
 
 
 def trial_record(spec: TrialSpec) -> dict[str, Any]:
-    """Run one trial; its record (status done or failed, wall time)."""
+    """Run one trial; its record (status done or failed, wall time, and the numerical
+    kernels of the process that ran it: ``math_platform.describe``)."""
     started = time.perf_counter()
     record = _base_record(spec)
+    record["math_platform"] = math_platform.describe()
     try:
         summary = TeamRunner(spec.params).run()
         record.update(status="done", summary=summary.to_dict())
@@ -493,17 +496,39 @@ def _planner_summary(records: Sequence[dict[str, Any]], finals: dict[int, dict[s
         "wall_s_mean": sum(walls) / len(walls) if walls else None,
         "code_versions": sorted({r.get("code_version", "unknown") for r in records
                                  if r["status"] == "done"}),
+        "math_platforms": sorted({r.get("math_platform", "unknown") for r in records
+                                  if r["status"] == "done"}),
         "failures": [{"seed": r["seed"], "error": r["error"]}
                      for r in records if r["status"] != "done"],
     }
 
 
+def mixed_provenance(summary: dict[str, Any]) -> list[str]:
+    """One line per map setting whose finished trials ran more than one code version, or
+    on more than one set of numerical kernels (``math_platform``): their values, and the
+    paired differences between planners, may then differ for that reason alone."""
+    lines = []
+    for setting, info in summary["settings"].items():
+        for field, what in (("code_versions", "code versions"),
+                            ("math_platforms", "sets of numerical kernels")):
+            values = sorted({value for entry in info["planners"].values()
+                             for value in entry.get(field, [])})
+            if len(values) > 1:
+                lines.append(f"{setting}: the finished trials ran on {len(values)} {what} "
+                             f"({' | '.join(values)}); their results may differ for that "
+                             f"reason alone")
+    return lines
+
+
 def write_outputs(out_dir: Path, last_invocation: dict[str, Any]) -> None:
-    """results.csv and summary.json from the trial records, then the plots and results.md."""
+    """results.csv and summary.json from the trial records, then the plots and results.md;
+    a warning for each setting of mixed provenance (``mixed_provenance``)."""
     records = load_records(out_dir)
     rows = write_results_csv(records, out_dir / "results.csv")
-    write_json(out_dir / "summary.json",
-                {**summarize(records), "last_invocation": last_invocation})
+    summary = summarize(records)
+    write_json(out_dir / "summary.json", {**summary, "last_invocation": last_invocation})
+    for line in mixed_provenance(summary):
+        _LOG.warning(line)
     made = bench_plots.make_all(out_dir)
     _LOG.info("wrote %s (%d rows), %s, results.md and %d plots", out_dir / "results.csv",
               rows, out_dir / "summary.json", len(made))

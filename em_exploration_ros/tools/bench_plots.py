@@ -159,9 +159,12 @@ def results_markdown(summary: Mapping[str, Any], plots: Mapping[str, Sequence[Pa
             lines.append(_activity_row(name, entry.get("activity")))
         versions = "; ".join(f"{name}: {', '.join(entry['code_versions']) or 'n/a'}"
                              for name, entry in planners.items())
+        platforms = sorted({platform for entry in planners.values()
+                            for platform in entry.get("math_platforms", [])})
         lines += ["", f"Reached target: trials that ended at explored ratio "
                   f"{info['until_explored']:g}. Code version (git describe) of the finished "
-                  f"trials: {versions}.", ""]
+                  f"trials: {versions}. Their numerical kernels: "
+                  f"{' | '.join(platforms) or 'n/a'}.", ""]
         if info["paired_differences"]:
             metrics = list(dict.fromkeys(d["metric"] for d in info["paired_differences"]))
             lines += ["Paired differences A − B of the final values over common seeds "
