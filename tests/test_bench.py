@@ -177,6 +177,80 @@ def test_a_trial_rerun_on_other_kernels_is_flagged(bench_out, tmp_path):
     assert "40m_cell2m: the finished trials ran on 2 sets of numerical kernels" in result.stderr
 
 
+def test_unusable_records_are_reported_and_run_again(bench_out, tmp_path):
+    out = tmp_path / "out"
+    shutil.copytree(bench_out, out)
+    trials = out / "trials/40m_cell2m"
+    (trials / "NEAREST/seed_0.json").write_bytes(b"\x89 not JSON")
+    edited = json.loads((trials / "CE/seed_1.json").read_text())
+    del edited["summary"]["history"]
+    (trials / "CE/seed_1.json").write_text(json.dumps(edited))
+    result = run_cli(*SHORT_RUN, *GOOD, "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    assert "NEAREST/seed_0.json is not a usable trial record: unreadable" in result.stderr
+    assert ("CE/seed_1.json is not a usable trial record: its history is not a list of "
+            "samples") in result.stderr
+    assert "4 trials: 2 finished earlier, 2 to run" in result.stderr
+    for path in (trials / "NEAREST/seed_0.json", trials / "CE/seed_1.json"):
+        record = json.loads(path.read_text())
+        assert record["status"] == "done" and bench.record_problem(record) is None
+
+
+def _break(record: dict, path: str, value: object) -> dict:
+    """``record`` with the item at ``path`` (keys joined by '/') set to ``value``, or
+    removed when ``value`` is ``KeyError``."""
+    *parents, last = path.split("/")
+    container = record
+    for key in parents:
+        container = container[int(key)] if isinstance(container, list) else container[key]
+    if value is KeyError:
+        del container[last]
+    else:
+        container[last] = value
+    return record
+
+
+@pytest.mark.parametrize("path, value, problem", [
+    ("status", "running", "its status is neither done nor failed"),
+    ("seed", "0", "no seed"),
+    ("params/run", KeyError, "its params lack world, map or run"),
+    ("summary/distance_m", "far", "its summary lacks a final value"),
+    ("summary/loc_rmse_m", True, "its summary lacks a final value"),
+    ("summary/history/0/explored_ratio", KeyError, "its history is not a list of samples"),
+])
+def test_record_problems_are_named(bench_out, path, value, problem):
+    record = json.loads((bench_out / "trials/40m_cell2m/CE/seed_0.json").read_text())
+    assert bench.record_problem(record) is None
+    assert bench.record_problem(_break(record, path, value)) == problem
+    failed = json.loads((bench_out / "trials/12m_cell2m/CE/seed_0.json").read_text())
+    assert bench.record_problem(failed) is None
+    assert bench.record_problem(_break(failed, "error", KeyError)) == (
+        "a failed trial without its error")
+
+
+def test_an_out_folder_that_cannot_be_made_is_refused_before_any_trial(tmp_path):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    below = a_file / "below"
+    for out, message in ((a_file, f"--out {a_file} is not a folder"),
+                         (below, f"--out {below}: cannot create the folder (Not a directory)")):
+        result = run_cli(*SHORT_RUN, *GOOD, "--out", str(out))
+        assert result.returncode == 2 and message in result.stderr, result.stderr
+        assert "trials:" not in result.stderr and "Traceback" not in result.stderr
+
+
+def test_plot_refuses_results_it_did_not_write(bench_out, tmp_path):
+    out = tmp_path / "out"
+    shutil.copytree(bench_out, out)
+    for summary in ("{}", "not JSON", '{"settings": {"x": 1}}'):
+        (out / "summary.json").write_text(summary)
+        result = run_cli("plot", "--out", str(out))
+        assert result.returncode == 2, result.stderr
+        assert f"cannot make the plots from {out}: its summary.json or results.csv is not as" \
+            in result.stderr
+        assert "Traceback" not in result.stderr
+
+
 def test_rerun_with_other_parameters_is_refused(bench_out):
     result = run_cli(*SHORT_RUN, *GOOD, "--robots", "2", "--out", str(bench_out))
     assert result.returncode == 2
@@ -189,6 +263,8 @@ def test_bad_arguments_are_rejected(tmp_path):
     assert result.returncode == 2 and "one value per map size" in result.stderr
     result = run_cli("planners", "--planners", "XX", "--out", str(tmp_path))
     assert result.returncode == 2 and "invalid choice" in result.stderr
+    result = run_cli("planners", "--trials", "0", "--out", str(tmp_path))
+    assert result.returncode == 2 and "--trials must be at least 1, got 0" in result.stderr
 
 
 def test_trial_specs_follow_the_paper_defaults(tmp_path):

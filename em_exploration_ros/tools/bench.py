@@ -40,6 +40,7 @@ from multiprocessing.connection import wait
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence, TextIO
 
+from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import ParamsFileError
 from em_exploration_ros.core.sim.team_runner import TeamRunner
@@ -158,6 +159,8 @@ def _seeds(args: argparse.Namespace) -> list[int]:
             raise ValueError("--seeds replaces --trials and --seed-start")
         return list(dict.fromkeys(args.seeds))
     trials = 20 if args.trials is None else args.trials
+    if trials < 1:
+        raise ValueError(f"--trials must be at least 1, got {trials}")
     start = 0 if args.seed_start is None else args.seed_start
     return list(range(start, start + trials))
 
@@ -168,12 +171,53 @@ def params_record(params: ExplorationParams) -> dict[str, Any]:
 
 
 def read_record(path: Path) -> dict[str, Any] | None:
-    """A trial record, or None if missing or unreadable (e.g. cut short by a crash)."""
+    """A trial record, or None if missing, unreadable or not of a record's shape
+    (``record_problem``); a file that is there but unusable is logged, and its trial runs
+    again."""
     try:
         record = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except FileNotFoundError:
         return None
-    return record if isinstance(record, dict) and "status" in record else None
+    except (OSError, ValueError) as error:
+        problem = f"unreadable ({describe_error(error)})"
+    else:
+        problem = record_problem(record)
+    if problem is not None:
+        _LOG.warning("%s is not a usable trial record: %s", path, problem)
+        return None
+    return record
+
+
+def record_problem(record: Any) -> str | None:
+    """Why ``record`` is not what ``trial_record`` or ``failed_record`` writes, or None: it
+    needs its setting, planner, seed, parameters and status, and a finished trial its final
+    values and history samples (numbers or null), which the summary and results.csv use."""
+    if not isinstance(record, dict):
+        return "not a JSON object"
+    for key, kind in (("setting", str), ("planner", str), ("seed", int), ("params", dict)):
+        if not isinstance(record.get(key), kind):
+            return f"no {key}"
+    if not all(isinstance(record["params"].get(part), dict) for part in ("world", "map", "run")):
+        return "its params lack world, map or run"
+    if record.get("status") == "failed":
+        return None if isinstance(record.get("error"), str) else "a failed trial without its error"
+    if record.get("status") != "done":
+        return "its status is neither done nor failed"
+    summary = record.get("summary")
+    if not isinstance(summary, dict) or not _numbers_or_null(summary, FINAL_METRICS):
+        return "its summary lacks a final value"
+    history = summary.get("history")
+    if not isinstance(history, list) or not all(
+            isinstance(sample, dict) and _numbers_or_null(sample, bench_plots.CSV_COLUMNS[3:])
+            for sample in history):
+        return "its history is not a list of samples"
+    return None
+
+
+def _numbers_or_null(data: dict[str, Any], keys: Iterable[str]) -> bool:
+    return all(key in data and (data[key] is None or (isinstance(data[key], (int, float))
+                                                      and not isinstance(data[key], bool)))
+               for key in keys)
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
@@ -537,6 +581,7 @@ def write_outputs(out_dir: Path, last_invocation: dict[str, Any]) -> None:
 def command_planners(args: argparse.Namespace) -> int:
     """``em-bench planners``: run what is missing, then write all outputs."""
     out_dir: Path = args.out
+    prepare_out_dir(out_dir)
     if args.dask:
         from em_exploration_ros.tools import bench_dask  # only with --dask: slow import
         bench_dask.parse_address(args.dask)
@@ -562,9 +607,30 @@ def command_planners(args: argparse.Namespace) -> int:
     return 0
 
 
+def prepare_out_dir(out_dir: Path) -> None:
+    """Create ``--out`` (with its parents) and check that it takes files, before any trial
+    runs; ValueError saying why not."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"--out {out_dir} is not a folder")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ValueError(f"--out {out_dir}: cannot create the folder ({error.strerror})"
+                         ) from None
+    problem = output_path_problem(out_dir / "summary.json", "--out")
+    if problem is not None:
+        raise ValueError(problem)
+
+
 def command_plot(args: argparse.Namespace) -> int:
-    """``em-bench plot``: plots and results.md from saved results."""
-    made = bench_plots.make_all(args.out)
+    """``em-bench plot``: plots and results.md from saved results (ValueError if they are
+    not as em-bench writes them)."""
+    try:
+        made = bench_plots.make_all(args.out)
+    except (KeyError, TypeError, IndexError, AttributeError, ValueError) as error:
+        raise ValueError(f"cannot make the plots from {args.out}: its summary.json or "
+                         f"results.csv is not as em-bench writes it "
+                         f"({describe_error(error)})") from None
     _LOG.info("wrote %s and %d plots", args.out / "results.md", len(made))
     return 0
 
