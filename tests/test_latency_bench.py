@@ -25,3 +25,17 @@ def test_latency_table_is_printed_with_oracle_agreement_and_fits():
     assert "authors: a = 0.057 s, b = 2.7e-4 s" in lines[5]
     assert lines[6].split()[0] == "EM_3:" and "of the authors' slope" in lines[6]
     assert lines[7].split()[0] == "CE:"
+
+
+def test_arguments_that_give_no_measurement_are_refused_before_anything_runs():
+    for arguments, message in ((["--sizes", "250", "0"], "--sizes: every graph needs at least "
+                                "one pose per robot (3), got 0"),
+                               (["--repeats", "0"], "--repeats must be at least 1, got 0"),
+                               (["--seed", "-1"], "--seed must not be negative, got -1"),
+                               (["--approximate", "nan"], "history_change_tolerance must be "
+                                "finite")):
+        result = subprocess.run(
+            [sys.executable, "-m", "em_exploration_ros.tools.bench", "latency", *arguments],
+            capture_output=True, text=True, timeout=60)
+        assert result.returncode == 2 and message in result.stderr, result.stderr
+        assert result.stdout == ""  # refused before the table's header

@@ -189,8 +189,22 @@ def add_latency_arguments(latency: argparse.ArgumentParser) -> None:
     latency.set_defaults(handler=command_latency)
 
 
+def check_latency_arguments(args: argparse.Namespace) -> None:
+    """ValueError naming the first argument of ``latency`` that cannot give a measurement,
+    before anything is built."""
+    if min(args.sizes) < NUM_ROBOTS:
+        raise ValueError(f"--sizes: every graph needs at least one pose per robot "
+                         f"({NUM_ROBOTS}), got {min(args.sizes)}")
+    if args.repeats < 1:
+        raise ValueError(f"--repeats must be at least 1, got {args.repeats}")
+    if args.seed < 0:
+        raise ValueError(f"--seed must not be negative, got {args.seed}")
+    PARAMS.replace(planner={"history_change_tolerance": args.approximate})
+
+
 def command_latency(args: argparse.Namespace) -> int:
     """Print the latency table (one row per graph size), then the per-candidate fits."""
+    check_latency_arguments(args)
     print(f"machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs, Python {platform.python_version()}, "
           f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}, "
