@@ -177,6 +177,16 @@ def test_a_trial_rerun_on_other_kernels_is_flagged(bench_out, tmp_path):
     assert "40m_cell2m: the finished trials ran on 2 sets of numerical kernels" in result.stderr
 
 
+def test_a_setting_that_mixes_code_versions_is_named(bench_out):
+    summary = json.loads((bench_out / "summary.json").read_text())
+    entry = summary["settings"]["40m_cell2m"]["planners"]["CE"]
+    here = entry["code_versions"][0]
+    entry["code_versions"] = versions = sorted([here, "0123abc"])
+    assert bench.mixed_provenance(summary) == [
+        f"40m_cell2m: the finished trials ran 2 code versions ({versions[0]} | {versions[1]});"
+        " their results may differ for that reason alone"]
+
+
 def test_unusable_records_are_reported_and_run_again(bench_out, tmp_path):
     out = tmp_path / "out"
     shutil.copytree(bench_out, out)

@@ -553,12 +553,12 @@ def mixed_provenance(summary: dict[str, Any]) -> list[str]:
     paired differences between planners, may then differ for that reason alone."""
     lines = []
     for setting, info in summary["settings"].items():
-        for field, what in (("code_versions", "code versions"),
-                            ("math_platforms", "sets of numerical kernels")):
+        for field, what in (("code_versions", "ran {} code versions"),
+                            ("math_platforms", "ran on {} sets of numerical kernels")):
             values = sorted({value for entry in info["planners"].values()
                              for value in entry.get(field, [])})
             if len(values) > 1:
-                lines.append(f"{setting}: the finished trials ran on {len(values)} {what} "
+                lines.append(f"{setting}: the finished trials {what.format(len(values))} "
                              f"({' | '.join(values)}); their results may differ for that "
                              f"reason alone")
     return lines
