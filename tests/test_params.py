@@ -76,6 +76,13 @@ def test_bad_files_give_clear_errors(tmp_path, text, message):
         load_params(path)
 
 
+def test_a_binary_file_is_a_clear_error(tmp_path):
+    path = tmp_path / "binary.yaml"
+    path.write_bytes(b"/**:\n\xe9\x00\xff")
+    with pytest.raises(ParamsFileError, match=r"binary.yaml is not UTF-8 text \(byte 5: "):
+        load_params(path)
+
+
 def test_missing_file_is_a_clear_error(tmp_path):
     with pytest.raises(ParamsFileError, match="cannot read"):
         load_params(tmp_path / "absent.yaml")

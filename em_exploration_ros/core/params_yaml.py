@@ -45,6 +45,9 @@ def load_params(path: str | Path, base: ExplorationParams | None = None) -> Expl
         text = file_path.read_text(encoding="utf-8")
     except OSError as error:
         raise ParamsFileError(f"cannot read parameter file {file_path}: {error.strerror}") from None
+    except UnicodeDecodeError as error:
+        raise ParamsFileError(f"{file_path} is not UTF-8 text (byte {error.start}: "
+                              f"{error.reason})") from None
     try:
         document = yaml.safe_load(text)
     except yaml.YAMLError as error:
