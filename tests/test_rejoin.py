@@ -15,7 +15,7 @@ from em_exploration_ros.core.sim.sensors import odometry_covariance_per_step
 from em_exploration_ros.core.sim.team_runner import TeamRunner, step_input
 
 PARAMS = ExplorationParams().replace(
-    planner={"name": "NF"}, world={"width_m": 50.0, "height_m": 50.0, "num_landmarks": 5},
+    planner={"name": "NEAREST"}, world={"width_m": 50.0, "height_m": 50.0, "num_landmarks": 5},
     run={"seed": 3, "max_steps": 1500})
 
 
