@@ -555,8 +555,7 @@ def mixed_provenance(summary: dict[str, Any]) -> list[str]:
     for setting, info in summary["settings"].items():
         for field, what in (("code_versions", "ran {} code versions"),
                             ("math_platforms", "ran on {} sets of numerical kernels")):
-            values = sorted({value for entry in info["planners"].values()
-                             for value in entry.get(field, [])})
+            values = bench_plots.setting_values(info, field)
             if len(values) > 1:
                 lines.append(f"{setting}: the finished trials {what.format(len(values))} "
                              f"({' | '.join(values)}); their results may differ for that "

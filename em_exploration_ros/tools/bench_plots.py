@@ -159,8 +159,7 @@ def results_markdown(summary: Mapping[str, Any], plots: Mapping[str, Sequence[Pa
             lines.append(_activity_row(name, entry.get("activity")))
         versions = "; ".join(f"{name}: {', '.join(entry['code_versions']) or 'n/a'}"
                              for name, entry in planners.items())
-        platforms = sorted({platform for entry in planners.values()
-                            for platform in entry.get("math_platforms", [])})
+        platforms = setting_values(info, "math_platforms")
         lines += ["", f"Reached target: trials that ended at explored ratio "
                   f"{info['until_explored']:g}. Code version (git describe) of the finished "
                   f"trials: {versions}. Their numerical kernels: "
@@ -186,6 +185,13 @@ def results_markdown(summary: Mapping[str, Any], plots: Mapping[str, Sequence[Pa
         lines += [f"![{path.stem}]({path.name})" for path in plots.get(setting, ())]
         lines.append("")
     return "\n".join(lines)
+
+
+def setting_values(info: Mapping[str, Any], field: str) -> list[str]:
+    """The distinct values, sorted, of a per-planner list ``field`` of one setting's
+    summary (``code_versions``, ``math_platforms``) over all its planners."""
+    return sorted({value for entry in info["planners"].values()
+                   for value in entry.get(field, [])})
 
 
 def make_all(out_dir: Path) -> list[Path]:
