@@ -252,12 +252,24 @@ def test_an_out_folder_that_cannot_be_made_is_refused_before_any_trial(tmp_path)
 def test_plot_refuses_results_it_did_not_write(bench_out, tmp_path):
     out = tmp_path / "out"
     shutil.copytree(bench_out, out)
-    for summary in ("{}", "not JSON", '{"settings": {"x": 1}}'):
-        (out / "summary.json").write_text(summary)
+    rows = (bench_out / "results.csv").read_text().splitlines()
+    cases = [("{}", None, "summary.json: no settings"),
+             ("not JSON", None, "Expecting value"),
+             ('{"settings": {"x": 1}}', None, "setting x: not an object"),
+             (None, rows[:2] + [rows[2] + ",7"], "results.csv: line 3 has 9 values, not 8"),
+             (None, rows[:2] + [rows[2].replace("CE", "CE,x", 1)[:-2]], "results.csv: line 3"),
+             (None, [], "results.csv: header [] is not")]
+    for summary, csv_lines, problem in cases:
+        shutil.copy(bench_out / "summary.json", out / "summary.json")
+        shutil.copy(bench_out / "results.csv", out / "results.csv")
+        if summary is not None:
+            (out / "summary.json").write_text(summary)
+        if csv_lines is not None:
+            (out / "results.csv").write_text("\n".join(csv_lines) + "\n")
         result = run_cli("plot", "--out", str(out))
         assert result.returncode == 2, result.stderr
         assert f"cannot make the plots from {out}: its summary.json or results.csv is not as" \
-            in result.stderr
+            in result.stderr and problem in result.stderr, result.stderr
         assert "Traceback" not in result.stderr
 
 
@@ -284,6 +296,61 @@ def test_trial_specs_follow_the_paper_defaults(tmp_path):
     specs = bench.trial_specs(args, tmp_path)
     assert len(specs) == 2 * 3 * len(bench.PAPER_PLANNERS)
     assert {s.setting for s in specs} == {"100m_cell2m", "200m_cell4m"}
+def _mutations(data, path=()):
+    """Every copy of ``data`` with one part of it removed or of another type: (path, copy)."""
+    if isinstance(data, dict):
+        children = list(data.items())
+    elif isinstance(data, list):
+        children = list(enumerate(data))
+    else:
+        return
+    for key, value in children:
+        for replacement in ("removed", "x", None, [], {}, 1.5, True, [None]):
+            copy = json.loads(json.dumps(data))
+            if replacement == "removed":
+                del copy[key]
+            else:
+                copy[key] = replacement
+            yield (*path, key, replacement), copy
+        for sub_path, sub_copy in _mutations(value, (*path, key)):
+            copy = json.loads(json.dumps(data))
+            copy[key] = sub_copy
+            yield sub_path, copy
+
+
+def test_the_summary_check_covers_what_results_md_reads(bench_out):
+    """For every part of a real summary.json removed or given another type, either
+    ``summary_problem`` names a problem, or results.md is made from it without an error:
+    what the check lets through never breaks the report."""
+    summary = json.loads((bench_out / "summary.json").read_text())
+    assert bench_plots.summary_problem(summary) is None
+    refused = made = 0
+    for path, mutated in _mutations(summary):
+        if bench_plots.summary_problem(mutated) is not None:
+            refused += 1
+            continue
+        try:
+            bench_plots.results_markdown(mutated, {})
+        except Exception as error:  # noqa: BLE001 - reported with the mutation that did it
+            pytest.fail(f"{path}: passed the check, then {error!r}")
+        made += 1
+    assert refused > 100 and made > 100, (refused, made)
+
+
+def test_plot_does_not_pass_a_bug_off_as_bad_input(bench_out, tmp_path, monkeypatch):
+    """Only what bench_plots names as not as em-bench writes it is reported as bad input;
+    an error of the plotting code itself is raised as it is."""
+    out = tmp_path / "out"
+    shutil.copytree(bench_out, out)
+
+    def broken_plot(*args, **kwargs):
+        raise KeyError("a bug")
+
+    monkeypatch.setattr(bench_plots, "plot_metric", broken_plot)
+    with pytest.raises(KeyError, match="a bug"):
+        bench.command_plot(bench.build_parser().parse_args(["plot", "--out", str(out)]))
+
+
     assert {s.seed for s in specs} == {5, 6, 7}
     first = specs[0].params
     assert first.map.cell_size_m == 2.0 and first.run.max_distance_m == 1400.0

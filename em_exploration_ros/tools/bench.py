@@ -626,10 +626,12 @@ def command_plot(args: argparse.Namespace) -> int:
     not as em-bench writes them)."""
     try:
         made = bench_plots.make_all(args.out)
-    except (KeyError, TypeError, IndexError, AttributeError, ValueError) as error:
+    except ValueError as error:  # bench_plots names what in which file is not as it writes
         raise ValueError(f"cannot make the plots from {args.out}: its summary.json or "
-                         f"results.csv is not as em-bench writes it "
-                         f"({describe_error(error)})") from None
+                         f"results.csv is not as em-bench writes it ({error})") from None
+    except OSError as error:
+        raise ValueError(f"cannot make the plots from {args.out}: {describe_error(error)}"
+                         ) from None
     _LOG.info("wrote %s and %d plots", args.out / "results.md", len(made))
     return 0
 

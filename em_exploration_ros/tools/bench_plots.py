@@ -59,8 +59,14 @@ def read_curves(csv_path: Path) -> dict[str, dict[str, list[TrialCurve]]]:
         if header is None or tuple(header) != CSV_COLUMNS:
             raise ValueError(f"{csv_path}: header {header} is not {list(CSV_COLUMNS)}")
         for row in reader:
-            columns[row[0], row[1], int(row[2])].append(
-                [float(value) if value else np.nan for value in row[3:]])
+            if len(row) != len(CSV_COLUMNS):
+                raise ValueError(f"{csv_path}: line {reader.line_num} has {len(row)} values, "
+                                 f"not {len(CSV_COLUMNS)}")
+            try:
+                columns[row[0], row[1], int(row[2])].append(
+                    [float(value) if value else np.nan for value in row[3:]])
+            except ValueError as error:
+                raise ValueError(f"{csv_path}: line {reader.line_num}: {error}") from None
     curves: dict[str, dict[str, list[TrialCurve]]] = defaultdict(lambda: defaultdict(list))
     for (setting, planner, seed), rows in sorted(columns.items()):
         table = np.asarray(rows, dtype=float)
@@ -194,12 +200,111 @@ def setting_values(info: Mapping[str, Any], field: str) -> list[str]:
                    for value in entry.get(field, [])})
 
 
+def summary_problem(summary: Any) -> str | None:
+    """What in ``summary`` (summary.json's data) is not as bench.summarize writes it and
+    :func:`results_markdown` reads it, or None. Fields added to the summary over time
+    (``activity``, ``math_platforms``) may be missing; ``code_versions`` may not."""
+    if not isinstance(summary, dict) or not isinstance(summary.get("settings"), dict):
+        return "no settings"
+    for setting, info in summary["settings"].items():
+        problem = _setting_problem(info)
+        if problem is not None:
+            return f"setting {setting}: {problem}"
+    return None
+
+
+def _setting_problem(info: Any) -> str | None:
+    if not isinstance(info, dict):
+        return "not an object"
+    size = info.get("map_size_m")
+    if not (isinstance(size, list) and len(size) == 2 and all(_is_number(v) for v in size)):
+        return "map_size_m is not two numbers"
+    for key in ("cell_size_m", "until_explored", "num_robots", "num_landmarks"):
+        if not _is_number(info.get(key)):
+            return f"{key} is not a number"
+    if not isinstance(info.get("planners"), dict):
+        return "no planners"
+    for name, entry in info["planners"].items():
+        problem = _planner_problem(entry)
+        if problem is not None:
+            return f"planner {name}: {problem}"
+    return _paired_problem(info.get("paired_differences"))
+
+
+def _planner_problem(entry: Any) -> str | None:
+    if not isinstance(entry, dict):
+        return "not an object"
+    for key in ("trials_done", "trials_failed", "reached_explored_target"):
+        if not _is_number(entry.get(key)):
+            return f"{key} is not a number"
+    if "wall_s_mean" not in entry or not (entry["wall_s_mean"] is None
+                                          or _is_number(entry["wall_s_mean"])):
+        return "wall_s_mean is not a number or null"
+    final = entry.get("final")
+    if not isinstance(final, dict) or not all(_is_mean_ci(final.get(key))
+                                              for key, _, _ in TABLE_COLUMNS):
+        return "final lacks a mean and CI of " + ", ".join(key for key, _, _ in TABLE_COLUMNS)
+    for key, default in (("code_versions", None), ("math_platforms", [])):
+        if not _is_list_of(entry.get(key, default), str):
+            return f"{key} is not a list of strings"
+    failures = entry.get("failures")
+    if not _is_list_of(failures, dict) or not all("seed" in f and "error" in f
+                                                  for f in failures):
+        return "failures is not a list of seeds and errors"
+    activity = entry.get("activity")
+    if activity and not (
+            isinstance(activity, dict) and isinstance(activity.get("decisions_by_type"), dict)
+            and isinstance(activity.get("rendezvous"), dict)
+            and all(key in activity["rendezvous"]
+                    for key in ("requested", "met", "timed_out", "open"))
+            and "planner_failures" in activity):
+        return "activity lacks decisions_by_type, rendezvous or planner_failures"
+    return None
+
+
+def _paired_problem(differences: Any) -> str | None:
+    if not _is_list_of(differences, dict):
+        return "paired_differences is not a list of objects"
+    pairs: dict[tuple[str, str], set[str]] = defaultdict(set)
+    for diff in differences:
+        if not isinstance(diff.get("metric"), str) or diff["metric"] not in PAIRED_TITLES:
+            return f"a paired difference's metric is not one of {sorted(PAIRED_TITLES)}"
+        if not (_is_mean_ci(diff) and isinstance(diff.get("a"), str)
+                and isinstance(diff.get("b"), str)):
+            return "a paired difference lacks its planners, mean or CI"
+        pairs[diff["a"], diff["b"]].add(diff["metric"])
+    metrics = {diff["metric"] for diff in differences}
+    if any(found != metrics for found in pairs.values()):
+        return "paired_differences do not give every metric for every pair"
+    return None
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _is_mean_ci(value: Any) -> bool:
+    return isinstance(value, dict) and all(
+        key in value and (value[key] is None or _is_number(value[key]))
+        for key in ("mean", "ci95"))
+
+
+def _is_list_of(value: Any, kind: type) -> bool:
+    return isinstance(value, list) and all(isinstance(item, kind) for item in value)
+
+
 def make_all(out_dir: Path) -> list[Path]:
     """All plots and results.md from ``out_dir``'s results.csv and summary.json.
 
-    Returns the PNG paths written. FileNotFoundError if an input is missing.
+    Returns the PNG paths written. FileNotFoundError if an input is missing, ValueError
+    naming what is wrong if one is not as em-bench writes it (``summary_problem``,
+    ``read_curves``).
     """
-    summary = json.loads((out_dir / "summary.json").read_text(encoding="utf-8"))
+    summary_path = out_dir / "summary.json"
+    summary = json.loads(summary_path.read_text(encoding="utf-8"))
+    problem = summary_problem(summary)
+    if problem is not None:
+        raise ValueError(f"{summary_path}: {problem}")
     curves = read_curves(out_dir / "results.csv")
     plots: dict[str, list[Path]] = {}
     for setting, info in summary["settings"].items():
