@@ -6,8 +6,10 @@ import io
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -195,13 +197,22 @@ def test_unusable_records_are_reported_and_run_again(bench_out, tmp_path):
     edited = json.loads((trials / "CE/seed_1.json").read_text())
     del edited["summary"]["history"]
     (trials / "CE/seed_1.json").write_text(json.dumps(edited))
+    (trials / "NEAREST/seed_1.json").unlink()
+    os.mkfifo(trials / "NEAREST/seed_1.json")  # reading it would block for ever
+    with (trials / "CE/seed_0.json").open("r+b") as record:  # sparse: 17 MiB on paper
+        record.truncate(bench.MAX_RECORD_BYTES + 1024 * 1024)
     result = run_cli(*SHORT_RUN, *GOOD, "--out", str(out))
     assert result.returncode == 0, result.stderr
     assert "NEAREST/seed_0.json is not a usable trial record: unreadable" in result.stderr
     assert ("CE/seed_1.json is not a usable trial record: its history is not a list of "
             "samples") in result.stderr
-    assert "4 trials: 2 finished earlier, 2 to run" in result.stderr
-    for path in (trials / "NEAREST/seed_0.json", trials / "CE/seed_1.json"):
+    assert "NEAREST/seed_1.json is not a usable trial record: not a regular file" \
+        in result.stderr
+    assert (f"CE/seed_0.json is not a usable trial record: {bench.MAX_RECORD_BYTES + 2 ** 20} "
+            f"bytes, more than a trial record's {bench.MAX_RECORD_BYTES} at most"
+            ) in result.stderr
+    assert "4 trials: 0 finished earlier, 4 to run" in result.stderr
+    for path in trials.glob("*/seed_*.json"):
         record = json.loads(path.read_text())
         assert record["status"] == "done" and bench.record_problem(record) is None
 
@@ -236,6 +247,18 @@ def test_record_problems_are_named(bench_out, path, value, problem):
     assert bench.record_problem(failed) is None
     assert bench.record_problem(_break(failed, "error", KeyError)) == (
         "a failed trial without its error")
+
+
+def test_a_folder_in_the_place_of_a_record_is_refused_before_any_trial(tmp_path):
+    """A trial's old record is removed before the trial runs; a folder there could not be,
+    so it is named before any trial starts instead of failing the run midway."""
+    in_the_way = tmp_path / "trials/40m_cell2m/CE/seed_1.json"
+    in_the_way.mkdir(parents=True)
+    result = run_cli(*SHORT_RUN, *GOOD, "--out", str(tmp_path))
+    assert result.returncode == 2, result.stderr
+    assert (f"{in_the_way} is a folder where the record of trial 40m_cell2m/CE/seed 1 goes; "
+            "remove it") in result.stderr
+    assert "trials:" not in result.stderr and "Traceback" not in result.stderr
 
 
 def test_an_out_folder_that_cannot_be_made_is_refused_before_any_trial(tmp_path):
@@ -273,29 +296,6 @@ def test_plot_refuses_results_it_did_not_write(bench_out, tmp_path):
         assert "Traceback" not in result.stderr
 
 
-def test_rerun_with_other_parameters_is_refused(bench_out):
-    result = run_cli(*SHORT_RUN, *GOOD, "--robots", "2", "--out", str(bench_out))
-    assert result.returncode == 2
-    assert "other parameters" in result.stderr
-
-
-def test_bad_arguments_are_rejected(tmp_path):
-    result = run_cli("planners", "--map-size", "40", "100", "--cell-size", "2",
-                     "--out", str(tmp_path))
-    assert result.returncode == 2 and "one value per map size" in result.stderr
-    result = run_cli("planners", "--planners", "XX", "--out", str(tmp_path))
-    assert result.returncode == 2 and "invalid choice" in result.stderr
-    result = run_cli("planners", "--trials", "0", "--out", str(tmp_path))
-    assert result.returncode == 2 and "--trials must be at least 1, got 0" in result.stderr
-
-
-def test_trial_specs_follow_the_paper_defaults(tmp_path):
-    args = bench.build_parser().parse_args(
-        ["planners", "--map-size", "100", "200", "--trials", "3", "--seed-start", "5",
-         "--max-distance", "1400", "--out", str(tmp_path)])
-    specs = bench.trial_specs(args, tmp_path)
-    assert len(specs) == 2 * 3 * len(bench.PAPER_PLANNERS)
-    assert {s.setting for s in specs} == {"100m_cell2m", "200m_cell4m"}
 def _mutations(data, path=()):
     """Every copy of ``data`` with one part of it removed or of another type: (path, copy)."""
     if isinstance(data, dict):
@@ -351,6 +351,29 @@ def test_plot_does_not_pass_a_bug_off_as_bad_input(bench_out, tmp_path, monkeypa
         bench.command_plot(bench.build_parser().parse_args(["plot", "--out", str(out)]))
 
 
+def test_rerun_with_other_parameters_is_refused(bench_out):
+    result = run_cli(*SHORT_RUN, *GOOD, "--robots", "2", "--out", str(bench_out))
+    assert result.returncode == 2
+    assert "other parameters" in result.stderr
+
+
+def test_bad_arguments_are_rejected(tmp_path):
+    result = run_cli("planners", "--map-size", "40", "100", "--cell-size", "2",
+                     "--out", str(tmp_path))
+    assert result.returncode == 2 and "one value per map size" in result.stderr
+    result = run_cli("planners", "--planners", "XX", "--out", str(tmp_path))
+    assert result.returncode == 2 and "invalid choice" in result.stderr
+    result = run_cli("planners", "--trials", "0", "--out", str(tmp_path))
+    assert result.returncode == 2 and "--trials must be at least 1, got 0" in result.stderr
+
+
+def test_trial_specs_follow_the_paper_defaults(tmp_path):
+    args = bench.build_parser().parse_args(
+        ["planners", "--map-size", "100", "200", "--trials", "3", "--seed-start", "5",
+         "--max-distance", "1400", "--out", str(tmp_path)])
+    specs = bench.trial_specs(args, tmp_path)
+    assert len(specs) == 2 * 3 * len(bench.PAPER_PLANNERS)
+    assert {s.setting for s in specs} == {"100m_cell2m", "200m_cell4m"}
     assert {s.seed for s in specs} == {5, 6, 7}
     first = specs[0].params
     assert first.map.cell_size_m == 2.0 and first.run.max_distance_m == 1400.0
@@ -375,6 +398,66 @@ def test_worker_that_dies_without_a_record_is_recorded_as_failed(tmp_path):
     spec = dataclasses.replace(spec, path=tmp_path / "seed_4.json", seed=4)
     lost = bench.record_after_exit(spec, bench.FORK_SERVER_LOST_EXIT_CODE, 3.0)
     assert "code 255" in lost["error"] and "fork server" in lost["error"]
+
+
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (Linux /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if entry.name.isdigit() and int(fields[1]) == pid:
+            found.append(int(entry.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_trials_of_a_killed_fork_server_are_stopped_failed_and_run_again(tmp_path):
+    """SIGKILL of the fork server while two trials run: the two workers would outlive it
+    and later overwrite their failed records; they are stopped, recorded as failed with
+    the likely cause, the third trial starts from a new fork server, and a rerun finishes
+    the two."""
+    command = [sys.executable, "-m", "em_exploration_ros.tools.bench", "planners",
+               "--planners", "CE", "--landmarks", "4", "--trials", "3", "--jobs", "2",
+               "--max-steps", "3000", "--map-size", "60", "--cell-size", "2",
+               "--out", str(tmp_path)]
+    bench_process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True)
+    try:
+        server, workers, deadline = None, [], time.monotonic() + 60.0
+        while len(workers) < 2 and time.monotonic() < deadline:
+            server = next((child for child in _children(bench_process.pid)
+                           if b"forkserver" in Path(f"/proc/{child}/cmdline").read_bytes()),
+                          None)
+            workers = _children(server) if server else []
+            time.sleep(0.01)
+        assert len(workers) == 2, "the two first trials did not start"
+        os.kill(server, signal.SIGKILL)
+        stderr = bench_process.communicate(timeout=240)[1]
+    finally:
+        bench_process.kill()
+    assert bench_process.returncode == 0, stderr
+    assert not any(_alive(worker) for worker in workers)
+    assert stderr.count("outlived its fork server; stopping it") == 2, stderr
+    assert stderr.count("exited with code 255 without a result (or the fork server it came "
+                        "from died)") == 2, stderr
+    records = [json.loads(path.read_text()) for path in tmp_path.glob("trials/*/*/*.json")]
+    assert sorted(r["status"] for r in records) == ["done", "failed", "failed"]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["settings"]["60m_cell2m"]["planners"]["CE"]["trials_failed"] == 2
+    rerun = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=240,
+                           check=False)
+    assert rerun.returncode == 0 and "3 trials: 1 finished earlier, 2 to run" in rerun.stderr
+    assert all(json.loads(path.read_text())["status"] == "done"
+               for path in tmp_path.glob("trials/*/*/*.json"))
 
 
 def test_progress_reports_each_trial_and_estimates_time_left(tmp_path):

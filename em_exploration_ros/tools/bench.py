@@ -29,6 +29,9 @@ import logging
 import math
 import multiprocessing
 import os
+import select
+import signal
+import stat
 import subprocess
 import sys
 import time
@@ -67,6 +70,11 @@ ERROR_CHARS = 200
 #: The exit code multiprocessing reports for a trial when it cannot learn the real one
 #: because the fork server that started the trial died.
 FORK_SERVER_LOST_EXIT_CODE = 255
+#: How long a worker killed after its fork server died is waited for [s].
+ORPHAN_EXIT_WAIT_S = 5.0
+#: A trial record larger than this is not read [bytes]: the largest of the paper's
+#: experiment (200 m, 600 decisions) is about 240 kB.
+MAX_RECORD_BYTES = 16 * 1024 * 1024
 #: Math libraries in the workers use one thread each: --jobs sets the parallelism.
 _SINGLE_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -171,17 +179,24 @@ def params_record(params: ExplorationParams) -> dict[str, Any]:
 
 
 def read_record(path: Path) -> dict[str, Any] | None:
-    """A trial record, or None if missing, unreadable or not of a record's shape
+    """A trial record, or None if missing, unreadable, not a regular file (a FIFO would
+    block the read), larger than ``MAX_RECORD_BYTES`` or not of a record's shape
     (``record_problem``); a file that is there but unusable is logged, and its trial runs
     again."""
     try:
-        record = json.loads(path.read_text(encoding="utf-8"))
+        kind = path.stat()
+        if not stat.S_ISREG(kind.st_mode):
+            problem = "not a regular file"
+        elif kind.st_size > MAX_RECORD_BYTES:
+            problem = (f"{kind.st_size} bytes, more than a trial record's "
+                       f"{MAX_RECORD_BYTES} at most")
+        else:
+            record = json.loads(path.read_text(encoding="utf-8"))
+            problem = record_problem(record)
     except FileNotFoundError:
         return None
     except (OSError, ValueError) as error:
         problem = f"unreadable ({describe_error(error)})"
-    else:
-        problem = record_problem(record)
     if problem is not None:
         _LOG.warning("%s is not a usable trial record: %s", path, problem)
         return None
@@ -270,11 +285,15 @@ def describe_error(error: BaseException) -> str:
 def split_finished(specs: Iterable[TrialSpec]) -> tuple[list[TrialSpec], list[dict[str, Any]]]:
     """Trials still to run, and the records of those finished earlier.
 
-    ValueError if a finished record was made with other parameters (another --out needed).
+    ValueError if a finished record was made with other parameters (another --out needed),
+    or a folder is where a record goes (a trial's old record is removed before it runs).
     """
     to_run, finished = [], []
     for spec in specs:
         record = read_record(spec.path)
+        if record is None and spec.path.is_dir():
+            raise ValueError(f"{spec.path} is a folder where the record of trial "
+                             f"{spec.label} goes; remove it")
         if record is None or record["status"] != "done":
             to_run.append(spec)
             continue
@@ -407,14 +426,41 @@ def trial_context() -> multiprocessing.context.BaseContext:
     return context
 
 
+@dataclass
+class _RunningTrial:
+    """A trial's worker process and a pidfd of it: the pidfd reaches the process even
+    after the fork server, its parent, has died and can no longer report on it."""
+
+    process: multiprocessing.process.BaseProcess
+    pidfd: int | None
+    spec: TrialSpec
+    started_s: float
+
+    def stop_if_orphaned(self) -> None:
+        """A worker whose fork server died keeps running, and would write its record
+        after this one was written as failed, and run beside the next trials: it is
+        killed (and waited for) if it is still alive."""
+        if self.pidfd is None or select.select([self.pidfd], [], [], 0.0)[0]:
+            return  # gone already (a pidfd is readable once its process has exited)
+        _LOG.warning("%s: its worker process (pid %d) outlived its fork server; stopping it",
+                     self.spec.label, self.process.pid)
+        signal.pidfd_send_signal(self.pidfd, signal.SIGKILL)
+        select.select([self.pidfd], [], [], ORPHAN_EXIT_WAIT_S)
+
+    def close(self) -> None:
+        if self.pidfd is not None:
+            os.close(self.pidfd)
+
+
 def run_trials(specs: Sequence[TrialSpec], jobs: int, progress: ProgressBar) -> None:
     """Run ``specs`` in at most ``jobs`` worker processes at a time, each trial its own
     process (``trial_context``). A worker that dies without a record gets a failed
-    record."""
+    record; one whose fork server died is stopped first (``stop_if_orphaned``), and the
+    next trials start from a new fork server."""
     context = trial_context()
     pending = deque(specs)
     progress.queue(specs)
-    running: dict[int, tuple[multiprocessing.process.BaseProcess, TrialSpec, float]] = {}
+    running: dict[int, _RunningTrial] = {}
     try:
         while pending or running:
             while pending and len(running) < jobs:
@@ -422,20 +468,34 @@ def run_trials(specs: Sequence[TrialSpec], jobs: int, progress: ProgressBar) -> 
                 spec.path.unlink(missing_ok=True)
                 process = context.Process(target=run_trial, args=(spec,), name=spec.label)
                 process.start()
-                running[process.sentinel] = (process, spec, time.perf_counter())
+                running[process.sentinel] = _RunningTrial(process, _pidfd(process.pid), spec,
+                                                           time.perf_counter())
                 progress.started(spec)
             timeout = TTY_REFRESH_S if progress.interactive else None
             for sentinel in wait(list(running), timeout=timeout):
-                process, spec, since = running.pop(sentinel)
-                process.join()
-                progress.finished(spec, record_after_exit(spec, process.exitcode,
-                                                           time.perf_counter() - since))
+                trial = running.pop(sentinel)
+                trial.process.join()
+                if trial.process.exitcode == FORK_SERVER_LOST_EXIT_CODE:
+                    trial.stop_if_orphaned()
+                trial.close()
+                progress.finished(trial.spec, record_after_exit(
+                    trial.spec, trial.process.exitcode, time.perf_counter() - trial.started_s))
             progress.refresh()
     finally:
-        for process, _, _ in running.values():
-            process.terminate()
-            process.join()
+        for trial in running.values():
+            trial.process.terminate()
+            trial.process.join()
+            trial.stop_if_orphaned()
+            trial.close()
         progress.close()
+
+
+def _pidfd(pid: int) -> int | None:
+    """A pidfd of process ``pid``, or None if it has exited and been reaped already."""
+    try:
+        return os.pidfd_open(pid)
+    except ProcessLookupError:
+        return None
 
 
 def record_after_exit(spec: TrialSpec, exitcode: int | None, wall_s: float) -> dict[str, Any]:
