@@ -17,8 +17,9 @@ from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReadin
 from em_exploration_ros.core.slam.team_slam import (KeyframeBuilder, KeyframeMeasurements,
                                           OdometryAccumulator, SlamNoise, TeamSlam,
                                           body_to_map_covariance, is_landmark_key,
-                                          landmark_key, landmark_key_mask, pose_key,
-                                          pose_keys)
+                                          landmark_key, landmark_key_mask,
+                                          largest_component, pose_key, pose_keys,
+                                          step_against)
 from em_exploration_ros.core.sim.world import advance_robot, generate_world, run_seed_sequences
 
 PARAMS = ExplorationParams()
@@ -597,6 +598,26 @@ def test_an_update_that_gives_nan_is_resolved_in_batch(noisy_run: TeamRun) -> No
     [recovery] = slam.recoveries
     assert recovery.reason == "a step of nan raised the error to nan"
     assert np.all(np.isfinite(slam.trajectory(0)[1])) and math.isfinite(recovery.error_resolved)
+
+
+@pytest.mark.parametrize("components, bound, expected", [
+    ([0.5] * 100, 1.0, 0.5),  # 2-norm 5 above the bound, no component above it: unchecked
+    ([0.3, -0.4], 1.0, 0.5),  # 2-norm within the bound: the norm stands for the step
+    ([0.1, -2.0, 0.3], 1.0, 2.0),
+    ([0.1, math.inf], 1.0, math.inf),
+    ([0.1, math.nan], 1.0, math.nan),
+    ([], 1.0, 0.0),
+])
+def test_the_step_checked_against_the_guard_answers_as_its_largest_component(
+        components: list[float], bound: float, expected: float) -> None:
+    """``step_against`` may give the cheaper 2-norm only when that is within the bound; a
+    step is checked exactly when its largest component is beyond it (or not a number)."""
+    delta = gtsam.VectorValues()
+    for index, value in enumerate(components):
+        delta.insert(pose_key(0, index), np.array([value]))
+    step = step_against(delta, bound)
+    assert (step <= bound) == (largest_component(delta) <= bound)
+    np.testing.assert_equal(step, expected)
 
 
 def _values_of(poses: dict[tuple[int, int], np.ndarray],

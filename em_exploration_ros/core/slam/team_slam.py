@@ -426,6 +426,22 @@ class SlamRecovery:
                 f"the re-solve, {self.estimate_size} variables")
 
 
+def largest_component(delta: gtsam.VectorValues) -> float:
+    """Largest absolute component of a Gauss-Newton step (m or rad); infinite or NaN when
+    the step is."""
+    return float(np.max(np.abs(delta.vector()), initial=0.0))
+
+
+def step_against(delta: gtsam.VectorValues, bound: float) -> float:
+    """A Gauss-Newton step's size as a check against ``bound`` needs it: its 2-norm when
+    that is within ``bound`` (no component is larger than the norm, so the largest one is
+    within it too), else its largest absolute component (:func:`largest_component`). Both
+    answer ``<= bound`` alike; the norm is computed in GTSAM without copying the step into
+    an array, about 10 us against 160 us at 4500 dimensions."""
+    norm = delta.norm()
+    return norm if norm <= bound else largest_component(delta)
+
+
 def _isam_params(slam_params: SlamParams) -> gtsam.ISAM2Params:
     """iSAM2 with QR factorization, relinearization checked at every update."""
     params = gtsam.ISAM2Params()
@@ -506,8 +522,9 @@ class TeamSlam:
             estimate, failure = None, " ".join(str(error).split())[:160]
         else:
             failure = None
-        step = math.nan if failure is not None else self._largest_step()
-        if not step <= self.slam_params.divergence_check_step:  # NaN is checked too
+        bound = self.slam_params.divergence_check_step
+        step = math.nan if failure is not None else step_against(self._isam.getDelta(), bound)
+        if not step <= bound:  # NaN is checked too
             initial = gtsam.Values(previous)
             initial.insert(values)
             before = self._graph.factors.error(initial)
@@ -523,8 +540,7 @@ class TeamSlam:
     def _largest_step(self) -> float:
         """Largest absolute component of iSAM2's last step (m or rad); infinite or NaN
         when the step is."""
-        delta = self._isam.getDelta().vector()
-        return float(np.max(np.abs(delta), initial=0.0))
+        return largest_component(self._isam.getDelta())
 
     def _divergence(self, step: float, before: float, after: float) -> str | None:
         """Why an update that took a large ``step`` diverged, None if it did not: it did
