@@ -421,25 +421,34 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+#: Three trials of a few seconds each on two workers.
+KILLED_SERVER_RUN = ["planners", "--planners", "CE", "--landmarks", "4", "--trials", "3",
+                     "--jobs", "2", "--max-steps", "3000", "--map-size", "60",
+                     "--cell-size", "2"]
+
+
+def _two_running_workers(bench_pid: int) -> tuple[int, list[int]]:
+    """em-bench's fork server and its two workers, once both have started (60 s at most)."""
+    server, workers, deadline = None, [], time.monotonic() + 60.0
+    while len(workers) < 2 and time.monotonic() < deadline:
+        server = next((child for child in _children(bench_pid)
+                       if b"forkserver" in Path(f"/proc/{child}/cmdline").read_bytes()), None)
+        workers = _children(server) if server else []
+        time.sleep(0.01)
+    assert server is not None and len(workers) == 2, "the two first trials did not start"
+    return server, workers
+
+
 def test_trials_of_a_killed_fork_server_are_stopped_failed_and_run_again(tmp_path):
     """SIGKILL of the fork server while two trials run: the two workers would outlive it
     and later overwrite their failed records; they are stopped, recorded as failed with
     the likely cause, the third trial starts from a new fork server, and a rerun finishes
     the two."""
-    command = [sys.executable, "-m", "em_exploration_ros.tools.bench", "planners",
-               "--planners", "CE", "--landmarks", "4", "--trials", "3", "--jobs", "2",
-               "--max-steps", "3000", "--map-size", "60", "--cell-size", "2",
+    command = [sys.executable, "-m", "em_exploration_ros.tools.bench", *KILLED_SERVER_RUN,
                "--out", str(tmp_path)]
     bench_process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True)
     try:
-        server, workers, deadline = None, [], time.monotonic() + 60.0
-        while len(workers) < 2 and time.monotonic() < deadline:
-            server = next((child for child in _children(bench_process.pid)
-                           if b"forkserver" in Path(f"/proc/{child}/cmdline").read_bytes()),
-                          None)
-            workers = _children(server) if server else []
-            time.sleep(0.01)
-        assert len(workers) == 2, "the two first trials did not start"
+        server, workers = _two_running_workers(bench_process.pid)
         os.kill(server, signal.SIGKILL)
         stderr = bench_process.communicate(timeout=240)[1]
     finally:
@@ -456,6 +465,33 @@ def test_trials_of_a_killed_fork_server_are_stopped_failed_and_run_again(tmp_pat
     rerun = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=240,
                            check=False)
     assert rerun.returncode == 0 and "3 trials: 1 finished earlier, 2 to run" in rerun.stderr
+    assert all(json.loads(path.read_text())["status"] == "done"
+               for path in tmp_path.glob("trials/*/*/*.json"))
+
+
+def test_ctrl_c_stops_every_trial_quietly_and_a_rerun_resumes(tmp_path):
+    """Ctrl-C in a terminal sends SIGINT to em-bench, its fork server and its workers
+    alike: em-bench says it was interrupted (exit code 130), no worker prints a traceback
+    or outlives it, and a rerun runs the interrupted trials."""
+    command = [sys.executable, "-m", "em_exploration_ros.tools.bench", *KILLED_SERVER_RUN,
+               "--out", str(tmp_path)]
+    bench_process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True,
+                                     start_new_session=True)
+    try:
+        server, workers = _two_running_workers(bench_process.pid)
+        time.sleep(1.0)  # into their trials, past the fork server's start-up of a worker
+        os.killpg(bench_process.pid, signal.SIGINT)
+        stderr = bench_process.communicate(timeout=60)[1]
+    finally:
+        bench_process.kill()
+    assert bench_process.returncode == 130, stderr
+    assert "interrupted; finished trials are kept, rerun to resume" in stderr
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
+    time.sleep(0.5)
+    assert not any(_alive(pid) for pid in (server, *workers))
+    rerun = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=240,
+                           check=False)
+    assert rerun.returncode == 0, rerun.stderr
     assert all(json.loads(path.read_text())["status"] == "done"
                for path in tmp_path.glob("trials/*/*/*.json"))
 

@@ -265,8 +265,14 @@ def trial_record(spec: TrialSpec) -> dict[str, Any]:
 
 
 def run_trial(spec: TrialSpec) -> None:
-    """Worker process entry: run one trial and write its record."""
-    write_json(spec.path, trial_record(spec))
+    """Worker process entry: run one trial and write its record. Ctrl-C reaches every
+    process of the terminal's process group; a worker then ends quietly with exit code 130
+    and no record, as em-bench itself reports the interruption (the trial runs again on
+    resuming)."""
+    try:
+        write_json(spec.path, trial_record(spec))
+    except KeyboardInterrupt:
+        sys.exit(130)
 
 
 def failed_record(spec: TrialSpec, error: str, wall_s: float) -> dict[str, Any]:
