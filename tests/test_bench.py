@@ -16,6 +16,7 @@ import pytest
 
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.tools import bench, bench_plots, math_platform
+from process_tree import alive, children
 
 REPO = Path(__file__).resolve().parents[1]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -400,27 +401,6 @@ def test_worker_that_dies_without_a_record_is_recorded_as_failed(tmp_path):
     assert "code 255" in lost["error"] and "fork server" in lost["error"]
 
 
-def _children(pid: int) -> list[int]:
-    """Processes whose parent is ``pid`` (Linux /proc)."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        try:
-            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
-            continue
-        if entry.name.isdigit() and int(fields[1]) == pid:
-            found.append(int(entry.name))
-    return found
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
-
-
 #: Three trials of a few seconds each on two workers.
 KILLED_SERVER_RUN = ["planners", "--planners", "CE", "--landmarks", "4", "--trials", "3",
                      "--jobs", "2", "--max-steps", "3000", "--map-size", "60",
@@ -431,9 +411,9 @@ def _two_running_workers(bench_pid: int) -> tuple[int, list[int]]:
     """em-bench's fork server and its two workers, once both have started (60 s at most)."""
     server, workers, deadline = None, [], time.monotonic() + 60.0
     while len(workers) < 2 and time.monotonic() < deadline:
-        server = next((child for child in _children(bench_pid)
+        server = next((child for child in children(bench_pid)
                        if b"forkserver" in Path(f"/proc/{child}/cmdline").read_bytes()), None)
-        workers = _children(server) if server else []
+        workers = children(server) if server else []
         time.sleep(0.01)
     assert server is not None and len(workers) == 2, "the two first trials did not start"
     return server, workers
@@ -454,7 +434,7 @@ def test_trials_of_a_killed_fork_server_are_stopped_failed_and_run_again(tmp_pat
     finally:
         bench_process.kill()
     assert bench_process.returncode == 0, stderr
-    assert not any(_alive(worker) for worker in workers)
+    assert not any(alive(worker) for worker in workers)
     assert stderr.count("outlived its fork server; stopping it") == 2, stderr
     assert stderr.count("exited with code 255 without a result (or the fork server it came "
                         "from died)") == 2, stderr
@@ -488,7 +468,7 @@ def test_ctrl_c_stops_every_trial_quietly_and_a_rerun_resumes(tmp_path):
     assert "interrupted; finished trials are kept, rerun to resume" in stderr
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
     time.sleep(0.5)
-    assert not any(_alive(pid) for pid in (server, *workers))
+    assert not any(alive(pid) for pid in (server, *workers))
     rerun = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=240,
                            check=False)
     assert rerun.returncode == 0, rerun.stderr

@@ -1,13 +1,18 @@
 """em-bench planners on a dask.distributed cluster: the same records as the local worker
 pool, resuming, and refusal of a bad address."""
 import json
+import os
+import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
 
 from em_exploration_ros.tools.bench_dask import parse_address
+from process_tree import alive, descendants
 
 REPO = Path(__file__).resolve().parents[1]
 # Two nearest-frontier trials on a small map, and two on a 12 m map where the world
@@ -76,6 +81,41 @@ def test_dask_rerun_runs_only_what_is_missing(pool_and_dask):
     summary = json.loads((dask / "summary.json").read_text())
     assert summary["last_invocation"]["ran"] == 3
     assert summary["settings"]["40m_cell2m"]["planners"]["NEAREST"]["trials_done"] == 2
+
+
+def test_ctrl_c_on_a_local_cluster_stops_it_without_tracebacks(tmp_path):
+    """Ctrl-C reaches the local cluster's worker processes too: they must not die printing
+    tracebacks while em-bench stops the cluster; em-bench reports the interruption (exit
+    code 130) and leaves no process behind."""
+    command = [sys.executable, "-m", "em_exploration_ros.tools.bench", "planners",
+               "--planners", "CE", "--landmarks", "4", "--trials", "2", "--max-steps", "3000",
+               "--map-size", "60", "--cell-size", "2", "--dask", "local:2",
+               "--out", str(tmp_path)]
+    bench_process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True,
+                                     start_new_session=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(bench_process.stderr), daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 90.0
+        while not any("worker thread(s)" in line for line in lines):
+            assert time.monotonic() < deadline and bench_process.poll() is None, lines
+            time.sleep(0.05)
+        time.sleep(1.0)  # into the trials
+        cluster = descendants(bench_process.pid)
+        os.killpg(bench_process.pid, signal.SIGINT)
+        bench_process.wait(timeout=60)
+    finally:
+        bench_process.kill()
+    reader.join(timeout=10)
+    stderr = "".join(lines)
+    assert bench_process.returncode == 130, stderr
+    assert "interrupted; finished trials are kept, rerun to resume" in stderr
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
+    assert "distributed.scheduler" not in stderr  # dask's INFO chatter stays out
+    assert len(cluster) >= 2  # the two workers at least
+    time.sleep(1.0)
+    assert not any(alive(pid) for pid in cluster)
 
 
 @pytest.mark.parametrize("address", ["local:0", "local:x", "8786", "host:8786"])

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import re
+import signal
 import time
 import uuid
 from contextlib import contextmanager
@@ -49,14 +50,32 @@ def connect(address: str) -> Iterator[Client]:
     """A client of the cluster named by ``address`` (see :func:`parse_address`); a local
     cluster is started here and shut down on exit."""
     target = parse_address(address)
+    # dask's own start-up and shut-down chatter (INFO) would bury em-bench's progress.
+    logging.getLogger("distributed").setLevel(logging.WARNING)
     if isinstance(target, int):
         # One thread per worker process: a trial is Python + GTSAM and holds the GIL.
-        with LocalCluster(n_workers=target, threads_per_worker=1, processes=True,
-                          dashboard_address=None) as cluster, Client(cluster) as client:
+        with _workers_ignoring_ctrl_c():
+            cluster = LocalCluster(n_workers=target, threads_per_worker=1, processes=True,
+                                   dashboard_address=None)
+        with cluster, Client(cluster) as client:
             yield client
     else:
         with Client(target) as client:
             yield client
+
+
+@contextmanager
+def _workers_ignoring_ctrl_c() -> Iterator[None]:
+    """SIGINT ignored while the local cluster starts its worker processes, which keep that
+    disposition (Python installs its KeyboardInterrupt handler only over the default one):
+    Ctrl-C reaches the whole process group, and workers that took it would die printing
+    tracebacks while em-bench itself stops them in order. A Ctrl-C during the cluster's
+    start-up is ignored with them."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def worker_slots(client: Client) -> int:
