@@ -1,5 +1,6 @@
 """em-bench latency: runs on small graphs, reports the fast EM step equal to its oracle, the
 approximate U_M's error and a per-candidate line fit."""
+import signal
 import subprocess
 import sys
 
@@ -39,3 +40,21 @@ def test_arguments_that_give_no_measurement_are_refused_before_anything_runs():
             capture_output=True, text=True, timeout=60)
         assert result.returncode == 2 and message in result.stderr, result.stderr
         assert result.stdout == ""  # refused before the table's header
+
+
+def test_ctrl_c_says_interrupted_without_a_traceback():
+    """An interrupted latency run ends with exit code 130 and one line; it has no trials,
+    so it does not speak of resuming them as `em-bench planners` does."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "em_exploration_ros.tools.bench", "latency", "--planners",
+         "EM_3", "--sizes", "250", "--repeats", "1000"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert "poses" in "".join(process.stdout.readline() for _ in range(3))
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == 130, stderr
+    assert stderr.strip().splitlines()[-1] == "em-bench: interrupted", stderr
+    assert "Traceback" not in stderr

@@ -727,7 +727,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "--jobs local worker processes: local:N (a local cluster of N "
                           "worker processes) or a scheduler address, e.g. tcp://host:8786")
     planners.add_argument("--out", type=Path, required=True, help="output folder")
-    planners.set_defaults(handler=command_planners)
+    planners.set_defaults(handler=command_planners,
+                          interrupted="interrupted; finished trials are kept, rerun to resume")
     planners.epilog = ("--map-size and --cell-size take one or more values (one cell size "
                        "per map size; default map size / 50: 2 m for 100 m, 4 m for 200 m).")
 
@@ -752,7 +753,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _LOG.error("%s", error)
         return 2
     except KeyboardInterrupt:
-        _LOG.warning("interrupted; finished trials are kept, rerun to resume")
+        _LOG.warning("%s", getattr(args, "interrupted", "interrupted"))
         return 130
 
 
