@@ -32,6 +32,9 @@ def test_arguments_that_give_no_measurement_are_refused_before_anything_runs():
     for arguments, message in ((["--sizes", "250", "0"], "--sizes: every graph needs at least "
                                 "one pose per robot (3), got 0"),
                                (["--repeats", "0"], "--repeats must be at least 1, got 0"),
+                               (["--sizes", "30", "30"], "--sizes: 30 given more than once"),
+                               (["--planners", "NEAREST", "CE", "NEAREST"],
+                                "--planners: NEAREST given more than once"),
                                (["--seed", "-1"], "--seed must not be negative, got -1"),
                                (["--approximate", "nan"], "history_change_tolerance must be "
                                 "finite")):

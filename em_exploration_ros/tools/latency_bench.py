@@ -195,6 +195,11 @@ def check_latency_arguments(args: argparse.Namespace) -> None:
     if min(args.sizes) < NUM_ROBOTS:
         raise ValueError(f"--sizes: every graph needs at least one pose per robot "
                          f"({NUM_ROBOTS}), got {min(args.sizes)}")
+    for option, values in (("--sizes", args.sizes), ("--planners", args.planners)):
+        repeated = sorted({value for value in values if values.count(value) > 1})
+        if repeated:
+            raise ValueError(f"{option}: {', '.join(map(str, repeated))} given more than "
+                             f"once (one table row per size, one column per planner)")
     if args.repeats < 1:
         raise ValueError(f"--repeats must be at least 1, got {args.repeats}")
     if args.seed < 0:
