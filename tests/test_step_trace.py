@@ -29,8 +29,9 @@ def test_stages_match_the_nth_events_of_each_process(tmp_path):
                   (start + 0.008, "pub", "/robot_0/motion_command")]
     write_trace(tmp_path / "world.trace", world + [(0.6, "cpu", "6.5")])
     write_trace(tmp_path / "robot_0.trace", robot + [(0.5, "cb", "/clock")])
-    with open(tmp_path / "robot_0.trace", "a") as trace:  # killed while writing a line
-        trace.write("12345 c")
+    with open(tmp_path / "robot_0.trace", "a") as trace:
+        trace.write("9" * 20 + " pub /clock\n")  # beyond the int64 nanoseconds read into
+        trace.write("12345 c")  # killed while writing a line
     traces = read_traces(tmp_path, 1)
     by_name = {s.name: s.seconds for s in stages(traces, 1)}
     np.testing.assert_allclose(by_name["world publishes a step (clock to last ground truth)"],
@@ -45,7 +46,7 @@ def test_stages_match_the_nth_events_of_each_process(tmp_path):
     table = report(traces, 1)
     assert "robot 0: odometry callback to command published" in table
     assert "CPU time [s]: world 6.50, robot_0 ? (no exit line)" in table
-    assert "unreadable lines skipped: {'robot_0': 1}" in table
+    assert "unreadable lines skipped: {'robot_0': 2}" in table
 
 
 def test_report_refuses_a_directory_without_traces(tmp_path):
@@ -87,3 +88,10 @@ def test_a_traced_team_chooses_em_sims_targets_and_reports_every_step(tmp_path):
                             "--summary", str(tmp_path / "again" / "summary.json")],
                            capture_output=True, text=True, timeout=60)
     assert again.returncode == 2 and "already holds traces" in again.stderr
+    (tmp_path / "robot_0.trace").unlink()
+    (tmp_path / "robot_0.trace").mkdir()
+    result = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.step_trace",
+                             "report", str(tmp_path)], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 2, result.stderr
+    assert "robot_0.trace: cannot read it (Is a directory)" in result.stderr

@@ -36,6 +36,9 @@ _FLUSH_EVERY = 500
 PUBLISH, CALLBACK_START = "pub", "cb"
 #: The event of the line a process writes as it exits; its third field is its CPU time [s].
 CPU = "cpu"
+#: The latest time a trace line can carry [ns of the monotonic clock]: the int64 range of
+#: the arrays it is read into.
+_LATEST_NS = 2 ** 63 - 1
 
 
 class _TraceFile:
@@ -129,7 +132,7 @@ def read_trace(path: Path) -> ProcessTrace:
     cpu_s, unreadable = None, 0
     for line in path.read_text(encoding="ascii", errors="replace").splitlines():
         fields = line.split(" ")
-        if len(fields) != 3 or not fields[0].isdigit():
+        if len(fields) != 3 or not fields[0].isdigit() or int(fields[0]) > _LATEST_NS:
             unreadable += 1
         elif fields[1] == CPU:
             try:
@@ -232,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
         traces = read_traces(args.directory, robots)
     except FileNotFoundError as error:
         parser.error(f"{error.filename}: no such trace (--robots {robots}?)")
+    except OSError as error:
+        parser.error(f"{error.filename}: cannot read it ({error.strerror})")
     print(report(traces, robots))
     return 0
 
