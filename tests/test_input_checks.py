@@ -32,6 +32,48 @@ def test_clock_guard_drops_negative_malformed_backwards_and_leaping_clocks():
     assert guard.check(105, 0, wall_s=1.2) is None  # 100 s in one wall second
 
 
+def _feed(guard, samples):
+    """``(sec, wall_s)`` samples; the verdict of each: 'ok' or the reason's first words."""
+    verdicts = []
+    for sec, wall_s in samples:
+        problem = guard.check(int(sec), int(round(sec % 1 * 1e9)), wall_s=wall_s)
+        verdicts.append("ok" if problem is None else " ".join(problem.split()[:3]))
+    return verdicts
+
+
+def test_a_forged_first_clock_is_overruled_once_the_true_one_has_run_alone():
+    """One hostile /clock at 9e8 s before the world's first: every true sample is
+    backwards until the true clock has advanced alone for ``recover_after_s``."""
+    guard = ClockGuard(recover_after_s=2.0)
+    assert guard.check(900_000_000, 0, wall_s=0.0) is None
+    true = [(73.0 + 0.2 * k, 0.5 + 0.01 * k) for k in range(300)]  # 100 Hz wall, 20x
+    verdicts = _feed(guard, true)
+    taken_up = verdicts.index("ok")
+    assert set(verdicts[:taken_up]) == {"clock went backwards"}
+    assert true[taken_up][1] - 0.5 >= 2.0 > true[taken_up - 1][1] - 0.5
+    assert set(verdicts[taken_up:]) == {"ok"}
+    assert guard.latest_ns == int(round(true[-1][0] * 1e9))
+    notice = guard.take_notice()
+    assert notice.startswith(f"clock taken up again at {true[taken_up][0]:.3f} s: it went "
+                             "back from 900000000.000 s")
+    assert guard.take_notice() is None
+
+
+def test_a_running_clock_is_never_overruled_by_an_earlier_one():
+    """A replayed or hostile clock behind the accepted one is dropped as long as the
+    accepted one keeps coming, and one that does not advance steadily never takes over."""
+    guard = ClockGuard(recover_after_s=2.0)
+    running = [(100.0 + 0.2 * k, 0.01 * k) for k in range(500)]
+    behind = [(10.0 + 0.2 * k, 0.01 * k + 0.005) for k in range(500)]
+    verdicts = _feed(guard, [sample for pair in zip(running, behind) for sample in pair])
+    assert set(verdicts[0::2]) == {"ok"} and set(verdicts[1::2]) == {"clock went backwards"}
+    guard = ClockGuard(recover_after_s=2.0)
+    assert guard.check(1000, 0, wall_s=0.0) is None
+    zigzag = [(50.0 + (k % 2) * 20.0 - 0.01 * k, 0.01 * k) for k in range(1, 600)]
+    assert set(_feed(guard, zigzag)) == {"clock went backwards"}
+    assert guard.take_notice() is None
+
+
 @pytest.mark.parametrize("values, reason", [
     ((1.0, math.nan), "not finite"), ((math.inf,), "not finite"), ((-1e308,), "implausibly"),
 ])

@@ -10,7 +10,8 @@ Choice: the node's time source is replaced at construction by ``ValidatedTimeSou
 an rclpy ``TimeSource`` whose ``clock_callback`` first asks ``core.agent.input_checks.
 ClockGuard``: a negative, malformed or backwards clock (or one that leaps further ahead
 than any simulation runs) is dropped with a throttled WARN
-(``InputGuard``) and the node's ROS clock keeps its last valid time; everything else goes
+(``InputGuard``) and the node's ROS clock keeps its last valid time (a clock that went
+back and runs on alone is taken up again after a while, with a WARN); everything else goes
 to rclpy's own handling, so ``use_sim_time`` set at start or later keeps working. (Keeping
 rclpy's TimeSource and subscribing /clock a second time would not help: its callback would
 still raise.) rclpy creates the time source inside ``Node.__init__`` and offers no hook, so
@@ -34,6 +35,7 @@ class ValidatedTimeSource(TimeSource):
 
     def __init__(self, node: Node, guard: InputGuard) -> None:
         self._guard = guard
+        self._node_logger = node.get_logger()
         self._clock_check = ClockGuard()
         super().__init__(node=node)
 
@@ -42,6 +44,9 @@ class ValidatedTimeSource(TimeSource):
         if problem:
             self._guard.drop(CLOCK_TOPIC, problem)
             return
+        notice = self._clock_check.take_notice()
+        if notice:
+            self._node_logger.warning(notice)
         super().clock_callback(msg)
 
 

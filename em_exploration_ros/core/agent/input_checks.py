@@ -35,6 +35,10 @@ EVALUATOR_STEP_LEAD = 10_000
 #: Fastest plausible simulation clock [simulated s per wall s]: lockstep on a tiny map
 #: runs at a few hundred, the real-time mode at most 1000.
 MAX_SIM_RATE = 10_000.0
+#: Wall time [s] after which a clock that went back, and has advanced since while nothing
+#: continued the later time, is taken up (``ClockGuard``): the world publishes /clock
+#: every step, many times a second.
+CLOCK_RECOVERY_S = 2.0
 #: Nanoseconds per second, the bound of builtin_interfaces/Time.nanosec.
 _NANOSECONDS_PER_SECOND = 1_000_000_000
 #: Key under which a RejectionLog counts input once it tells ``max_keys`` keys apart.
@@ -177,11 +181,24 @@ class ClockGuard:
     than the last accepted one, or further ahead of it than ``max_rate`` simulated
     seconds per wall second allow, plus one second) or None and remembers it. Without the
     last bound one hostile sample at the year 2038 would make every true one "backwards".
+
+    One hostile sample can still come first (nothing precedes it to bound it) or leap
+    within the bound, and then every true sample is "backwards". So the samples dropped as
+    backwards are followed as a rival timeline (each within the leap bound of the one
+    before): once it has advanced for ``recover_after_s`` wall seconds while no sample
+    continued the accepted one, the guard takes it up (``take_notice`` says so). A clock
+    that keeps publishing is never overruled, and neither is a replay that starts over
+    while the accepted clock still runs.
     """
 
     max_rate: float = MAX_SIM_RATE
+    recover_after_s: float = CLOCK_RECOVERY_S
     latest_ns: int = -1
     latest_wall_s: float = 0.0
+    _rival_ns: int = -1
+    _rival_wall_s: float = 0.0
+    _rival_since_s: float = 0.0
+    _notice: str | None = None
 
     def check(self, sec: int, nanosec: int, wall_s: float) -> str | None:
         """Check a sample received at monotonic wall time ``wall_s`` [s]."""
@@ -190,15 +207,48 @@ class ClockGuard:
             return problem
         now_ns = sec * _NANOSECONDS_PER_SECOND + nanosec
         if now_ns < self.latest_ns:
+            if self._rival_continues(now_ns, wall_s):
+                self._notice = (f"clock taken up again at {now_ns / 1e9:.3f} s: it went back "
+                                f"from {self.latest_ns / 1e9:.3f} s, which nothing continued "
+                                f"for {wall_s - self.latest_wall_s:.1f} wall seconds")
+                self._accept(now_ns, wall_s)
+                return None
             return (f"clock went backwards from {self.latest_ns / 1e9:.3f} s to "
                     f"{now_ns / 1e9:.3f} s")
         if self.latest_ns >= 0:
-            allowed_s = self.max_rate * max(wall_s - self.latest_wall_s, 0.0) + 1.0
-            if (now_ns - self.latest_ns) / 1e9 > allowed_s:
-                return (f"clock leapt from {self.latest_ns / 1e9:.3f} s to {now_ns / 1e9:.3f} s "
-                        f"in {wall_s - self.latest_wall_s:.3f} wall seconds")
-        self.latest_ns, self.latest_wall_s = now_ns, wall_s
+            leap = self._leap_problem(self.latest_ns, self.latest_wall_s, now_ns, wall_s)
+            if leap:
+                return leap
+        self._accept(now_ns, wall_s)
         return None
+
+    def take_notice(self) -> str | None:
+        """What the guard did that its caller should log (taking a rival timeline up),
+        once; None if nothing."""
+        notice, self._notice = self._notice, None
+        return notice
+
+    def _accept(self, now_ns: int, wall_s: float) -> None:
+        self.latest_ns, self.latest_wall_s = now_ns, wall_s
+        self._rival_ns = -1
+
+    def _leap_problem(self, from_ns: int, from_wall_s: float, now_ns: int,
+                      wall_s: float) -> str | None:
+        allowed_s = self.max_rate * max(wall_s - from_wall_s, 0.0) + 1.0
+        if (now_ns - from_ns) / 1e9 > allowed_s:
+            return (f"clock leapt from {from_ns / 1e9:.3f} s to {now_ns / 1e9:.3f} s "
+                    f"in {wall_s - from_wall_s:.3f} wall seconds")
+        return None
+
+    def _rival_continues(self, now_ns: int, wall_s: float) -> bool:
+        """Follow a backwards sample as the rival timeline; whether that timeline is now
+        to be taken up (see the class docstring)."""
+        if (self._rival_ns < 0 or now_ns < self._rival_ns
+                or self._leap_problem(self._rival_ns, self._rival_wall_s, now_ns, wall_s)):
+            self._rival_since_s = wall_s  # a new rival starts here
+        self._rival_ns, self._rival_wall_s = now_ns, wall_s
+        return (wall_s - self._rival_since_s >= self.recover_after_s
+                and wall_s - self.latest_wall_s >= self.recover_after_s)
 
 
 def reason_kind(reason: str) -> str:
