@@ -24,9 +24,11 @@ import rclpy
 from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
 from em_exploration_msgs.msg import MotionCommand, SonarScan, TeamUpdate, WorldStatus
+from builtin_interfaces.msg import Time as TimeMsg
 from nav_msgs.msg import Odometry
 from rclpy.parameter import Parameter
 from rclpy.serialization import serialize_message
+from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, LATCHED_QOS, SENSOR_QOS, TEAM_QOS
@@ -206,6 +208,42 @@ def test_a_forged_world_status_does_not_end_a_paused_run(tmp_path):
     log = evaluator.output()
     assert f"the world stepped over at step {step} (forged)" in log
     assert "done (the world stepped over" not in log, log
+
+
+def test_a_negative_clock_ends_neither_the_recorder_nor_the_viewer_bridge(tmp_path):
+    """em-record and em-foxglove follow /clock (use_sim_time) like the team's nodes: a
+    /clock before 1970 (rclpy's own time source raises on it) is dropped with a warning,
+    and both go on and stop cleanly; the recording keeps what was on the wire."""
+    sim_time = ros_args({"use_sim_time": True})
+    recorder = NodeProcess.start_module(
+        "em_exploration_ros.tools.record", ["-o", str(tmp_path / "bag"), "--topics", "/clock",
+                                            *sim_time], log_path=tmp_path / "record.log")
+    bridge = NodeProcess.start_module("em_exploration_ros.tools.foxglove_bridge",
+                                      ["--port", "0", *sim_time],
+                                      log_path=tmp_path / "bridge.log")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("hostile_clock", context=context)
+    try:
+        with recorder, bridge:
+            clock = node.create_publisher(Clock, "/clock", 10)
+            recorder.wait_for_output("recording /clock", START_S)
+            bridge.wait_for_output("serving ws://", START_S)
+            deadline = time.monotonic() + START_S
+            while not all("clock is negative" in p.output() for p in (recorder, bridge)):
+                assert time.monotonic() < deadline, "the negative clock was not dropped"
+                clock.publish(Clock(clock=TimeMsg(sec=-5)))
+                time.sleep(0.1)
+            clock.publish(Clock(clock=TimeMsg(sec=7)))
+            time.sleep(1.0)
+            assert recorder.running() and bridge.running()
+            assert recorder.stop() == 0 and bridge.stop() == 0
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    for process in (recorder, bridge):
+        assert "Traceback" not in process.output(), process.output()
+    assert (tmp_path / "bag" / "metadata.yaml").is_file()
 
 
 def test_a_robot_never_seen_alive_is_not_waited_for_the_robot_timeout(tmp_path):

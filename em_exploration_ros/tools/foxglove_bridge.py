@@ -39,7 +39,9 @@ from rclpy.topic_endpoint_info import TopicEndpointInfo
 from em_exploration_ros.bag_format.qos_yaml import (
     KEEP_LAST, RELIABLE, TRANSIENT_LOCAL, QosProfile, request_for_offers)
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
+from em_exploration_ros.nodes.input_guard import InputGuard
 from em_exploration_ros.nodes.node_main import run_node
+from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
     qos_from_rclpy, qos_to_rclpy)
@@ -142,6 +144,8 @@ class FoxgloveBridge(Node):
 
     def __init__(self, options: BridgeOptions) -> None:
         super().__init__("em_foxglove", enable_rosout=False)
+        # Its time follows /clock under use_sim_time: one hostile sample must not end it.
+        install_validated_clock(self, InputGuard(self))
         self._options = options
         self._channels: dict[int, foxglove.Channel] = {}
         self._served: set[str] = set()

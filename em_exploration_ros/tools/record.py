@@ -37,8 +37,10 @@ from em_exploration_ros.bag_format.interface_index import read_type_hash
 from em_exploration_ros.bag_format.qos_yaml import request_for_offers
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.nodes import lean_executor
+from em_exploration_ros.nodes.input_guard import InputGuard
 from em_exploration_ros.nodes.node_main import interrupt_shuts_down
 from em_exploration_ros.nodes.recorder_presence import RECORDER_NODE_NAME
+from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
     qos_from_rclpy, qos_to_rclpy)
@@ -111,6 +113,8 @@ class Recorder(Node):
         # No /rosout: the recorder would record its own log, and its last line is written
         # after a signal has already shut the context down.
         super().__init__(RECORDER_NODE_NAME, enable_rosout=False)
+        # Its log times follow /clock under use_sim_time: one hostile sample must not end it.
+        install_validated_clock(self, InputGuard(self))
         self._writer = writer
         self._options = options
         self._recorded: dict[str, str] = {}
