@@ -8,6 +8,7 @@ import pytest
 from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.params import (ExplorationParams, ParameterDeprecationWarning,
                                             upgrade_deprecated)
+from em_exploration_ros.core import params_yaml
 from em_exploration_ros.core.params_yaml import ParamsFileError, dump_params, load_params
 from em_exploration_ros.tools import sim_cli
 
@@ -143,3 +144,105 @@ def test_removed_parameter_loads_with_a_warning(tmp_path):
         params = load_params(path)
     assert params == ExplorationParams().replace(planner={"name": "CE"})
     assert "planner.allocation_waypoint_spacing_m" not in params.flat()
+
+
+def _alias_bomb(levels: int, as_lists: bool) -> str:
+    """A YAML document of ``levels`` + 1 lines whose last anchor expands to 10**levels
+    values through aliases of aliases (a mapping bomb, or a list bomb inside a value)."""
+    if as_lists:
+        lines = ["world:", "  start_region_x_fraction:", "    - &l0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+        lines += [f"    - &l{i} [" + ", ".join([f"*l{i - 1}"] * 10) + "]"
+                  for i in range(1, levels + 1)]
+    else:
+        lines = ["a0: &a0 {" + ", ".join(f"k{k}: {k}" for k in range(10)) + "}"]
+        lines += [f"a{i}: &a{i} {{" + ", ".join(f"k{k}: *a{i - 1}" for k in range(10)) + "}"
+                  for i in range(1, levels + 1)]
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("as_lists", [False, True], ids=["mapping", "list"])
+def test_alias_bombs_are_refused(tmp_path, as_lists):
+    path = tmp_path / "bomb.yaml"
+    path.write_text(_alias_bomb(6, as_lists))  # 1e6 values; the bomb found had 1e9
+    with pytest.raises(ParamsFileError, match="expands to more than 100000 values"):
+        load_params(path)
+
+
+def test_anchors_and_aliases_within_the_bound_are_used(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    world: &world {num_robots: 4}\n"
+                    "/robot_0/em_robot:\n  ros__parameters:\n    world: *world\n")
+    assert load_params(path).world.num_robots == 4
+
+
+def test_values_in_error_messages_are_bounded():
+    bomb: list = [1.0] * 10
+    for _ in range(5):
+        bomb = [bomb] * 10  # 1e6 numbers, 6 levels deep
+    for world in ({"start_region_x_fraction": bomb}, {"num_robots": 10**400},
+                  {"width_m": "x" * 10**6}):
+        with pytest.raises(ValueError) as raised:
+            ExplorationParams().replace(world=world)
+        assert len(str(raised.value)) < 300, str(raised.value)[:400]
+
+
+@pytest.mark.parametrize("text, message", [
+    ("world:\n  width_m: " + "9" * 400 + "\n", r"width_m must be finite, got <integer of"),
+    ("world:\n  start_region_x_fraction: [" + "9" * 400 + ", 0.2]\n",
+     r"start_region_x_fraction must be finite"),
+    ("/em_world: {ros__parameters: {robot_timeout_s: " + "9" * 400 + "}}\n",
+     r"section '/em_world': .*robot_timeout_s must be finite"),
+])
+def test_integers_beyond_the_float_range_are_clear_errors(tmp_path, text, message):
+    path = tmp_path / "big.yaml"
+    path.write_text(text)
+    with pytest.raises(ParamsFileError, match=message):
+        load_params(path)
+
+
+@pytest.mark.parametrize("text", ["{" * 500 + "}" * 500 + "\n",  # too deep for the parser
+                                  "a: " + "{b: " * 100 + "1" + "}" * 100 + "\n"])
+def test_deep_nesting_is_a_clear_error(tmp_path, text):
+    path = tmp_path / "deep.yaml"
+    path.write_text(text)
+    with pytest.raises(ParamsFileError, match="nests deeper than 32 levels"):
+        load_params(path)
+
+
+def test_a_parameter_file_must_be_a_regular_file_of_bounded_size(tmp_path, monkeypatch):
+    # /dev/null: without the check it read as an empty file (and /dev/zero without end)
+    with pytest.raises(ParamsFileError, match="/dev/null is not a regular file"):
+        load_params("/dev/null")
+    assert params_yaml.MAX_FILE_BYTES == 1 << 20
+    monkeypatch.setattr(params_yaml, "MAX_FILE_BYTES", 2048)  # a 1 MiB file parses slowly
+    path = tmp_path / "large.yaml"
+    path.write_text("#" * 2048 + "\n")
+    with pytest.raises(ParamsFileError, match="large.yaml is larger than 2 KiB"):
+        load_params(path)
+    path.write_text("#" * 2047 + "\n")
+    assert load_params(path) == ExplorationParams()
+
+
+@pytest.mark.parametrize("free_below, occupied_above, valid", [
+    (0.9, 0.1, False), (0.6, 0.7, False), (0.3, 0.4, False), (0.5, 0.5, True), (0.2, 0.9, True)])
+def test_explored_thresholds_must_leave_unknown_cells_unexplored(free_below, occupied_above,
+                                                                 valid):
+    thresholds = {"explored_free_below": free_below, "explored_occupied_above": occupied_above}
+    if valid:
+        assert ExplorationParams().replace(map=thresholds).map.explored_free_below == free_below
+    else:
+        with pytest.raises(ValueError, match="explored_free_below .* must be at most 0.5"):
+            ExplorationParams().replace(map=thresholds)
+
+
+@pytest.mark.parametrize("width_m, height_m, cell_size_m, valid", [
+    (40.0, 40.0, 50.0, False), (40.0, 40.0, 10.5, False), (100.0, 30.0, 8.0, False),
+    (40.0, 40.0, 10.0, True), (10.0, 10.0, 2.0, True)])
+def test_the_cell_size_must_give_a_few_cells_per_side(width_m, height_m, cell_size_m, valid):
+    overrides = {"world": {"width_m": width_m, "height_m": height_m},
+                 "map": {"cell_size_m": cell_size_m}}
+    if valid:
+        assert ExplorationParams().replace(**overrides).map.cell_size_m == cell_size_m
+    else:
+        with pytest.raises(ValueError, match="fewer than 4 cells along the world's"):
+            ExplorationParams().replace(**overrides)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import reprlib
 import warnings
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -21,6 +22,13 @@ from typing import Any, Iterable, Mapping
 
 #: Ratio between a 95% error bound and the standard deviation of a Gaussian.
 BOUND_95_TO_SIGMA = 1.96
+#: Occupancy probability of a cell never observed (log-odds 0).
+UNKNOWN_PROBABILITY = 0.5
+#: Fewest virtual map cells along each side of the world: with fewer, at most one cell
+#: along a side lies away from the map edge (frontiers ignore cells near it,
+#: frontiers.boundary_distance_m) and the explored ratio moves in steps of 1/9 of the map
+#: or more.
+MIN_CELLS_PER_SIDE = 4
 
 
 def param_field(default: Any, description: str, low: float | None = None,
@@ -181,6 +189,16 @@ class MapParams:
         0.55, "A cell is explored (occupied) above this probability.", 0.0, 1.0)
     virtual_landmark_prior_sigma_m: float = param_field(
         1.2, "Prior sigma per axis of a never-observed virtual landmark [m].", 0.0, 100.0)
+
+    def __post_init__(self) -> None:
+        """``ValueError`` unless a never-observed cell (probability 0.5) is unexplored:
+        ``explored_free_below <= 0.5 <= explored_occupied_above``."""
+        if not self.explored_free_below <= UNKNOWN_PROBABILITY <= self.explored_occupied_above:
+            raise ValueError(
+                f"MapParams.explored_free_below ({self.explored_free_below}) must be at most "
+                f"{UNKNOWN_PROBABILITY} and explored_occupied_above "
+                f"({self.explored_occupied_above}) at least {UNKNOWN_PROBABILITY}: a cell "
+                f"never observed has probability {UNKNOWN_PROBABILITY} and is not explored")
 
 
 @dataclass(frozen=True)
@@ -406,6 +424,15 @@ class ExplorationParams:
     links: LinkParams = field(default_factory=LinkParams)
     run: RunParams = field(default_factory=RunParams)
 
+    def __post_init__(self) -> None:
+        """``ValueError`` if the virtual map has fewer than ``MIN_CELLS_PER_SIDE`` cells
+        along a side of the world."""
+        shortest_side_m = min(self.world.width_m, self.world.height_m)
+        if self.map.cell_size_m * MIN_CELLS_PER_SIDE > shortest_side_m:
+            raise ValueError(
+                f"MapParams.cell_size_m = {self.map.cell_size_m} m gives fewer than "
+                f"{MIN_CELLS_PER_SIDE} cells along the world's {shortest_side_m} m side; "
+                f"use at most {shortest_side_m / MIN_CELLS_PER_SIDE:g} m")
 
     def flat(self) -> dict[str, Any]:
         """All parameters as ``{'group.field': value}``, the ROS parameter names."""
@@ -452,41 +479,74 @@ def _refuse_unknown(names: Iterable[str], known: Iterable[str], what: str) -> No
                          f"known: {', '.join(known)}")
 
 
+class _BoundedRepr(reprlib.Repr):
+    """``reprlib.Repr`` that also shortens integers of any size (``repr`` of one with more
+    than 4300 digits raises ``ValueError``)."""
+
+    def repr_int(self, x: int, level: int) -> str:
+        if x.bit_length() <= 128:
+            return repr(x)
+        digits = math.floor(x.bit_length() * math.log10(2)) + 1
+        return f"{'-' if x < 0 else ''}<integer of about {digits} digits>"
+
+
+_VALUE_REPR = _BoundedRepr()
+_VALUE_REPR.maxlevel, _VALUE_REPR.maxlist, _VALUE_REPR.maxtuple = 2, 4, 4
+_VALUE_REPR.maxdict, _VALUE_REPR.maxstring, _VALUE_REPR.maxother = 4, 40, 40
+
+
+def shown_value(value: Any) -> str:
+    """``repr(value)`` cut to a few dozen characters, for error messages: a value from a
+    file can be huge (a 1e9-element list made of YAML aliases, a 400-digit integer)."""
+    return _VALUE_REPR.repr(value)
+
+
+def _as_float(value: Any) -> float:
+    """``float(value)``, with an integer beyond the float range as +-inf (so the finiteness
+    check refuses it instead of ``OverflowError``)."""
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf if value > 0 else -math.inf
+
+
 def _checked_value(group_name: str, f: dataclasses.Field, default: Any, value: Any) -> Any:
     """Coerce ``value`` to the type of the field's default and check its range."""
     where = f"{group_name}.{f.name}"
     if isinstance(default, bool):
         if not isinstance(value, bool):
-            raise ValueError(f"{where} must be true or false, got {value!r}")
+            raise ValueError(f"{where} must be true or false, got {shown_value(value)}")
         return value
     if isinstance(default, tuple):
         if not isinstance(value, (list, tuple)) or len(value) != len(default):
-            raise ValueError(f"{where} must be a list of {len(default)} numbers, got {value!r}")
+            raise ValueError(f"{where} must be a list of {len(default)} numbers, "
+                             f"got {shown_value(value)}")
         try:
-            coerced_tuple = tuple(float(v) for v in value)
+            coerced_tuple = tuple(_as_float(v) for v in value)
         except (TypeError, ValueError) as error:
-            raise ValueError(f"{where} must be numbers, got {value!r}") from error
+            raise ValueError(f"{where} must be numbers, got {shown_value(value)}") from error
         if not all(math.isfinite(v) for v in coerced_tuple):
-            raise ValueError(f"{where} must be finite, got {value!r}")
+            raise ValueError(f"{where} must be finite, got {shown_value(value)}")
         return coerced_tuple
     if isinstance(default, str):
         choices = f.metadata.get("choices")
         if not isinstance(value, str) or (choices and value not in choices):
-            raise ValueError(f"{where} must be one of {choices}, got {value!r}")
+            raise ValueError(f"{where} must be one of {choices}, got {shown_value(value)}")
         return value
     if isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
             if isinstance(value, float) and value.is_integer():
                 value = int(value)
             else:
-                raise ValueError(f"{where} must be an integer, got {value!r}")
+                raise ValueError(f"{where} must be an integer, got {shown_value(value)}")
     else:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{where} must be a number, got {value!r}")
-        value = float(value)
-        if not math.isfinite(value):
-            raise ValueError(f"{where} must be finite, got {value!r}")
+            raise ValueError(f"{where} must be a number, got {shown_value(value)}")
+        number = _as_float(value)
+        if not math.isfinite(number):
+            raise ValueError(f"{where} must be finite, got {shown_value(value)}")
+        value = number
     low, high = f.metadata.get("low"), f.metadata.get("high")
     if (low is not None and value < low) or (high is not None and value > high):
-        raise ValueError(f"{where} = {value!r} is outside [{low}, {high}]")
+        raise ValueError(f"{where} = {shown_value(value)} is outside [{low}, {high}]")
     return value

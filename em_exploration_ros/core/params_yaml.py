@@ -16,11 +16,15 @@ Everything in a file is checked before it is used: exploration parameters agains
 ``core.params``, a node section's own settings (names without a group, e.g.
 ``robot_timeout_s`` under ``/em_world:``) against that node's table in
 ``core.node_settings``; integers are accepted where numbers are expected, and an unknown
-name is refused with the closest valid one.
+name is refused with the closest valid one. A file must be a regular file of at most
+``MAX_FILE_BYTES`` whose YAML expands to at most ``MAX_FILE_VALUES`` values nested at most
+``MAX_FILE_DEPTH`` levels deep (anchors and aliases are allowed within that bound).
 """
 from __future__ import annotations
 
 import dataclasses
+import os
+import stat
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -32,6 +36,18 @@ from em_exploration_ros.core.params import ExplorationParams, closest_name_hint
 ROS_PARAMETERS_KEY = "ros__parameters"
 #: ROS parameters every node has; allowed in any section of a parameter file.
 NODE_SETTINGS_ANYWHERE = frozenset({"use_sim_time"})
+#: Largest parameter file read [bytes]; the shipped one, every parameter with its
+#: description, is about 15 KiB.
+MAX_FILE_BYTES = 1 << 20
+#: Most values (mapping entries and list items, each alias counted wherever it is used)
+#: a parameter file may expand to: about as many as a file of ``MAX_FILE_BYTES`` without
+#: aliases can hold, so anchors stay usable while a few lines of aliases of aliases
+#: expanding to 1e9 values (an "alias bomb") are refused before anything walks them.
+MAX_FILE_VALUES = 100_000
+#: Deepest nesting of mappings and lists in a parameter file (``/**: ros__parameters:
+#: group: field: [list]`` is 5 levels).
+MAX_FILE_DEPTH = 32
+_TOO_DEEP = f"the file nests deeper than {MAX_FILE_DEPTH} levels"
 
 
 class ParamsFileError(ValueError):
@@ -41,23 +57,60 @@ class ParamsFileError(ValueError):
 def load_params(path: str | Path, base: ExplorationParams | None = None) -> ExplorationParams:
     """Parameters from a YAML file, applied on top of ``base`` (default: the paper's values)."""
     file_path = Path(path)
-    try:
-        text = file_path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise ParamsFileError(f"cannot read parameter file {file_path}: {error.strerror}") from None
-    except UnicodeDecodeError as error:
-        raise ParamsFileError(f"{file_path} is not UTF-8 text (byte {error.start}: "
-                              f"{error.reason})") from None
+    text = _read_text(file_path)
     try:
         document = yaml.safe_load(text)
-    except yaml.YAMLError as error:
+    except (yaml.YAMLError, ValueError) as error:  # ValueError: an integer of > 4300 digits
         raise ParamsFileError(f"{file_path} is not valid YAML: {error}") from None
+    except RecursionError:
+        raise ParamsFileError(f"{file_path}: {_TOO_DEEP}") from None
     try:
+        check_expansion(document)
         groups = nest_dotted(parameter_section(document))
         base = base or ExplorationParams()
         return base.replace(**groups) if groups else base
     except ValueError as error:
         raise ParamsFileError(f"{file_path}: {error}") from None
+
+
+def _read_text(file_path: Path) -> str:
+    """The text of the parameter file ``file_path``: a regular file of at most
+    ``MAX_FILE_BYTES`` bytes of UTF-8 (``ParamsFileError`` otherwise)."""
+    try:
+        # O_NONBLOCK: opening a FIFO does not wait for a writer (it is refused below).
+        with open(os.open(file_path, os.O_RDONLY | os.O_NONBLOCK), "rb") as file:
+            if not stat.S_ISREG(os.fstat(file.fileno()).st_mode):
+                raise ParamsFileError(f"parameter file {file_path} is not a regular file")
+            data = file.read(MAX_FILE_BYTES + 1)
+    except OSError as error:
+        raise ParamsFileError(f"cannot read parameter file {file_path}: {error.strerror}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise ParamsFileError(f"parameter file {file_path} is larger than "
+                              f"{MAX_FILE_BYTES // 1024} KiB")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise ParamsFileError(f"{file_path} is not UTF-8 text (byte {error.start}: "
+                              f"{error.reason})") from None
+
+
+def check_expansion(document: Any) -> None:
+    """``ValueError`` if a parsed YAML document expands to more than ``MAX_FILE_VALUES``
+    values or nests deeper than ``MAX_FILE_DEPTH`` levels. Stops counting at the bound, so
+    it takes at most ``MAX_FILE_VALUES`` steps whatever the aliases expand to."""
+    pending = [(document, 0)]
+    count = 0
+    while pending:
+        value, depth = pending.pop()
+        count += 1
+        if count > MAX_FILE_VALUES:
+            raise ValueError(f"the file expands to more than {MAX_FILE_VALUES} values "
+                             "(YAML aliases of aliases?)")
+        if depth > MAX_FILE_DEPTH:
+            raise ValueError(_TOO_DEEP)
+        children = value.values() if isinstance(value, Mapping) else (
+            value if isinstance(value, list) else ())
+        pending.extend((child, depth + 1) for child in children)
 
 
 def parameter_section(document: Any) -> dict[str, Any]:
