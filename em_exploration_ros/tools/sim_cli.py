@@ -8,7 +8,9 @@ send it (see core/sim/team_runner.py). Examples::
 
 Exit status: 0 when the run ended by its stop rule (explored ratio, distance, every
 robot finished, max_steps), 4 when it stalled (``run.stall_timeout_s`` without team
-progress), 2 for bad arguments or an impossible world, 130 when interrupted.
+progress), 2 for bad arguments (output paths included, checked before the run) or an
+impossible world, 1 when the summary or the map could not be written at the end (full
+disk; no partial file is left), 130 when interrupted.
 """
 from __future__ import annotations
 
@@ -18,10 +20,10 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 from em_exploration_ros.core.evaluation.run_monitor import EXIT_STALLED, STALLED_PREFIX
-from em_exploration_ros.core.output_paths import output_path_problem
+from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
 from em_exploration_ros.core.params import (ExplorationParams, PlannerParams,
                                             current_planner_name)
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
@@ -30,6 +32,8 @@ from em_exploration_ros.core.sim.team_runner import Progress, TeamRunner
 
 #: A progress line every this many simulation steps.
 PROGRESS_EVERY_STEPS = 250
+#: Exit status when the summary or the map could not be written after the run.
+EXIT_WRITE_FAILED = 1
 
 PLANNER_NAMES = PlannerParams.__dataclass_fields__["name"].metadata["choices"]
 #: argparse ``type`` of options that name planners: deprecated names map to the new ones.
@@ -98,7 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=None, help="seed of world and noise")
     parser.add_argument("--summary", type=Path, help="write the JSON summary here")
     parser.add_argument("--map", type=Path, metavar="PNG",
-                        help="draw the final team map (targets, rendezvous) into this PNG")
+                        help="draw the final team map (targets, rendezvous) into this PNG file "
+                        "(.png)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
 
@@ -120,10 +125,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         params = params_from_args(args, args.seed)
     except (ParamsFileError, ValueError) as error:
         parser.error(str(error))
-    for path, option in ((args.summary, "--summary"), (args.map, "--map")):
-        problem = output_path_problem(path, option) if path is not None else None
-        if problem:
-            parser.error(problem)
+    problem = _output_problem(args)
+    if problem:
+        parser.error(problem)
     log = logging.getLogger("em-sim")
     try:
         runner = TeamRunner(params)
@@ -140,13 +144,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         log.warning("interrupted")
         return 130
     # The files first: a reader that closes stdout early (| head) must not cost them.
-    if args.summary:
-        summary.write(args.summary)
+    unwritten: list[Path] = []
+    if args.summary and not _write_output(args.summary, "--summary", summary.write):
+        unwritten.append(args.summary)
     if args.map:
         # Imported here: matplotlib takes about 0.4 s to load, half of a trial's start-up,
         # and only a run that draws its map needs it.
         from em_exploration_ros.core.evaluation.map_render import render_team_map
-        render_team_map(runner.map_layers(), args.map)
+        layers = runner.map_layers()
+        if not _write_output(args.map, "--map", lambda path: render_team_map(layers, path)):
+            unwritten.append(args.map)
     say(f"done ({summary.stop_reason}): explored {summary.explored_ratio:.3f}, "
         f"distance {summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, "
         f"landmark RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, "
@@ -155,11 +162,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     for agent in runner.agents:
         for recovery in agent.slam.recoveries:
             log.warning("robot %d: %s", agent.robot_id, recovery.describe())
-    if args.summary:
-        say(f"summary: {args.summary}")
-    if args.map:
-        say(f"map: {args.map}")
+    for label, path in (("summary", args.summary), ("map", args.map)):
+        if path and path not in unwritten:
+            say(f"{label}: {path}")
+    if unwritten:
+        return EXIT_WRITE_FAILED
     return EXIT_STALLED if summary.stop_reason.startswith(STALLED_PREFIX) else 0
+
+
+def _output_problem(args: argparse.Namespace) -> str | None:
+    """Why --summary or --map cannot be written, or None: each must be writable
+    (``output_path_problem``), the map a .png (the only format it is drawn in), and the
+    two must not be the same file."""
+    for path, option, suffix in ((args.summary, "--summary", None), (args.map, "--map", ".png")):
+        problem = output_path_problem(path, option, suffix) if path is not None else None
+        if problem:
+            return problem
+    if (args.summary and args.map
+            and args.summary.expanduser().resolve() == args.map.expanduser().resolve()):
+        return f"--summary and --map name the same file {args.map}"
+    return None
+
+
+def _write_output(path: Path, option: str, write: Callable[[Path], object]) -> bool:
+    """Write one output file whole (``write_replacing``); False, with one error line, if
+    writing failed."""
+    try:
+        write_replacing(path, write)
+    except OSError as error:
+        logging.getLogger("em-sim").error("cannot write %s %s: %s", option, path,
+                                          error.strerror or error)
+        return False
+    return True
 
 
 def say(line: str) -> None:
