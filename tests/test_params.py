@@ -188,7 +188,7 @@ def test_values_in_error_messages_are_bounded():
 
 @pytest.mark.parametrize("text, message", [
     ("world:\n  width_m: " + "9" * 400 + "\n", r"width_m must be finite, got <integer of"),
-    ("world:\n  start_region_x_fraction: [" + "9" * 400 + ", 0.2]\n",
+    ("world:\n  start_region_x_fraction: [" + "9" * 400 + ", 1]\n",
      r"start_region_x_fraction must be finite"),
     ("/em_world: {ros__parameters: {robot_timeout_s: " + "9" * 400 + "}}\n",
      r"section '/em_world': .*robot_timeout_s must be finite"),
@@ -198,6 +198,24 @@ def test_integers_beyond_the_float_range_are_clear_errors(tmp_path, text, messag
     path.write_text(text)
     with pytest.raises(ParamsFileError, match=message):
         load_params(path)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("world:\n  start_region_x_fraction: [0.1, 1]\n",
+     r"^.*: world.start_region_x_fraction: the list \[0.1, 1\] mixes floats and integers; "
+     r"a ROS 2 parameter file needs one type per list"),
+    ("/**:\n  ros__parameters:\n    links: {range_m: 30.0}\n    x: [true, 1]\n",
+     r"/\*\*.ros__parameters.x: the list \[True, 1\] mixes booleans and integers"),
+])
+def test_a_list_of_mixed_types_is_refused_as_the_ros_nodes_would(tmp_path, text, message):
+    """rcl's parameter-file parser refuses a list mixing integers and floats (the nodes of
+    run_team.sh all died on [0.1, 1]); em-sim and run_team.sh's check refuse it first."""
+    path = tmp_path / "mixed.yaml"
+    path.write_text(text)
+    with pytest.raises(ParamsFileError, match=message):
+        load_params(path)
+    path.write_text(text.replace("[0.1, 1]", "[0.1, 1.0]").replace("x: [true, 1]\n", ""))
+    load_params(path)
 
 
 @pytest.mark.parametrize("text", ["{" * 500 + "}" * 500 + "\n",  # too deep for the parser

@@ -31,7 +31,8 @@ from typing import Any, Mapping
 import yaml
 
 from em_exploration_ros.core.node_settings import NODE_SETTINGS, checked_settings
-from em_exploration_ros.core.params import ExplorationParams, closest_name_hint
+from em_exploration_ros.core.params import (ExplorationParams, closest_name_hint,
+                                            shown_value)
 
 ROS_PARAMETERS_KEY = "ros__parameters"
 #: ROS parameters every node has; allowed in any section of a parameter file.
@@ -66,6 +67,7 @@ def load_params(path: str | Path, base: ExplorationParams | None = None) -> Expl
         raise ParamsFileError(f"{file_path}: {_TOO_DEEP}") from None
     try:
         check_expansion(document)
+        check_list_types(document)
         groups = nest_dotted(parameter_section(document))
         base = base or ExplorationParams()
         return base.replace(**groups) if groups else base
@@ -111,6 +113,30 @@ def check_expansion(document: Any) -> None:
         children = value.values() if isinstance(value, Mapping) else (
             value if isinstance(value, list) else ())
         pending.extend((child, depth + 1) for child in children)
+
+
+def check_list_types(document: Any) -> None:
+    """``ValueError`` naming the first list whose items are not all of one kind (booleans,
+    integers, floats or strings). The ROS nodes read the same file with rcl's parser, which
+    refuses such a list ("Sequence should be of same type"): a file em-sim takes would stop
+    every node of run_team.sh. Call after :func:`check_expansion` (it bounds the walk)."""
+    pending: list[tuple[Any, str]] = [(document, "")]
+    while pending:
+        value, where = pending.pop()
+        if isinstance(value, Mapping):
+            pending.extend((child, f"{where}.{key}" if where else str(key))
+                           for key, child in value.items())
+        elif isinstance(value, list):
+            kinds = {_SCALAR_KINDS.get(type(item)) for item in value} - {None}
+            if len(kinds) > 1:
+                raise ValueError(
+                    f"{where}: the list {shown_value(value)} mixes {' and '.join(sorted(kinds))}"
+                    f"; a ROS 2 parameter file needs one type per list (e.g. 1.0, not 1, "
+                    f"among floats)")
+
+
+#: The kinds of list items rcl's parameter-file parser tells apart.
+_SCALAR_KINDS = {bool: "booleans", int: "integers", float: "floats", str: "strings"}
 
 
 def parameter_section(document: Any) -> dict[str, Any]:
