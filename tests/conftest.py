@@ -73,3 +73,11 @@ def _interrupt(signum: int, _frame: object) -> None:
 # At import, i.e. before any test module is collected and could initialise rclpy.
 _isolate_ros_environment()
 signal.signal(signal.SIGTERM, _interrupt)
+
+
+def pytest_unconfigure(config: object) -> None:
+    """Release the domain lock this session held (closing its file), at the very end."""
+    global _domain_lock
+    if _domain_lock is not None:
+        _domain_lock.close()
+        _domain_lock = None
