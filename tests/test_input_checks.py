@@ -8,7 +8,8 @@ from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, ClockGuar
                                                         RejectionLog, array_problem,
                                                         barrier_problem,
                                                         command_problem, first_problem,
-                                                        frame_problem, id_problem,
+                                                        frame_problem, history_request_problem,
+                                                        id_problem,
                                                         landmark_reading_problem, reason_kind,
                                                         number_problem, request_problem,
                                                         size_problem, stamp_problem,
@@ -30,6 +31,21 @@ def test_clock_guard_drops_negative_malformed_backwards_and_leaping_clocks():
     assert "backwards" in guard.check(5, 100_000_000, wall_s=0.3)
     assert "leapt" in guard.check(2**31 - 1, 0, wall_s=0.3)
     assert guard.check(105, 0, wall_s=1.2) is None  # 100 s in one wall second
+
+
+@pytest.mark.parametrize("requester, first, last, problem", [
+    (1, 1, 0, None),
+    (0, 1, 0, "not a teammate"),  # this robot's own id
+    (3, 1, 0, "not a teammate"),
+    (-1, 1, 0, "not a teammate"),
+    (1, 1, 5, "not the whole stream (1..0)"),
+    (1, 0, 0, "not the whole stream (1..0)"),
+])
+def test_a_request_for_ones_own_stream_is_checked(requester, first, last, problem):
+    """A restarted robot asks its teammates for all of its own stream (1..0); anything
+    else claiming to be that request is dropped before a record is re-sent."""
+    found = history_request_problem(requester, first, last, own_id=0, num_robots=3)
+    assert found is None if problem is None else problem in found
 
 
 def _feed(guard, samples):

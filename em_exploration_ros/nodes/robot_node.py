@@ -59,8 +59,9 @@ from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariance
 from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
                                                   keyframe_ranges)
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, barrier_problem,
-                                                        first_problem, frame_problem,
+from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, RejectionLog,
+                                                        barrier_problem, first_problem,
+                                                        frame_problem, history_request_problem,
                                                         landmark_reading_problem, request_problem,
                                                         size_problem, stamp_step_problem,
                                                         step_problem)
@@ -137,6 +138,7 @@ class RobotNode(LeanNode):
         self.archive = StreamArchive(self.robot_id, self.num_robots)
         self._recovery: OwnHistoryRecovery | None = None
         self._served_history: dict[int, float] = {}
+        self._served_history_log = RejectionLog(LOG_PERIOD_S)
         self._last_reply: MotionCommand | None = None
         self.rejected_updates = 0
         self._slam_recoveries_logged = 0
@@ -352,8 +354,8 @@ class RobotNode(LeanNode):
         self.received_deliveries[1] += 1
         asker, owner = int(message.requester_id), int(message.robot_id)
         topic = delivered_requests_topic(self.robot_id)
-        if asker == owner and asker != self.robot_id and 0 <= asker < self.num_robots:
-            self._serve_history(asker)
+        if asker == owner:
+            self._serve_history(topic, message)
         elif self.inputs.check(topic, f"request for robot {owner}'s records"
                                if owner != self.robot_id else None,
                                request_problem(asker, message.first_sequence,
@@ -378,9 +380,17 @@ class RobotNode(LeanNode):
             self.rejected_updates += 1
             self.get_logger().warn(f"rejected a relayed record of this robot's history: {error}")
 
-    def _serve_history(self, requester: int) -> None:
-        """Re-send what this robot holds of a restarted teammate's stream (at most once per
-        ``request_period_s`` per teammate)."""
+    def _serve_history(self, topic: str, request: TeamUpdateRequest) -> None:
+        """Re-send what this robot holds of a restarted teammate's stream, the teammate's
+        request checked first (``history_request_problem``), at most once per
+        ``request_period_s`` per teammate, logged at most once per ``LOG_PERIOD_S`` per
+        teammate. Nothing tells a forged request from a real one (DDS carries no identity
+        without security), so that bound is what a forger gets."""
+        requester = int(request.requester_id)
+        if not self.inputs.check(topic, history_request_problem(
+                requester, int(request.first_sequence), int(request.last_sequence),
+                self.robot_id, self.num_robots)):
+            return
         now = time.monotonic()
         if now - self._served_history.get(requester, -float("inf")) < self.settings.request_period_s:
             return
@@ -391,8 +401,12 @@ class RobotNode(LeanNode):
         for update in held:
             publish_or_log(publisher, team_update_to_msg(update, self.wire), self,
                            f"robot {requester}'s record {update.sequence}")
-        self.get_logger().info(f"robot {requester} restarted: re-sent the {len(held)} records "
-                               f"of its stream this robot holds")
+        served = self._served_history_log.note(str(requester), now)
+        if served is not None:
+            times = f" ({served} times since the last line)" if served > 1 else ""
+            self.get_logger().info(f"robot {requester} asked for its own stream (restarted): "
+                                   f"re-sent the {len(held)} records of it this robot "
+                                   f"holds{times}")
 
     def _on_update_request(self, message: TeamUpdateRequest) -> None:
         """File a teammate's (or the evaluator's) request for some of this robot's updates;
@@ -401,8 +415,8 @@ class RobotNode(LeanNode):
         asker, owner = int(message.requester_id), int(message.robot_id)
         if self.relay_mode and asker != TeamUpdateRequest.OBSERVER:
             return  # a teammate's request reaches this robot through the links
-        if asker == owner and asker in self.history_pubs:
-            self._serve_history(asker)
+        if asker == owner:
+            self._serve_history("/team/update_requests", message)
             return
         if message.robot_id != self.robot_id:
             return  # addressed to a teammate

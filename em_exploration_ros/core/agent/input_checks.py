@@ -302,6 +302,19 @@ def landmark_reading_problem(range_m: float, range_variance: float,
     return id_problem(landmark_id, None, "landmark id")
 
 
+def history_request_problem(requester_id: int, first_sequence: int, last_sequence: int,
+                            own_id: int, num_robots: int) -> str | None:
+    """Reason to drop a request of a restarted teammate for its own stream (requester id
+    equal to the owner's): the requester must be a teammate, and the range the whole
+    stream (1..0), the only one a restarted robot asks for."""
+    if not 0 <= requester_id < num_robots or requester_id == own_id:
+        return f"request for the own stream of {requester_id}, which is not a teammate"
+    if (first_sequence, last_sequence) != (1, 0):
+        return (f"request for robot {requester_id}'s own stream with range "
+                f"{first_sequence}..{last_sequence}, not the whole stream (1..0)")
+    return None
+
+
 def request_problem(requester_id: int, first_sequence: int, last_sequence: int,
                     own_id: int, num_robots: int, observer_id: int) -> str | None:
     """Reason to drop a TeamUpdateRequest addressed to robot ``own_id``: a requester that
