@@ -218,12 +218,13 @@ def test_a_list_of_mixed_types_is_refused_as_the_ros_nodes_would(tmp_path, text,
     load_params(path)
 
 
-@pytest.mark.parametrize("text", ["{" * 500 + "}" * 500 + "\n",  # too deep for the parser
-                                  "a: " + "{b: " * 100 + "1" + "}" * 100 + "\n"])
-def test_deep_nesting_is_a_clear_error(tmp_path, text):
+@pytest.mark.parametrize("text, message", [
+    ("{" * 500 + "}" * 500 + "\n", "is nested too deeply to parse"),  # the parser's recursion
+    ("a: " + "{b: " * 100 + "1" + "}" * 100 + "\n", "nests deeper than 32 levels")])
+def test_deep_nesting_is_a_clear_error(tmp_path, text, message):
     path = tmp_path / "deep.yaml"
     path.write_text(text)
-    with pytest.raises(ParamsFileError, match="nests deeper than 32 levels"):
+    with pytest.raises(ParamsFileError, match=message):
         load_params(path)
 
 

@@ -10,6 +10,7 @@ The tools accept a bag directory or a single ``.mcap`` file wherever they read a
 from __future__ import annotations
 
 import os
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ import yaml
 from em_exploration_ros.bag_format.bag_writer import BagWriter
 from em_exploration_ros.bag_format.rosbag2_metadata import (
     BagMetadata, MetadataFormatError, bag_metadata_node, parse_bag_metadata)
+from em_exploration_ros.core.untrusted_yaml import load_yaml, shown_value
 
 METADATA_FILE = "metadata.yaml"
 METADATA_ROOT_KEY = "rosbag2_bagfile_information"
@@ -42,9 +44,12 @@ def _metadata_document(directory: Path) -> dict[str, Any]:
     """The ``rosbag2_bagfile_information`` mapping of a directory's metadata.yaml."""
     path = directory / METADATA_FILE
     try:
-        document: Any = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as error:
-        raise MetadataFormatError(f"{path}: {error}") from None
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise MetadataFormatError(f"{path}: cannot read: {error.strerror}") from None
+    except UnicodeDecodeError:
+        raise MetadataFormatError(f"{path}: not UTF-8 text") from None
+    document = load_yaml(text, str(path), MetadataFormatError)
     node = document.get(METADATA_ROOT_KEY) if isinstance(document, dict) else None
     if not isinstance(node, dict):
         raise MetadataFormatError(f"{path}: no {METADATA_ROOT_KEY} mapping")
@@ -61,27 +66,55 @@ def mcap_file(path: str | os.PathLike[str]) -> Path:
 
     For a directory: the file ``metadata.yaml`` names, or (no ``metadata.yaml``: a killed
     recording) its only ``.mcap`` file. Raises BagPathError for a missing path, a directory
-    without exactly one storage file, or a bag of another storage format.
+    without exactly one storage file, a bag of another storage format, a storage file
+    outside the directory, or a FIFO, socket or device.
     """
     path = Path(path)
     if not path.exists():
         raise BagPathError(f"{path}: no such file or directory")
     if not path.is_dir():
-        return path
+        return _not_special(path)
     if (path / METADATA_FILE).is_file():
         try:
             node = _metadata_document(path)
         except MetadataFormatError as error:
             raise BagPathError(f"unreadable bag metadata: {error}") from None
         if node.get("storage_identifier") != "mcap":
-            raise BagPathError(f"{path}: storage {node.get('storage_identifier')!r}, not mcap")
-        files = [str(name) for name in node.get("relative_file_paths") or []]
+            raise BagPathError(f"{path}: storage {shown_value(node.get('storage_identifier'))}, "
+                               "not mcap")
+        files = node.get("relative_file_paths") or []
+        if not isinstance(files, list) or not all(isinstance(name, str) for name in files):
+            raise BagPathError(f"{path / METADATA_FILE}: relative_file_paths is not a list of "
+                               f"file names: {shown_value(files)}")
     else:
         files = sorted(p.name for p in path.glob(f"*{STORAGE_SUFFIX}"))
     if len(files) != 1:
         raise BagPathError(f"{path}: a bag directory with {len(files)} storage files; "
                            "only single-file bags are read")
-    return path / files[0]
+    return _storage_file(path, files[0])
+
+
+def _storage_file(directory: Path, name: str) -> Path:
+    """The storage file ``name`` of a bag directory; raises BagPathError unless the name is a
+    relative path that stays inside the directory."""
+    if (not name or "\0" in name or Path(name).is_absolute()
+            or os.path.normpath(name).split(os.sep)[0] == ".."):
+        raise BagPathError(f"{directory / METADATA_FILE}: storage file {shown_value(name)} is not "
+                           "a file inside the bag directory")
+    return _not_special(directory / name)
+
+
+def _not_special(path: Path) -> Path:
+    """``path``; raises BagPathError if it is a FIFO, socket or device (reading one could
+    block for ever). A missing or unreadable file or a directory is left to the reader to
+    report."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return path
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise BagPathError(f"{path}: not a regular file")
+    return path
 
 
 class BagDirectoryWriter(BagWriter):

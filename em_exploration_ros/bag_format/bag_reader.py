@@ -99,6 +99,7 @@ class BagInfo:
     schemas: dict[int, SchemaInfo] = field(default_factory=dict)
     channels: dict[int, ChannelInfo] = field(default_factory=dict)
     channel_message_counts: dict[int, int] = field(default_factory=dict)
+    channel_last_log_ns: dict[int, int] = field(default_factory=dict)
     message_count: int = 0
     first_log_ns: int | None = None
     last_log_ns: int | None = None
@@ -130,21 +131,55 @@ class _TruncatedError(Exception):
     """The file ended inside a record."""
 
 
+class _OverlongFieldError(Exception):
+    """A record declares a field longer than what is left of the record."""
+
+    def __init__(self, declared: int, left: int) -> None:
+        super().__init__(f"a field declares {declared} bytes, {left} are left in its record")
+
+
 class _ExactReads:
     """The file as mcap's reader sees it: each read returns exactly the bytes asked for or
     raises _TruncatedError (a plain file returns fewer at its end, and mcap's reader would
-    then parse a record from the short data). ``position`` counts the bytes read."""
+    then parse a record from the short data). ``position`` counts the bytes read.
 
-    def __init__(self, stream: BinaryIO) -> None:
+    A read longer than what is left of the file, or of the record being read
+    (``record_end``, a position), fails before anything is read: a corrupt length field
+    (a chunk's data length, a string length) must not make it allocate its declared size.
+    """
+
+    def __init__(self, stream: BinaryIO, file_size: int) -> None:
         self._stream = stream
+        self._file_size = file_size
         self.position = 0
+        self.record_end: int | None = None
 
     def read(self, size: int = -1) -> bytes:
+        if self.record_end is not None and size > self.record_end - self.position:
+            raise _OverlongFieldError(size, self.record_end - self.position)
+        if size > self._file_size - self.position:
+            raise _TruncatedError()
         data = self._stream.read(size)
         if size >= 0 and len(data) < size:
             raise _TruncatedError()
         self.position += len(data)
         return data
+
+
+class _RecordBoundedReader(StreamReader):
+    """mcap's StreamReader, with each top-level record's reads bounded by its declared length
+    (it reads a record's fields without comparing their lengths with the record's)."""
+
+    def __init__(self, exact: _ExactReads) -> None:
+        super().__init__(exact, emit_chunks=True, validate_crcs=True)
+        self._exact = exact
+
+    def _read_record(self, opcode: int, length: int) -> McapRecord | None:
+        self._exact.record_end = self._exact.position + length
+        try:
+            return super()._read_record(opcode, length)
+        finally:
+            self._exact.record_end = None
 
 
 class BagScanner:
@@ -187,8 +222,8 @@ class BagScanner:
                         f"{self.info.file_size})")
 
     def _walk(self, stream: BinaryIO) -> Iterator[tuple[ChannelInfo, BagMessage]]:
-        exact = _ExactReads(stream)
-        records = StreamReader(exact, emit_chunks=True, validate_crcs=True).records
+        exact = _ExactReads(stream, self.info.file_size)
+        records = _RecordBoundedReader(exact).records
         first = True
         try:
             for record in records:
@@ -210,6 +245,8 @@ class BagScanner:
                                    "bytes)") from None
             raise self._fail("file is truncated: it ends without a footer (the recording "
                              "was not closed)") from None
+        except _OverlongFieldError as error:
+            raise self._fail(f"truncated or corrupt record: {error}") from None
         except CRCValidationError as error:
             what = "data section" if isinstance(error.record, DataEnd) else "chunk"
             raise self._fail(f"{what} CRC mismatch") from None
@@ -269,6 +306,8 @@ class BagScanner:
         counts = self.info.channel_message_counts
         for channel, message in messages:
             counts[channel.id] = counts.get(channel.id, 0) + 1
+            last = self.info.channel_last_log_ns
+            last[channel.id] = max(last.get(channel.id, message.log_time_ns), message.log_time_ns)
             if self.info.first_log_ns is None or message.log_time_ns < self.info.first_log_ns:
                 self.info.first_log_ns = message.log_time_ns
             if self.info.last_log_ns is None or message.log_time_ns > self.info.last_log_ns:

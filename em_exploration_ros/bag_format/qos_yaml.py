@@ -15,6 +15,8 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import yaml
 
+from em_exploration_ros.core.untrusted_yaml import load_yaml, shown_value
+
 SYSTEM_DEFAULT = "system_default"
 UNKNOWN = "unknown"
 BEST_AVAILABLE = "best_available"
@@ -89,7 +91,7 @@ def qos_profiles_to_yaml(profiles: Iterable[QosProfile]) -> str:
 
 def _policy(value: Any, names: Mapping[str, int], field: str) -> str:
     if isinstance(value, bool):
-        raise QosFormatError(f"{field}: expected a policy, got {value!r}")
+        raise QosFormatError(f"{field}: expected a policy, got {shown_value(value)}")
     if isinstance(value, int):
         by_value = {v: k for k, v in names.items()}
         if value not in by_value:
@@ -97,16 +99,16 @@ def _policy(value: Any, names: Mapping[str, int], field: str) -> str:
         return by_value[value]
     if isinstance(value, str) and value.lower() in names:
         return value.lower()
-    raise QosFormatError(f"{field}: unknown policy {value!r}")
+    raise QosFormatError(f"{field}: unknown policy {shown_value(value)}")
 
 
 def _duration_ns(value: Any, field: str) -> int:
     if not isinstance(value, Mapping):
-        raise QosFormatError(f"{field}: expected {{sec, nsec}}, got {value!r}")
+        raise QosFormatError(f"{field}: expected {{sec, nsec}}, got {shown_value(value)}")
     try:
         sec, nsec = int(value["sec"]), int(value["nsec"])
     except (KeyError, TypeError, ValueError) as error:
-        raise QosFormatError(f"{field}: expected {{sec, nsec}}, got {value!r}") from error
+        raise QosFormatError(f"{field}: expected {{sec, nsec}}, got {shown_value(value)}") from error
     if (sec, nsec) in _LEGACY_INFINITE:
         return DURATION_INFINITE_NS
     return min(sec * _NS_PER_S + nsec, DURATION_INFINITE_NS)
@@ -115,7 +117,7 @@ def _duration_ns(value: Any, field: str) -> int:
 def qos_profile_from_node(node: Mapping[str, Any]) -> QosProfile:
     """Parse one profile mapping; policies may be names (v9) or rmw integers (v4..v8)."""
     if not isinstance(node, Mapping):
-        raise QosFormatError(f"expected a QoS mapping, got {node!r}")
+        raise QosFormatError(f"expected a QoS mapping, got {shown_value(node)}")
     try:
         return QosProfile(
             history=_policy(node["history"], HISTORY_VALUES, "history"),
@@ -130,7 +132,7 @@ def qos_profile_from_node(node: Mapping[str, Any]) -> QosProfile:
             avoid_ros_namespace_conventions=bool(node["avoid_ros_namespace_conventions"]),
         )
     except KeyError as error:
-        raise QosFormatError(f"QoS profile lacks {error.args[0]!r}") from error
+        raise QosFormatError(f"QoS profile lacks {shown_value(error.args[0])}") from error
     except (TypeError, ValueError) as error:
         raise QosFormatError(f"bad QoS profile: {error}") from error
 
@@ -139,10 +141,7 @@ def qos_profiles_from_yaml(text: str) -> list[QosProfile]:
     """Parse an ``offered_qos_profiles`` string ("" means no profiles)."""
     if not text.strip():
         return []
-    try:
-        nodes = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise QosFormatError(f"offered_qos_profiles is not YAML: {error}") from error
+    nodes = load_yaml(text, "offered_qos_profiles", QosFormatError)
     if not isinstance(nodes, list):
         raise QosFormatError("offered_qos_profiles is not a YAML sequence")
     return [qos_profile_from_node(node) for node in nodes]

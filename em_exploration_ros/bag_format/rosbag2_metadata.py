@@ -20,6 +20,7 @@ import yaml
 
 from em_exploration_ros.bag_format.qos_yaml import (
     QosFormatError, QosProfile, qos_profile_from_node, qos_profile_node, qos_profiles_from_yaml)
+from em_exploration_ros.core.untrusted_yaml import load_yaml, shown_value
 
 METADATA_RECORD_NAME = "rosbag2"
 SERIALIZED_METADATA_KEY = "serialized_metadata"
@@ -103,6 +104,15 @@ def serialize_bag_metadata(metadata: BagMetadata) -> str:
     return yaml.safe_dump(bag_metadata_node(metadata), sort_keys=False)
 
 
+def _text(value: Any) -> str:
+    """A scalar field as text; raises MetadataFormatError for a list or mapping (whose
+    ``str`` could be huge)."""
+    if isinstance(value, (list, dict)):
+        raise MetadataFormatError(f"bad serialized bag metadata: expected text, got "
+                                  f"{shown_value(value)}")
+    return str(value)
+
+
 def _topic_from_node(node: Mapping[str, Any], version: int) -> TopicInformation:
     topic = node["topic_metadata"]
     offered = topic.get("offered_qos_profiles", [])
@@ -111,35 +121,36 @@ def _topic_from_node(node: Mapping[str, Any], version: int) -> TopicInformation:
     else:
         profiles = [qos_profile_from_node(p) for p in offered or []]
     return TopicInformation(
-        name=str(topic["name"]), type=str(topic["type"]),
+        name=_text(topic["name"]), type=_text(topic["type"]),
         message_count=int(node["message_count"]),
         offered_qos_profiles=tuple(profiles),
-        type_description_hash=str(topic.get("type_description_hash") or "") if version >= 7 else "",
-        serialization_format=str(topic["serialization_format"]))
+        type_description_hash=(_text(topic.get("type_description_hash") or "")
+                               if version >= 7 else ""),
+        serialization_format=_text(topic["serialization_format"]))
 
 
 def parse_bag_metadata(text: str) -> BagMetadata:
     """Parse a ``serialized_metadata`` text (versions 4 to 9)."""
     try:
-        node = yaml.safe_load(text)
+        node = load_yaml(text, "serialized bag metadata", MetadataFormatError)
         if not isinstance(node, Mapping):
             raise MetadataFormatError("serialized bag metadata is not a YAML mapping")
         version = int(node["version"])
         paths = node.get("relative_file_paths") or [""]
         return BagMetadata(
-            relative_file_path=str(paths[0]),
+            relative_file_path=_text(paths[0]),
             starting_time_ns=int(node["starting_time"]["nanoseconds_since_epoch"]),
             duration_ns=int(node["duration"]["nanoseconds"]),
             message_count=int(node["message_count"]),
             topics=tuple(_topic_from_node(t, version)
                          for t in node.get("topics_with_message_count") or []),
-            custom_data={str(k): str(v) for k, v in (node.get("custom_data") or {}).items()},
-            ros_distro=str(node.get("ros_distro") or ""),
-            compression_format=str(node.get("compression_format") or ""),
-            compression_mode=str(node.get("compression_mode") or ""),
-            storage_identifier=str(node["storage_identifier"]),
+            custom_data={_text(k): _text(v) for k, v in (node.get("custom_data") or {}).items()},
+            ros_distro=_text(node.get("ros_distro") or ""),
+            compression_format=_text(node.get("compression_format") or ""),
+            compression_mode=_text(node.get("compression_mode") or ""),
+            storage_identifier=_text(node["storage_identifier"]),
             version=version)
     except MetadataFormatError:
         raise
-    except (yaml.YAMLError, KeyError, TypeError, ValueError, QosFormatError) as error:
+    except (KeyError, TypeError, ValueError, AttributeError, QosFormatError) as error:
         raise MetadataFormatError(f"bad serialized bag metadata: {error!r}") from error

@@ -14,11 +14,12 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
-import reprlib
 import warnings
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Iterable, Mapping
+
+from em_exploration_ros.core.untrusted_yaml import shown_value
 
 #: Ratio between a 95% error bound and the standard deviation of a Gaussian.
 BOUND_95_TO_SIGMA = 1.96
@@ -477,28 +478,6 @@ def _refuse_unknown(names: Iterable[str], known: Iterable[str], what: str) -> No
     for name in sorted(set(names) - set(known)):
         raise ValueError(f"unknown {what}: '{name}'{closest_name_hint(name, known)}; "
                          f"known: {', '.join(known)}")
-
-
-class _BoundedRepr(reprlib.Repr):
-    """``reprlib.Repr`` that also shortens integers of any size (``repr`` of one with more
-    than 4300 digits raises ``ValueError``)."""
-
-    def repr_int(self, x: int, level: int) -> str:
-        if x.bit_length() <= 128:
-            return repr(x)
-        digits = math.floor(x.bit_length() * math.log10(2)) + 1
-        return f"{'-' if x < 0 else ''}<integer of about {digits} digits>"
-
-
-_VALUE_REPR = _BoundedRepr()
-_VALUE_REPR.maxlevel, _VALUE_REPR.maxlist, _VALUE_REPR.maxtuple = 2, 4, 4
-_VALUE_REPR.maxdict, _VALUE_REPR.maxstring, _VALUE_REPR.maxother = 4, 40, 40
-
-
-def shown_value(value: Any) -> str:
-    """``repr(value)`` cut to a few dozen characters, for error messages: a value from a
-    file can be huge (a 1e9-element list made of YAML aliases, a 400-digit integer)."""
-    return _VALUE_REPR.repr(value)
 
 
 def _as_float(value: Any) -> float:

@@ -31,8 +31,8 @@ from typing import Any, Mapping
 import yaml
 
 from em_exploration_ros.core.node_settings import NODE_SETTINGS, checked_settings
-from em_exploration_ros.core.params import (ExplorationParams, closest_name_hint,
-                                            shown_value)
+from em_exploration_ros.core.params import ExplorationParams, closest_name_hint
+from em_exploration_ros.core.untrusted_yaml import load_yaml, shown_value
 
 ROS_PARAMETERS_KEY = "ros__parameters"
 #: ROS parameters every node has; allowed in any section of a parameter file.
@@ -48,7 +48,6 @@ MAX_FILE_VALUES = 100_000
 #: Deepest nesting of mappings and lists in a parameter file (``/**: ros__parameters:
 #: group: field: [list]`` is 5 levels).
 MAX_FILE_DEPTH = 32
-_TOO_DEEP = f"the file nests deeper than {MAX_FILE_DEPTH} levels"
 
 
 class ParamsFileError(ValueError):
@@ -59,12 +58,7 @@ def load_params(path: str | Path, base: ExplorationParams | None = None) -> Expl
     """Parameters from a YAML file, applied on top of ``base`` (default: the paper's values)."""
     file_path = Path(path)
     text = _read_text(file_path)
-    try:
-        document = yaml.safe_load(text)
-    except (yaml.YAMLError, ValueError) as error:  # ValueError: an integer of > 4300 digits
-        raise ParamsFileError(f"{file_path} is not valid YAML: {error}") from None
-    except RecursionError:
-        raise ParamsFileError(f"{file_path}: {_TOO_DEEP}") from None
+    document = load_yaml(text, str(file_path), ParamsFileError)
     try:
         check_expansion(document)
         check_list_types(document)
@@ -109,7 +103,7 @@ def check_expansion(document: Any) -> None:
             raise ValueError(f"the file expands to more than {MAX_FILE_VALUES} values "
                              "(YAML aliases of aliases?)")
         if depth > MAX_FILE_DEPTH:
-            raise ValueError(_TOO_DEEP)
+            raise ValueError(f"the file nests deeper than {MAX_FILE_DEPTH} levels")
         children = value.values() if isinstance(value, Mapping) else (
             value if isinstance(value, list) else ())
         pending.extend((child, depth + 1) for child in children)

@@ -6,7 +6,8 @@ A recording BAG is a bag directory (metadata.yaml and one .mcap file, as em-reco
     em-bag info BAG         topics, types, counts, duration, size, compression, start/end
     em-bag repair IN OUT    rewrite the readable chunks of a damaged recording (e.g. one whose
                             recorder was killed) as a complete, valid one: a bag directory
-                            OUT for a directory IN, an .mcap file OUT for a file IN
+                            OUT for a directory IN, an .mcap file OUT for a file IN (OUT
+                            must not exist; its folder must)
     em-bag render BAG --out PNG
                             draw the final team map of a recorded run (tools/bag_render.py;
                             needs the ROS message packages, not a ROS graph)
@@ -19,6 +20,7 @@ import argparse
 import math
 import shutil
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,19 +95,54 @@ class RepairResult:
     dropped_bytes: int
 
 
+def _check_new_output(target: Path) -> None:
+    """Raise FileExistsError if ``target`` exists, BagError if its folder does not."""
+    if target.exists() or target.is_symlink():
+        raise FileExistsError(target)
+    if not target.parent.is_dir():
+        what = "is not a folder" if target.parent.exists() else "does not exist"
+        raise BagError(f"{target}: the output folder {target.parent} {what}")
+
+
 def repair(source: Path, target: Path) -> RepairResult:
     """Rewrite the readable records of ``source`` as a complete recording at ``target`` (a
     new bag directory if ``source`` is one, else a new .mcap file).
 
     Keeps every message of every chunk that is whole and passes its CRC, with the schemas
     and channels (QoS, type hash) they use; the first damaged record ends the recovery.
-    The output gets a fresh summary and rosbag2 metadata record. Raises BagError if
-    ``source`` is not a recording and FileExistsError if ``target`` exists.
+    The output gets a fresh summary and rosbag2 metadata record. It is written in a hidden
+    folder beside ``target`` and moved to ``target`` when complete, so a failed or killed
+    repair leaves no partial ``target``. Raises BagError if ``source`` is not a recording or
+    the folder of ``target`` does not exist, and FileExistsError if ``target`` exists.
     """
     if source.resolve() == target.resolve():
         raise BagError(f"{target}: repair must write to a different file than it reads")
+    _check_new_output(target)
     scanner = BagScanner(source, tolerant=True)
-    writer = BagDirectoryWriter(target) if source.is_dir() else BagWriter(target)
+    try:
+        staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".partial",
+                                        dir=target.parent))
+    except OSError as error:
+        raise BagError(f"{target}: cannot write: {error.strerror}") from None
+    try:
+        staged = staging / target.name
+        writer = BagDirectoryWriter(staged) if source.is_dir() else BagWriter(staged)
+        try:
+            topics = _copy_readable(scanner, writer)
+        finally:
+            writer.close()
+        _check_new_output(target)
+        staged.rename(target)
+    finally:
+        shutil.rmtree(staging)
+    info = scanner.info
+    return RepairResult(messages=writer.message_count, topics=topics,
+                        input_complete=info.complete, problem=info.problem,
+                        dropped_bytes=info.file_size - info.readable_bytes)
+
+
+def _copy_readable(scanner: BagScanner, writer: BagWriter) -> int:
+    """Write what ``scanner`` can read into ``writer``; returns the number of topics."""
     channel_map: dict[int, int] = {}
 
     def register(channel_id: int) -> int | None:
@@ -124,25 +161,13 @@ def repair(source: Path, target: Path) -> RepairResult:
                                                        channel.type_hash)
         return channel_map[channel_id]
 
-    try:
-        for channel, message in scanner.messages():
-            new_id = register(channel.id)
-            if new_id is not None:
-                writer.write(new_id, message.log_time_ns, message.data, message.publish_time_ns)
-        for channel_id in scanner.info.channels:
-            register(channel_id)
-    except BaseException:
-        writer.close()
-        if target.is_dir():
-            shutil.rmtree(target)
-        else:
-            target.unlink(missing_ok=True)
-        raise
-    writer.close()
-    info = scanner.info
-    return RepairResult(messages=writer.message_count, topics=len(channel_map),
-                        input_complete=info.complete, problem=info.problem,
-                        dropped_bytes=info.file_size - info.readable_bytes)
+    for channel, message in scanner.messages():
+        new_id = register(channel.id)
+        if new_id is not None:
+            writer.write(new_id, message.log_time_ns, message.data, message.publish_time_ns)
+    for channel_id in scanner.info.channels:
+        register(channel_id)
+    return len(channel_map)
 
 
 def _info_command(args: argparse.Namespace) -> None:
@@ -163,6 +188,8 @@ def _repair_command(args: argparse.Namespace) -> None:
 def _render_command(args: argparse.Namespace) -> None:
     # Imported here: the other commands need no ROS message packages.
     from em_exploration_ros.tools.bag_render import render_recording
+    if args.out.suffix.lower() != ".png":
+        raise BagError(f"{args.out}: the picture is written as PNG; name it *.png")
     try:
         team_map = render_recording(args.file, args.out)
     except OSError as error:

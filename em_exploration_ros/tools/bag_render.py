@@ -48,7 +48,7 @@ from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, Chann
 from em_exploration_ros.bag_format.mcap_ros2_schema import same_layout
 from em_exploration_ros.core.planning.frontiers import FrontierType
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, UncertaintyEllipses
-from em_exploration_ros.core.evaluation.map_render import render_team_map
+from em_exploration_ros.core.evaluation.map_render import drawable_layers, render_team_map
 from em_exploration_ros.core.params import MapParams
 from em_exploration_ros.core.evaluation.summary import TARGET_TYPES, TargetEntry
 from em_exploration_ros.core.sim.wire_model import nanoseconds_to_seconds
@@ -84,13 +84,15 @@ class RecordedTeamMap:
 
     ``frontiers``: each robot's frontier candidates at its last decision (``type`` is one of
     ``TARGET_TYPES``); ``end_s``: log time [s] of the last message read (the recorder's
-    clock: sim time when it ran with ``use_sim_time``).
+    clock: sim time when it ran with ``use_sim_time``); ``left_out``: recorded points left
+    out of ``layers`` because they cannot be drawn (map_render.drawable_layers).
     """
 
     layers: TeamMapLayers
     ellipses: dict[int, UncertaintyEllipses] = field(default_factory=dict)
     frontiers: dict[int, list[TargetEntry]] = field(default_factory=dict)
     end_s: float = 0.0
+    left_out: int = 0
 
     @property
     def robots(self) -> list[int]:
@@ -117,6 +119,9 @@ class RecordedTeamMap:
                 f"{len(layers.targets.get(robot, ()))} targets, "
                 f"{0 if ellipses is None else ellipses.count} uncertainty ellipses, "
                 f"last frontiers: {counts}")
+        if self.left_out:
+            lines.append(f"left out {self.left_out} points with non-finite or far-out "
+                         "coordinates")
         return "\n".join(lines)
 
 
@@ -316,7 +321,11 @@ def read_team_map(path: str | Path, map_params: MapParams | None = None) -> Reco
         estimated_paths=paths, estimated_landmarks=landmarks, targets=targets,
         uncertainty_ellipses=ellipses, frontiers=frontiers,
         title=f"{path.name}: {len(robots)} robots, t = {end_s:.1f} s")
-    return RecordedTeamMap(layers, ellipses, frontiers, end_s)
+    try:
+        layers, left_out = drawable_layers(layers)
+    except ValueError as error:
+        raise BagError(f"{path}: {error}") from None
+    return RecordedTeamMap(layers, ellipses, frontiers, end_s, left_out)
 
 
 def render_recording(path: str | Path, png: str | Path) -> RecordedTeamMap:

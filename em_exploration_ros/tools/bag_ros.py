@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import sys
 from collections.abc import Container, Iterator
 from typing import Any, Callable
@@ -108,15 +109,25 @@ def cli_args(argv: list[str] | None) -> tuple[list[str], list[str]]:
     return [full[0], *full[split:]], full[1:split]
 
 
-def number_type(kind: type, *, allow_zero: bool = False) -> Callable[[str], Any]:
-    """An argparse ``type``: a positive (or, with ``allow_zero``, non-negative) ``kind``."""
+def number_type(kind: type, *, allow_zero: bool = False, low: float | None = None,
+                high: float | None = None) -> Callable[[str], Any]:
+    """An argparse ``type``: a finite positive (or, with ``allow_zero``, non-negative)
+    ``kind``, at most ``high`` and, unless 0, at least ``low`` where given (bounds keep the
+    times and counts computed from it representable)."""
     def parse(text: str) -> Any:
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if isinstance(value, float) and not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
         if value < 0 or (value == 0 and not allow_zero):
             bound = "non-negative" if allow_zero else "positive"
             raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
+        if value > 0 and low is not None and value < low:
+            zero = "0 or " if allow_zero else ""
+            raise argparse.ArgumentTypeError(f"must be {zero}at least {low:g}, got {text}")
+        if high is not None and value > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high:g}, got {text}")
         return value
     return parse

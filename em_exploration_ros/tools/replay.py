@@ -7,7 +7,8 @@ publisher offers the QoS its recorded publishers offered (rosbag2's rule: their 
 profile, else reliable/volatile) with a keep-last queue of ``--queue-depth``. Unless the
 played topics include ``/clock``, the replay publishes ``/clock`` from the log time (before
 each message and at ``--clock-hz`` while waiting), so ``use_sim_time`` nodes follow the
-recording. Ctrl-C stops cleanly.
+recording. Ctrl-C stops cleanly. A selection with nothing to play (no topic, or no message
+from the start offset on) and remaps that would put two types on one topic are refused.
 
     em-replay BAG [--rate F] [--start-offset S] [--loop] [--topics T ...] [--regex RE]
               [--exclude RE] [--remap OLD:=NEW ...] [--delay S] [--wait-for-subscribers S]
@@ -27,15 +28,18 @@ from typing import Callable
 import rclpy
 from builtin_interfaces.msg import Time
 from rclpy.duration import Duration
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.validate_full_topic_name import validate_full_topic_name
 from rosgraph_msgs.msg import Clock
 
 from em_exploration_ros.bag_format.bag_reader import (BagError, BagInfo, BagScanner, SchemaInfo,
                                                       scan_bag)
+from em_exploration_ros.bag_format.interface_index import InterfaceNameError
 from em_exploration_ros.bag_format.mcap_ros2_schema import (DefinitionNotFoundError,
                                                             build_message_definition,
                                                             same_layout)
@@ -47,11 +51,19 @@ from em_exploration_ros.tools.bag_ros import (
 
 EXIT_BAD_INPUT = 2
 CLOCK_TOPIC = "/clock"
+CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
 _NS_PER_S = 1_000_000_000
 #: Longest sleep between two checks for Ctrl-C [s].
 _MAX_SLEEP_S = 0.05
 #: How long the end of playback waits for reliable subscribers to acknowledge [s].
 _ACK_TIMEOUT_S = 2.0
+#: Bounds of the numeric options (rate factor, start offset [s], /clock rate [Hz]): beyond
+#: them the wall and log times computed from them overflow.
+RATE_RANGE = (1e-6, 1e6)
+MAX_START_OFFSET_S = 1e10
+CLOCK_HZ_RANGE = (1e-3, 1e6)
+#: Largest keep-last depth of a publisher (rmw takes a size_t; DDS may preallocate it).
+MAX_QUEUE_DEPTH = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -84,6 +96,11 @@ def _remap(text: str) -> tuple[str, str]:
     old, separator, new = text.partition(":=")
     if not separator or not old.startswith("/") or not new.startswith("/"):
         raise argparse.ArgumentTypeError(f"expected /OLD:=/NEW, got {text!r}")
+    try:
+        validate_full_topic_name(new)
+    except InvalidTopicNameException as error:
+        reason = str(error).splitlines()[0].rstrip(":")
+        raise argparse.ArgumentTypeError(f"{reason}: {new!r}") from None
     return old, new
 
 
@@ -93,9 +110,11 @@ def parse_options(args: list[str]) -> ReplayOptions:
         prog="em-replay", description="Publish an MCAP recording with its original timing.")
     parser.add_argument("file", type=Path,
                         help="the recording: a bag directory or an .mcap file")
-    parser.add_argument("--rate", type=number_type(float, allow_zero=True), default=1.0,
+    parser.add_argument("--rate", type=number_type(float, allow_zero=True, low=RATE_RANGE[0],
+                                                   high=RATE_RANGE[1]), default=1.0,
                         help="playback speed factor; 0 = as fast as possible (default: 1)")
-    parser.add_argument("--start-offset", type=number_type(float, allow_zero=True), default=0.0,
+    parser.add_argument("--start-offset", default=0.0,
+                        type=number_type(float, allow_zero=True, high=MAX_START_OFFSET_S),
                         metavar="S", help="skip the first S seconds of the recording")
     parser.add_argument("--loop", action="store_true", help="play again and again")
     parser.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
@@ -112,11 +131,14 @@ def parse_options(args: list[str]) -> ReplayOptions:
     parser.add_argument("--wait-for-subscribers", type=number_type(float, allow_zero=True),
                         default=0.0, metavar="S", help="after the delay, wait up to S seconds "
                         "until every played topic has a subscriber (default: 0, do not wait)")
-    parser.add_argument("--clock-hz", type=number_type(float), default=50.0, metavar="HZ",
+    parser.add_argument("--clock-hz", type=number_type(float, low=CLOCK_HZ_RANGE[0],
+                                                       high=CLOCK_HZ_RANGE[1]),
+                        default=50.0, metavar="HZ",
                         help="rate of /clock messages while waiting (default: 50)")
     parser.add_argument("--no-clock", action="store_true",
                         help="do not publish /clock when the recording has none")
-    parser.add_argument("--queue-depth", type=number_type(int), default=1000, metavar="N",
+    parser.add_argument("--queue-depth", type=number_type(int, high=MAX_QUEUE_DEPTH),
+                        default=1000, metavar="N",
                         help="keep-last depth of each publisher (default: 1000)")
     options = parser.parse_args(args)
     try:
@@ -161,6 +183,9 @@ def check_playable(info: BagInfo, selection: TopicSelection) -> dict[int, Playab
         except MessageTypeError:
             raise BagError(f"{info.path}: topic {channel.topic} has type {type_name}, which is "
                            "not installed (exclude it with --exclude)") from None
+        except InterfaceNameError as error:
+            raise BagError(f"{info.path}: topic {channel.topic}: {error} (exclude it with "
+                           "--exclude)") from None
         except QosFormatError as error:
             raise BagError(f"{info.path}: topic {channel.topic}: bad offered_qos_profiles: "
                            f"{error}") from None
@@ -171,6 +196,38 @@ def check_playable(info: BagInfo, selection: TopicSelection) -> dict[int, Playab
                            "exclude it with --exclude, or replay with the version that "
                            "recorded it")
     return playable
+
+
+def playback_start_ns(info: BagInfo, options: ReplayOptions) -> int:
+    """Log time [ns] from which the replay plays: the first message's plus the offset."""
+    return (info.first_log_ns or 0) + int(options.start_offset_s * _NS_PER_S)
+
+
+def publishes_own_clock(info: BagInfo, topics: dict[int, PlayableTopic],
+                        options: ReplayOptions) -> bool:
+    """True when the replay publishes /clock itself (asked to, and /clock is not played)."""
+    return options.publish_clock and not any(
+        info.channels[c].topic == CLOCK_TOPIC for c in topics)
+
+
+def check_playback(info: BagInfo, topics: dict[int, PlayableTopic],
+                   options: ReplayOptions) -> None:
+    """Raise BagError if the selected topics have nothing to play from the start offset, or
+    if remapping puts two types on one published topic (rmw refuses the second publisher)."""
+    if not topics:
+        raise BagError(f"{info.path}: no topic of the recording is selected")
+    start = playback_start_ns(info, options)
+    if all(info.channel_last_log_ns.get(c, start - 1) < start for c in topics):
+        raise BagError(f"{info.path}: the selected topics have no messages from "
+                       f"{options.start_offset_s:g} s into the recording on")
+    types = {CLOCK_TOPIC: CLOCK_TYPE} if publishes_own_clock(info, topics, options) else {}
+    for channel_id in topics:
+        channel = info.channels[channel_id]
+        name = options.remaps.get(channel.topic, channel.topic)
+        type_name = info.schema_of(channel).name
+        if types.setdefault(name, type_name) != type_name:
+            raise BagError(f"{info.path}: --remap would publish {name} with two types, "
+                           f"{types[name]} and {type_name}")
 
 
 def recorded_as_installed(schema: SchemaInfo) -> bool:
@@ -214,9 +271,8 @@ class Replayer(Node):
             qos = offer_for_playback(topic.offered_qos, options.queue_depth)
             self._topic_publishers[channel_id] = self.create_publisher(
                 topic.message_class, options.remaps.get(name, name), qos_to_rclpy(qos))
-        plays_clock = any(info.channels[c].topic == CLOCK_TOPIC for c in topics)
         self._clock_publisher = None
-        if options.publish_clock and not plays_clock:
+        if publishes_own_clock(info, topics, options):
             self._clock_publisher = self.create_publisher(
                 Clock, CLOCK_TOPIC, QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self._clock_stamp_ns = -1
@@ -244,8 +300,7 @@ class Replayer(Node):
     def play_once(self) -> PlaybackStats:
         """Publish the recording once from the start offset; stops early on shutdown."""
         rate = self._options.rate
-        first = self._info.first_log_ns or 0
-        start_log_ns = first + int(self._options.start_offset_s * _NS_PER_S)
+        start_log_ns = playback_start_ns(self._info, self._options)
         start_wall_ns = time.monotonic_ns()
         self._clock_stamp_ns = -1
         published = 0
@@ -309,6 +364,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         info = scan_bag(options.path)
         topics = check_playable(info, options.selection)
+        check_playback(info, topics, options)
     except BagError as error:
         sys.stderr.write(f"em-replay: {error}\n")
         sys.exit(EXIT_BAD_INPUT)

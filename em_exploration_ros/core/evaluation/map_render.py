@@ -13,10 +13,17 @@ Layers (:class:`map_layers.TeamMapLayers`), all in the mission rectangle
   (hollow markers, shape by type), colour by robot;
 - requested rendezvous: a ring at the meeting point, solid black when the robots met,
   grey otherwise, labelled ``requester→partner``.
+
+Points with a non-finite coordinate or farther than ``FAR_OUT_MISSION_SIZES`` mission sizes
+outside the rectangle (a diverged estimate, a corrupt recording) are left out, and the
+picture says how many: they would not show, and matplotlib's Agg renderer fails on such
+coordinates.
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
+from typing import Any, Sequence
 
 import numpy as np
 from matplotlib import colormaps
@@ -27,13 +34,74 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle
 
-from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers
+from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, UncertaintyEllipses
 from em_exploration_ros.core.evaluation.summary import TARGET_TYPES
 
 #: Marker of each target type.
 TARGET_MARKERS = {"exploration": "^", "revisiting": "s", "rendezvous": "*"}
 #: Shade of explored cells (RGBA); unexplored cells are left transparent.
 EXPLORED_RGBA = (0.80, 0.90, 0.80, 1.0)
+
+
+#: How far outside the mission rectangle a point may lie and still be drawn [mission sizes].
+FAR_OUT_MISSION_SIZES = 10.0
+
+
+def drawable_layers(layers: TeamMapLayers) -> tuple[TeamMapLayers, int]:
+    """``layers`` without the points that cannot be drawn (see the module docstring), and
+    how many were left out (an unusable landmark radius counts as one and is replaced by 0).
+    Raises ValueError if the mission size or cell size is not finite and positive."""
+    sizes = {"width_m": layers.width_m, "height_m": layers.height_m,
+             "cell_size_m": layers.cell_size_m}
+    for name, value in sizes.items():
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"the map's {name} must be finite and positive, got {value}")
+    reach = FAR_OUT_MISSION_SIZES * max(layers.width_m, layers.height_m)
+    left_out = 0
+
+    def near(points: Any, columns: int) -> tuple[np.ndarray, np.ndarray]:
+        """(points as (K, columns) floats, mask of those drawable)."""
+        nonlocal left_out
+        array = np.asarray(points, dtype=float).reshape(-1, columns)
+        x, y = array[:, 0], array[:, 1]
+        with np.errstate(invalid="ignore"):
+            mask = (np.isfinite(array[:, :2]).all(axis=1) & (x >= -reach) & (y >= -reach)
+                    & (x <= layers.width_m + reach) & (y <= layers.height_m + reach))
+        left_out += int(np.count_nonzero(~mask))
+        return array, mask
+
+    def rows(points: Any, columns: int) -> np.ndarray:
+        array, mask = near(points, columns)
+        return array[mask]
+
+    def entries(items: Sequence[Any]) -> list[Any]:
+        _, mask = near([(item.x, item.y) for item in items], 2)
+        return [item for item, keep in zip(items, mask) if keep]
+
+    def ellipses(shapes: UncertaintyEllipses) -> UncertaintyEllipses:
+        nonlocal left_out
+        _, mask = near(shapes.centres, 2)
+        axes = np.asarray(shapes.axes, dtype=float).reshape(-1, 2)
+        with np.errstate(invalid="ignore"):
+            sane = ((np.abs(axes) <= reach).all(axis=1)
+                    & np.isfinite(np.asarray(shapes.angles, dtype=float)))
+        left_out += int(np.count_nonzero(mask & ~sane))
+        keep = mask & sane
+        return UncertaintyEllipses(shapes.centres[keep], shapes.axes[keep], shapes.angles[keep])
+
+    radius = layers.landmark_radius_m
+    if not (np.isfinite(radius) and 0 <= radius <= reach):
+        radius, left_out = 0.0, left_out + 1
+    drawable = dataclasses.replace(
+        layers, landmark_radius_m=radius, true_landmarks=rows(layers.true_landmarks, 2),
+        true_paths={r: rows(p, 3) for r, p in layers.true_paths.items()},
+        estimated_paths={r: rows(p, 3) for r, p in layers.estimated_paths.items()},
+        estimated_landmarks={r: rows(p, 2) for r, p in layers.estimated_landmarks.items()},
+        targets={r: entries(t) for r, t in layers.targets.items()},
+        uncertainty_ellipses={r: ellipses(e) for r, e in layers.uncertainty_ellipses.items()},
+        frontiers={r: entries(f) for r, f in layers.frontiers.items()},
+        rendezvous=tuple(entries(layers.rendezvous)))
+    return drawable, left_out
 
 
 def _robot_colour(robot: int) -> tuple[float, float, float, float]:
@@ -132,10 +200,12 @@ def _legend(axes, robots: list[int], with_rendezvous: bool) -> None:
 
 
 def render_team_map(layers: TeamMapLayers, path: str | Path, dpi: int = 110) -> Path:
-    """Draw ``layers`` into a PNG at ``path`` (parent folders created); returns the path."""
+    """Draw ``layers`` into a PNG at ``path`` (parent folders created); returns the path.
+    Raises ValueError for layers that cannot be drawn (see ``drawable_layers``)."""
     explored = np.asarray(layers.explored)
     if explored.ndim != 2:
         raise ValueError(f"explored must be a 2-D cell mask, got shape {explored.shape}")
+    layers, left_out = drawable_layers(layers)
     figure = Figure(figsize=(9.0, 7.0))
     FigureCanvasAgg(figure)
     axes = figure.add_subplot()
@@ -157,6 +227,9 @@ def render_team_map(layers: TeamMapLayers, path: str | Path, dpi: int = 110) -> 
         axes.set_title(layers.title, fontsize=10)
     robots = sorted(set(layers.true_paths) | set(layers.estimated_paths) | set(layers.targets))
     _legend(axes, robots, bool(layers.rendezvous))
+    if left_out:
+        figure.text(0.01, 0.01, f"{left_out} points with non-finite or far-out coordinates "
+                    "left out", fontsize=8, color="darkred")
     figure.tight_layout()
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
