@@ -62,6 +62,16 @@ def test_report_refuses_a_directory_without_traces(tmp_path):
     assert result.returncode == 2 and "robot_1.trace: no such trace" in result.stderr
 
 
+def test_report_names_a_trace_it_cannot_read(tmp_path):
+    write_trace(tmp_path / "world.trace", [(0.0, "pub", "/clock")])
+    (tmp_path / "robot_0.trace").mkdir()
+    result = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.step_trace",
+                             "report", str(tmp_path)], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 2, result.stderr
+    assert "robot_0.trace: cannot read it (Is a directory)" in result.stderr
+
+
 def test_a_traced_team_chooses_em_sims_targets_and_reports_every_step(tmp_path):
     summary_path, trace_dir = tmp_path / "run" / "summary.json", tmp_path / "trace"
     run, _ = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST", "--map-size",
@@ -88,10 +98,3 @@ def test_a_traced_team_chooses_em_sims_targets_and_reports_every_step(tmp_path):
                             "--summary", str(tmp_path / "again" / "summary.json")],
                            capture_output=True, text=True, timeout=60)
     assert again.returncode == 2 and "already holds traces" in again.stderr
-    (tmp_path / "robot_0.trace").unlink()
-    (tmp_path / "robot_0.trace").mkdir()
-    result = subprocess.run([sys.executable, "-m", "em_exploration_ros.tools.step_trace",
-                             "report", str(tmp_path)], capture_output=True, text=True,
-                            timeout=60)
-    assert result.returncode == 2, result.stderr
-    assert "robot_0.trace: cannot read it (Is a directory)" in result.stderr
