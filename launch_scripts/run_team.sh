@@ -8,7 +8,11 @@
 #
 # Run with --help for the options. Exit code: the evaluator's (0 done, 3 the robots or the world
 # stopped publishing, 4 stalled: the team neither travelled nor explored new area for
-# run.stall_timeout_s), 1 if a process failed, 2 for bad arguments, 130 on Ctrl-C, 143 on SIGTERM.
+# run.stall_timeout_s), 1 if a process failed, 2 for bad arguments, 130 on Ctrl-C, 143 on SIGTERM,
+# 129 on SIGHUP (the terminal closed, the SSH connection lost).
+#
+# Environment: EM_EVALUATOR_END_GRACE_S (default 60) wall seconds the evaluator has, after the
+# world stepped over, to end the run before it is taken for wedged (a run's tests shorten it).
 set -uo pipefail
 
 # shellcheck source=launch_scripts/_common.sh
@@ -30,6 +34,10 @@ KILL_GRACE_S=3
 RESPAWN_GRACE_S=15
 # --respawn: at most this many restarts per robot (a robot that keeps crashing stays down).
 MAX_RESPAWNS=10
+# Wall seconds the evaluator has, once the world has stepped over (its log says so), to write
+# the summary and the map and exit; after that it is taken for wedged (or stopped) and the run
+# fails. Generous: the final evaluation and the map of a large run take a few seconds.
+EVALUATOR_END_GRACE_S=${EM_EVALUATOR_END_GRACE_S:-60}
 
 usage() {
     cat <<EOF
@@ -39,7 +47,8 @@ Runs em-world, N em-robot and em-evaluator as separate processes in one ROS 2 do
 waits for the evaluator to end the run. Progress lines come from the evaluator; each process
 logs to <run dir>/logs/<name>.log. Flags override the parameter file for every node.
 Exit code: 0 done, 3 the world or the robots stopped publishing, 4 stalled (no team
-progress for run.stall_timeout_s), 1 a process failed, 2 bad arguments, 130 Ctrl-C.
+progress for run.stall_timeout_s), 1 a process failed, 2 bad arguments, 130 Ctrl-C,
+143 SIGTERM, 129 SIGHUP (terminal closed).
 
 options:
   --robots N              number of robots, 1..26 (file default: 3)
@@ -108,6 +117,31 @@ needs_value() {  # needs_value REST...: the flag in $arg must be followed by a v
 # A number as a ROS double literal (the nodes declare these parameters as doubles).
 as_double() { if [[ $1 =~ [.eE] ]]; then printf '%s' "$1"; else printf '%s.0' "$1"; fi; }
 
+# A text as a ROS string literal: a YAML double-quoted string (ROS parses a -p value as YAML,
+# so a bare path with " #" or ": " in it is cut short or refused). Control characters are
+# refused with the arguments (check_path).
+as_string() {
+    local text=${1//\\/\\\\}
+    printf '"%s"' "${text//\"/\\\"}"
+}
+
+# check_path FLAG PATH: refuse a path with a control character (a newline, a tab, ...): it
+# would break the nodes' parameters and this script's report lines.
+check_path() {
+    [[ $2 != *[[:cntrl:]]* ]] \
+        || usage_error "$1: the path must not contain control characters, got $(printf '%q' "$2")"
+}
+
+# exit_status_text STATUS: how a process ended, from its wait status ("exited with code 137
+# (signal KILL)" for one killed by a signal: bash reports 128 + the signal number).
+exit_status_text() {
+    local text="exited with code $1"
+    if (( $1 > 128 )) && kill -l "$1" >/dev/null 2>&1; then
+        text+=" (signal $(kill -l "$1"))"
+    fi
+    printf '%s' "$text"
+}
+
 # -- arguments -------------------------------------------------------------------------------
 ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME="" COMM_RANGE="" COMM_LOSS="" COMM_LATENCY="" COMM_BANDWIDTH=""
 PARAMS_FILE="$EM_REPO_ROOT/config/exploration.yaml"
@@ -156,11 +190,13 @@ while (( $# )); do
             if (( $# )) && { [[ $inline_value == 1 ]] || is_number "$1"; }; then
                 check_number "$arg" "$1" 0.01 1000; REALTIME=$1; shift
             fi ;;
-        --summary) needs_value "$@"; SUMMARY=$1; shift ;;
+        --summary) needs_value "$@"; check_path "$arg" "$1"; SUMMARY=$1; shift ;;
         --domain-id) needs_value "$@"; check_number "$arg" "$1" 0 232 int; DOMAIN_ID=$1; shift ;;
         --record)
             RECORD=1
-            if (( $# )) && [[ $inline_value == 1 || $1 != -* ]]; then RECORD_PATH=$1; shift; fi ;;
+            if (( $# )) && [[ $inline_value == 1 || $1 != -* ]]; then
+                check_path "$arg" "$1"; RECORD_PATH=$1; shift
+            fi ;;
         --foxglove)
             FOXGLOVE_PORT=8765
             if (( $# )) && { [[ $inline_value == 1 ]] || is_int "$1"; }; then
@@ -168,11 +204,13 @@ while (( $# )); do
             fi ;;
         --respawn) RESPAWN=1 ;;
         --netns) needs_value "$@"; NETNS=$1; shift ;;
-        --trace-steps) needs_value "$@"; TRACE_DIR=$1; shift ;;
+        --trace-steps) needs_value "$@"; check_path "$arg" "$1"; TRACE_DIR=$1; shift ;;
         *) usage_error "unknown argument '$arg'" ;;
     esac
 done
 
+is_int "$EVALUATOR_END_GRACE_S" \
+    || usage_error "EM_EVALUATOR_END_GRACE_S expects a whole number of seconds, got '$EVALUATOR_END_GRACE_S'"
 if [[ -n $RECORD && ! -f "$EM_REPO_ROOT/${RECORD_MODULE//.//}.py" ]]; then
     usage_error "--record needs em-record ($RECORD_MODULE), which this checkout does not have"
 fi
@@ -248,6 +286,16 @@ if [[ -n $RECORD ]]; then
     mkdir -p "$(dirname "$RECORD_PATH")" 2>/dev/null \
         || usage_error "--record: cannot create the folder of '$RECORD_PATH'"
 fi
+# The folders the run writes into exist before the outputs are checked: a recording must not
+# go where one of them is (it would fail only once the team has started). A log folder that
+# cannot be made is refused after the check, which says better why for an unwritable folder.
+mkdir -p "$LOG_DIR/ros" 2>/dev/null
+if [[ -n $TRACE_DIR ]]; then
+    mkdir -p "$TRACE_DIR" 2>/dev/null || usage_error "--trace-steps: cannot create '$TRACE_DIR'"
+    compgen -G "$TRACE_DIR/*.trace" >/dev/null \
+        && usage_error "--trace-steps: '$TRACE_DIR' already holds traces of another run"
+    TRACE_DIR=$(cd "$TRACE_DIR" && pwd)
+fi
 # Every output file must be writable before anything runs (a read-only folder would
 # otherwise lose the run at its end).
 OUTPUTS=(--summary "$SUMMARY" --summary "$MAP_PNG")
@@ -266,13 +314,7 @@ PY
 ); then
     usage_error "$PROBLEM"
 fi
-mkdir -p "$LOG_DIR" 2>/dev/null || usage_error "--summary: cannot create the log folder '$LOG_DIR'"
-if [[ -n $TRACE_DIR ]]; then
-    mkdir -p "$TRACE_DIR" 2>/dev/null || usage_error "--trace-steps: cannot create '$TRACE_DIR'"
-    compgen -G "$TRACE_DIR/*.trace" >/dev/null \
-        && usage_error "--trace-steps: '$TRACE_DIR' already holds traces of another run"
-    TRACE_DIR=$(cd "$TRACE_DIR" && pwd)
-fi
+[[ -d $LOG_DIR/ros ]] || usage_error "--summary: cannot create the log folder '$LOG_DIR'"
 rm -f "$SUMMARY" "$MAP_PNG" "$LOG_DIR"/*.log  # logs are appended to (a respawned robot's too)
 
 if [[ -n $DOMAIN_ID ]]; then
@@ -322,11 +364,16 @@ wait_groups() {
     done
 }
 
-# SIGINT every group (nodes finish their work), then SIGTERM, then SIGKILL what is left.
+# SIGINT every group (nodes finish their work), then SIGTERM, then SIGKILL what is left. A
+# stopped process (SIGSTOP, Ctrl-Z) is continued after the SIGINT, so that it can act on it.
 stop_all() {
     local pid signal
     for signal in INT TERM KILL; do
-        for pid in "${PIDS[@]}"; do group_alive "$pid" && kill "-$signal" -- "-$pid" 2>/dev/null; done
+        for pid in "${PIDS[@]}"; do
+            group_alive "$pid" || continue
+            kill "-$signal" -- "-$pid" 2>/dev/null
+            [[ $signal == INT ]] && kill -CONT -- "-$pid" 2>/dev/null
+        done
         case $signal in
             INT) wait_groups "$STOP_GRACE_S" && break ;;
             TERM) wait_groups "$KILL_GRACE_S" && break ;;
@@ -356,7 +403,7 @@ PY
 # supervisor) kills what is left at once; by default it ended this shell in the middle of
 # stop_all and left the remaining nodes running with no one to stop them.
 kill_all_now() {
-    trap '' INT TERM
+    trap '' INT TERM HUP
     local pid
     for pid in "${PIDS[@]}"; do kill -KILL -- "-$pid" 2>/dev/null; done
     wait_groups "$KILL_GRACE_S"
@@ -364,10 +411,16 @@ kill_all_now() {
     exit "$1"
 }
 
-# shellcheck disable=SC2317  # called through the traps below
-on_signal() {
+# After the first signal, or once the run is being stopped, a signal kills what is left at once.
+arm_kill_all_now() {
     trap 'kill_all_now 130' INT
     trap 'kill_all_now 143' TERM
+    trap 'kill_all_now 129' HUP
+}
+
+# shellcheck disable=SC2317  # called through the traps below
+on_signal() {
+    arm_kill_all_now
     echo "$PROG: stopping ($1)" >&2
     [[ -n ${TAIL_PID:-} ]] && kill "$TAIL_PID" 2>/dev/null
     stop_all
@@ -376,6 +429,9 @@ on_signal() {
 }
 trap 'on_signal interrupted 130' INT
 trap 'on_signal terminated 143' TERM
+# A closed terminal or a lost SSH connection: the nodes, each in its own session, get no
+# SIGHUP of their own and would run on with no one to stop them.
+trap 'on_signal "hung up" 129' HUP
 
 COMMON=(--ros-args --params-file "$PARAMS_FILE" "${OVERRIDES[@]}")
 SIM_LIMIT=()
@@ -399,7 +455,8 @@ if [[ -n $FOXGLOVE_PORT ]]; then
          "(layout: config/foxglove_layout.json)"
 fi
 start evaluator -m "$NODES.evaluator_node" "${COMMON[@]}" -p use_sim_time:=true \
-    -p "summary_path:=$SUMMARY" -p "map_png_path:=$MAP_PNG" "${SIM_LIMIT[@]}"
+    -p "summary_path:=$(as_string "$SUMMARY")" -p "map_png_path:=$(as_string "$MAP_PNG")" \
+    "${SIM_LIMIT[@]}"
 EVALUATOR_PID=${PIDS[-1]}
 WAIT_FOR=(-p wait_for_evaluator:=true)
 # The robots wait for the recorder too: volatile topics keep nothing for a late subscriber.
@@ -428,6 +485,8 @@ TAIL_PID=$!
 # its liveliness lease or robot_timeout_s); with --respawn it is restarted (respawn_robot).
 # The Foxglove bridge is only a viewer; the world or the recorder dying ends the run.
 FAILED=""
+# The world's log line when it steps over for good, and when this script saw it [s].
+STEPPED_OVER_LINE="stepping over at step" STEPPED_OVER_AT=""
 declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=()
 
 # respawn_robot INDEX WHY: SIGKILL robot INDEX's process group (if alive) and start the same
@@ -496,21 +555,34 @@ while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
             fi
         fi
     done
+    # Once the world has stepped over, the evaluator ends the run; if it does not (wedged, or
+    # stopped), nothing else would.
+    if [[ -z $STEPPED_OVER_AT ]]; then
+        grep -q -F "$STEPPED_OVER_LINE" "$LOG_DIR/world.log" 2>/dev/null && STEPPED_OVER_AT=$SECONDS
+    elif (( SECONDS - STEPPED_OVER_AT >= EVALUATOR_END_GRACE_S )); then
+        state=$(ps -o stat= -p "$EVALUATOR_PID" 2>/dev/null)
+        [[ $state == T* ]] && state="it is stopped (SIGSTOP or Ctrl-Z)" || state="wedged?"
+        FAILED="the evaluator has not ended the run $EVALUATOR_END_GRACE_S s after the world"
+        FAILED+=" stepped over ($state; see $LOG_DIR/evaluator.log)"
+        break
+    fi
     sleep 0.5 &
     wait $!
 done
 
+if [[ -z $FAILED ]]; then
+    wait "$EVALUATOR_PID"
+    CODE=$?
+    wait "$TAIL_PID" 2>/dev/null
+    # 0 done, 3 the world or the robots stopped publishing, 4 stalled: the run's outcomes.
+    [[ $CODE == [034] ]] \
+        || FAILED="the evaluator $(exit_status_text "$CODE") (see $LOG_DIR/evaluator.log)"
+fi
+arm_kill_all_now
 if [[ -n $FAILED ]]; then
     echo "$PROG: error: $FAILED" >&2
-    stop_all
-    report_results
-    exit 1
+    CODE=1
 fi
-wait "$EVALUATOR_PID"
-CODE=$?
-wait "$TAIL_PID" 2>/dev/null
-trap 'kill_all_now 130' INT
-trap 'kill_all_now 143' TERM
 stop_all
 report_results
 exit "$CODE"

@@ -79,11 +79,13 @@ def wait_until(condition: Callable[[], bool], timeout_s: float, what: str,
 
 
 def _interruptible() -> None:
-    """In a child before it runs its command: SIGINT at its default action. A test suite
-    started in the background by a non-interactive shell inherits SIGINT ignored, and a
-    shell cannot trap a signal ignored on entry: run_team.sh then ignored the Ctrl-C test's
-    SIGINT. A terminal's Ctrl-C always meets the default action."""
+    """In a child before it runs its command: SIGINT and SIGHUP at their default action. A
+    test suite started in the background by a non-interactive shell inherits SIGINT ignored
+    (under nohup SIGHUP), and a shell cannot trap a signal ignored on entry: run_team.sh then
+    ignored the Ctrl-C test's SIGINT. A terminal's Ctrl-C (or hangup) always meets the
+    default action."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
 class NodeProcess:

@@ -56,6 +56,8 @@ def run_team(*args: str, timeout_s: float = 20.0) -> subprocess.CompletedProcess
     (["--comm-loss", "1.5"], "--comm-loss must be in [0, 0.99]"),
     (["--comm-range", "far"], "--comm-range expects a number"),
     (["--netns", "em_absent_"], "cannot run in network namespace 'em_absent_world'"),
+    (["--summary", "/tmp/em run\n/summary.json"],
+     "--summary: the path must not contain control characters, got $'/tmp/em run\\n/"),
 ])
 def test_refuses_bad_arguments(args, message):
     result = run_team(*args)
@@ -79,6 +81,20 @@ def test_refuses_bad_parameters_and_outputs_before_starting(tmp_path, text, extr
     assert result.returncode == 2, result.stderr
     assert message in result.stderr
     assert "Traceback" not in result.stderr
+    assert "logs in" not in result.stdout  # no process was started
+
+
+@pytest.mark.parametrize("where", ["logs", "trace"])
+def test_refuses_a_recording_into_a_folder_the_run_makes_before_starting(tmp_path, where):
+    """The log folder beside the summary (and the --trace-steps folder) are made before the
+    outputs are checked: a recording there used to pass the check, then fail once the team
+    had started."""
+    run_dir = tmp_path / "run"
+    result = run_team("--summary", str(run_dir / "summary.json"), "--record",
+                      str(run_dir / where), "--trace-steps", str(run_dir / "trace"),
+                      timeout_s=60.0)
+    assert result.returncode == 2, result.stderr
+    assert f"--record {run_dir / where} is a directory" in result.stderr
     assert "logs in" not in result.stdout  # no process was started
 
 
@@ -258,3 +274,73 @@ def test_ctrl_c_stops_every_process_and_keeps_the_summary(tmp_path):
     summary = json.loads(summary_path.read_text())
     assert summary["stop_reason"] == "interrupted" and check_summary(summary) == []
     assert summary["sim_time_s"] >= 20.0
+
+
+#: Where a run's summary goes to test that a path with YAML syntax in it reaches the
+#: evaluator whole (" #" started a comment, ": " made every node fail to parse it).
+YAML_LIKE_FOLDER = 'run #1: a"b\\c'
+
+
+def _evaluator_pid(domain: str) -> int:
+    pids = processes_in_domain(r"em_exploration_ros\.nodes\.evaluator_node", domain)
+    assert len(pids) == 1, pids
+    return pids[0]
+
+
+def test_a_hangup_stops_every_process_and_keeps_the_summary(tmp_path):
+    """A closed terminal or a lost SSH connection (SIGHUP to the foreground group): handled as
+    SIGTERM, with its own exit code 129. run_team.sh used to die at once and leave every node
+    (each in its own session) running for good. The summary's folder name is YAML syntax:
+    it reaches the evaluator whole, quoted."""
+    summary_path = tmp_path / YAML_LIKE_FOLDER / "summary.json"
+    run, domain = start_team_run(tmp_path, "--planner", "NEAREST", "--map-size", "40",
+                                 "--landmarks", "4", "--until-explored", "1",
+                                 "--summary", str(summary_path))
+    with run:
+        run.wait_for_output("  explored ", RUN_TIMEOUT_S)
+        run.signal_group(signal.SIGHUP)
+        code = run.wait(30.0)
+    assert code == 129, run.output()[-3000:]
+    assert "stopping (hung up)" in run.output()
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+    summary = json.loads(summary_path.read_text())
+    assert summary["stop_reason"] == "interrupted" and check_summary(summary) == []
+    assert summary_path.with_name("summary_map.png").exists()
+    assert not (tmp_path / "run").exists()  # where " #" cut the path short
+
+
+def _run_with_the_evaluator_signalled(tmp_path, signum: int) -> tuple[int, str, str]:
+    """A small NEAREST run whose evaluator gets ``signum`` once progress shows; the exit
+    code, output and ROS domain of run_team.sh."""
+    run, domain = start_team_run(tmp_path, "--planner", "NEAREST", "--map-size", "40",
+                                 "--landmarks", "4", "--until-explored", "1",
+                                 "--summary", str(tmp_path / "summary.json"))
+
+    def signal_the_evaluator() -> None:
+        run.wait_for_output("  explored ", RUN_TIMEOUT_S)
+        os.kill(_evaluator_pid(domain), signum)
+
+    code = finish_team_run(run, 60.0, meanwhile=signal_the_evaluator)
+    return code, run.output(), domain
+
+
+def test_a_stopped_evaluator_fails_the_run_once_the_world_has_stepped_over(tmp_path,
+                                                                          monkeypatch):
+    """The evaluator SIGSTOPped (or wedged): the world steps over when the robots finish, and
+    nothing else ends the run; run_team.sh used to wait for the evaluator for ever. It gives
+    the evaluator EM_EVALUATOR_END_GRACE_S (60 s; 3 s here) after the world stepped over."""
+    monkeypatch.setenv("EM_EVALUATOR_END_GRACE_S", "3")
+    code, output, domain = _run_with_the_evaluator_signalled(tmp_path, signal.SIGSTOP)
+    assert code == 1, output[-3000:]
+    assert ("error: the evaluator has not ended the run 3 s after the world stepped over "
+            "(it is stopped (SIGSTOP or Ctrl-Z)") in output
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+
+
+def test_a_killed_evaluator_fails_the_run_with_a_message(tmp_path):
+    """The evaluator SIGKILLed: exit code 1 (a process failed) and an error line naming it and
+    the signal, not its raw status 137 without a word."""
+    code, output, domain = _run_with_the_evaluator_signalled(tmp_path, signal.SIGKILL)
+    assert code == 1, output[-3000:]
+    assert "error: the evaluator exited with code 137 (signal KILL)" in output
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
