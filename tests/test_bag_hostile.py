@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import struct
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -205,6 +206,19 @@ def test_replay_refuses_malformed_type_names(tmp_path: Path, type_name: str) -> 
     info = scan_bag(_mcap(tmp_path / "typ.mcap", type_name=type_name))
     with pytest.raises(BagError, match="invalid interface type name"):
         replay.check_playable(info, replay.parse_options(["x.mcap"]).selection)
+
+
+@pytest.mark.parametrize("type_name", ["antigravity/msg/Flight", "os/path/join",
+                                       "rclpy/msg/Node"])
+def test_replay_imports_nothing_a_recording_names_that_is_no_installed_message(
+        tmp_path: Path, type_name: str) -> None:
+    """A schema name is imported as ``pkg.msg``: one naming another Python module would run
+    it (``antigravity`` opens a web browser). Only a message the ament index defines is
+    imported."""
+    info = scan_bag(_mcap(tmp_path / "typ.mcap", type_name=type_name))
+    with pytest.raises(BagError, match="which is not installed"):
+        replay.check_playable(info, replay.parse_options(["x.mcap"]).selection)
+    assert "antigravity" not in sys.modules
 
 
 @pytest.mark.parametrize("option", [

@@ -15,7 +15,7 @@ from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 from rclpy.topic_endpoint_info import TopicEndpointInfo
 
-from em_exploration_ros.bag_format.interface_index import split_type_name
+from em_exploration_ros.bag_format.interface_index import find_interface_file, split_type_name
 from em_exploration_ros.bag_format.mcap_ros2_schema import (
     DefinitionNotFoundError, MessageDefinition, build_message_definition)
 from em_exploration_ros.bag_format.qos_yaml import DURATION_INFINITE_NS, QosProfile
@@ -34,12 +34,25 @@ class MessageTypeError(LookupError):
 
 
 def import_message_class(type_name: str) -> type:
-    """The Python class of ``pkg/msg/Type``; raises MessageTypeError if it is not installed."""
+    """The Python class of ``pkg/msg/Type``; raises MessageTypeError if it is not installed.
+
+    The name may come from a recording, so nothing is imported unless the ament index lists
+    the package with that message's definition: a schema named ``antigravity/msg/X`` would
+    otherwise import (and run) whatever Python module has that name. The imported object
+    must be a generated message class."""
     package, namespace, name = split_type_name(type_name)
+    if namespace != "msg" or not any(find_interface_file(type_name, extension)
+                                     for extension in (".msg", ".idl")):
+        raise MessageTypeError(f"message type {type_name} is not installed (no message "
+                               f"definition of it in the ament index)")
     try:
-        return getattr(importlib.import_module(f"{package}.{namespace}"), name)
+        message_class = getattr(importlib.import_module(f"{package}.{namespace}"), name)
     except (ImportError, AttributeError) as error:
         raise MessageTypeError(f"message type {type_name} is not installed ({error})") from None
+    if not (isinstance(message_class, type)
+            and hasattr(message_class, "get_fields_and_field_types")):
+        raise MessageTypeError(f"{type_name} is not a generated message class")
+    return message_class
 
 
 def message_type_support(type_name: str) -> tuple[type, MessageDefinition]:
