@@ -24,6 +24,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import pytest
 
+from process_tree import interruptible
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -78,16 +80,6 @@ def wait_until(condition: Callable[[], bool], timeout_s: float, what: str,
             time.sleep(poll_s)
 
 
-def _interruptible() -> None:
-    """In a child before it runs its command: SIGINT and SIGHUP at their default action. A
-    test suite started in the background by a non-interactive shell inherits SIGINT ignored
-    (under nohup SIGHUP), and a shell cannot trap a signal ignored on entry: run_team.sh then
-    ignored the Ctrl-C test's SIGINT. A terminal's Ctrl-C (or hangup) always meets the
-    default action."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-    signal.signal(signal.SIGHUP, signal.SIG_DFL)
-
-
 class NodeProcess:
     """One child process in its own process group, output to ``log_path``."""
 
@@ -104,7 +96,7 @@ class NodeProcess:
             self.process = subprocess.Popen(self.command, stdout=log, stderr=subprocess.STDOUT,
                                             stdin=subprocess.DEVNULL, env=environment,
                                             cwd=cwd, start_new_session=True,
-                                            preexec_fn=_interruptible)
+                                            preexec_fn=interruptible)
 
     @classmethod
     def start_module(cls, module: str, args: Sequence[str] = (), log_path: Path | None = None,

@@ -16,7 +16,7 @@ import pytest
 
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.tools import bench, bench_plots, math_platform
-from process_tree import alive, children
+from process_tree import alive, children, command_line, interruptible
 
 REPO = Path(__file__).resolve().parents[1]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -412,7 +412,7 @@ def _two_running_workers(bench_pid: int) -> tuple[int, list[int]]:
     server, workers, deadline = None, [], time.monotonic() + 60.0
     while len(workers) < 2 and time.monotonic() < deadline:
         server = next((child for child in children(bench_pid)
-                       if b"forkserver" in Path(f"/proc/{child}/cmdline").read_bytes()), None)
+                       if b"forkserver" in command_line(child)), None)
         workers = children(server) if server else []
         time.sleep(0.01)
     assert server is not None and len(workers) == 2, "the two first trials did not start"
@@ -456,7 +456,7 @@ def test_ctrl_c_stops_every_trial_quietly_and_a_rerun_resumes(tmp_path):
     command = [sys.executable, "-m", "em_exploration_ros.tools.bench", *KILLED_SERVER_RUN,
                "--out", str(tmp_path)]
     bench_process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True,
-                                     start_new_session=True)
+                                     start_new_session=True, preexec_fn=interruptible)
     try:
         server, workers = _two_running_workers(bench_process.pid)
         time.sleep(1.0)  # into their trials, past the fork server's start-up of a worker

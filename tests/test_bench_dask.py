@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from em_exploration_ros.tools.bench_dask import parse_address
-from process_tree import alive, descendants
+from process_tree import alive, descendants, interruptible
 
 REPO = Path(__file__).resolve().parents[1]
 # Two nearest-frontier trials on a small map, and two on a 12 m map where the world
@@ -92,7 +92,7 @@ def test_ctrl_c_on_a_local_cluster_stops_it_without_tracebacks(tmp_path):
                "--map-size", "60", "--cell-size", "2", "--dask", "local:2",
                "--out", str(tmp_path)]
     bench_process = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True,
-                                     start_new_session=True)
+                                     start_new_session=True, preexec_fn=interruptible)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(bench_process.stderr), daemon=True)
     reader.start()

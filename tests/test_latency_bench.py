@@ -4,6 +4,8 @@ import signal
 import subprocess
 import sys
 
+from process_tree import interruptible
+
 
 def test_latency_table_is_printed_with_oracle_agreement_and_fits():
     result = subprocess.run(
@@ -51,7 +53,7 @@ def test_ctrl_c_says_interrupted_without_a_traceback():
     process = subprocess.Popen(
         [sys.executable, "-m", "em_exploration_ros.tools.bench", "latency", "--planners",
          "EM_3", "--sizes", "250", "--repeats", "1000"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=interruptible)
     try:
         assert "poses" in "".join(process.stdout.readline() for _ in range(3))
         process.send_signal(signal.SIGINT)
