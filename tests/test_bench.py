@@ -273,7 +273,9 @@ def test_an_out_folder_that_cannot_be_made_is_refused_before_any_trial(tmp_path)
         assert "trials:" not in result.stderr and "Traceback" not in result.stderr
 
 
-def test_plot_refuses_results_it_did_not_write(bench_out, tmp_path):
+def test_plot_refuses_results_it_did_not_write(bench_out, tmp_path, caplog):
+    """Through em-bench's main in this process (one case through the CLI, for its exit
+    code and stderr without a traceback)."""
     out = tmp_path / "out"
     shutil.copytree(bench_out, out)
     rows = (bench_out / "results.csv").read_text().splitlines()
@@ -283,6 +285,7 @@ def test_plot_refuses_results_it_did_not_write(bench_out, tmp_path):
              (None, rows[:2] + [rows[2] + ",7"], "results.csv: line 3 has 9 values, not 8"),
              (None, rows[:2] + [rows[2].replace("CE", "CE,x", 1)[:-2]], "results.csv: line 3"),
              (None, [], "results.csv: header [] is not")]
+    refusal = f"cannot make the plots from {out}: its summary.json or results.csv is not as"
     for summary, csv_lines, problem in cases:
         shutil.copy(bench_out / "summary.json", out / "summary.json")
         shutil.copy(bench_out / "results.csv", out / "results.csv")
@@ -290,11 +293,12 @@ def test_plot_refuses_results_it_did_not_write(bench_out, tmp_path):
             (out / "summary.json").write_text(summary)
         if csv_lines is not None:
             (out / "results.csv").write_text("\n".join(csv_lines) + "\n")
-        result = run_cli("plot", "--out", str(out))
-        assert result.returncode == 2, result.stderr
-        assert f"cannot make the plots from {out}: its summary.json or results.csv is not as" \
-            in result.stderr and problem in result.stderr, result.stderr
-        assert "Traceback" not in result.stderr
+        caplog.clear()
+        assert bench.main(["plot", "--out", str(out)]) == 2
+        assert refusal in caplog.text and problem in caplog.text, caplog.text
+    result = run_cli("plot", "--out", str(out))  # the last case
+    assert result.returncode == 2 and refusal in result.stderr, result.stderr
+    assert "Traceback" not in result.stderr
 
 
 def _mutations(data, path=()):
