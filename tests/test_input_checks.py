@@ -7,7 +7,8 @@ import pytest
 from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, ClockGuard,
                                                         RejectionLog, array_problem,
                                                         barrier_problem,
-                                                        command_problem, first_problem,
+                                                        command_problem,
+                                                        command_sequence_problem, first_problem,
                                                         frame_problem, history_request_problem,
                                                         id_problem,
                                                         landmark_reading_problem, reason_kind,
@@ -136,6 +137,16 @@ def test_barrier_needs_one_plausible_entry_per_robot():
     assert barrier_problem([51, 101, 100], 3, expected, 100, own=(0, 50)) is None
     assert "own barrier entry" in barrier_problem([2**63, 101, 100], 3, expected, 100,
                                                   own=(0, 50))
+
+
+def test_a_commands_barrier_entry_never_goes_back_nor_leaps():
+    """The world and the evaluator both drop a command whose team_sequence is behind the
+    robot's last one (a forged ``finished`` with sequence 0 once ended a run in the
+    evaluator, which the world had rejected) or implausibly far ahead."""
+    assert command_sequence_problem(13, 13, 10_000) is None
+    assert command_sequence_problem(14, 13, 10_000) is None
+    assert command_sequence_problem(0, 13, 10_000) == "team_sequence 0 is behind 13"
+    assert "implausibly far ahead" in command_sequence_problem(10_014, 13, 10_000)
 
 
 def test_motion_commands_within_the_robots_kinematics():

@@ -11,6 +11,8 @@ def test_answers_timeouts_and_close():
     barrier.open(0, now_s=100.0)
     assert barrier.answer(0, 0, GO, 100.1) == LockstepBarrier.ACCEPTED
     assert barrier.answer(0, 0, GO, 100.2) == LockstepBarrier.DUPLICATE
+    forged = StepAnswer(0.0, 0.0, 4, True)  # another publisher on robot 0's topic
+    assert barrier.answer(0, 0, forged, 100.2) == LockstepBarrier.CONFLICT
     assert barrier.answer(1, 1, GO, 100.2) == LockstepBarrier.FUTURE
     assert not barrier.complete and barrier.waiting_for() == [1, 2]
     assert barrier.expire(101.9) == []

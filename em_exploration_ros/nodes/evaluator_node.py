@@ -71,7 +71,7 @@ from em_exploration_ros.core.evaluation.map_render import render_team_map
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
 from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, first_problem,
                                                         frame_problem, id_problem,
-                                                        sequence_entry_problem, size_problem,
+                                                        command_sequence_problem, size_problem,
                                                         stamp_step_problem, step_problem)
 from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
@@ -401,7 +401,8 @@ class EvaluatorNode(LeanNode):
     def _on_estimate(self, history: StampedEstimates, robot: int, stamp: Time,
                      value: Any) -> None:
         history.add(robot, time_to_seconds(stamp), value)
-        self._overdue.discard(robot)
+        if robot in self._overdue and not self._behind(robot, max(self.recorded_step, 0)):
+            self._overdue.discard(robot)
         self._process()
 
     def _on_link_counts(self, message: TeamLinkCounts) -> None:
@@ -514,8 +515,8 @@ class EvaluatorNode(LeanNode):
                 if step != message.step else None,
                 content_problem(message), given_up_problem,
                 f"blocked_s {message.blocked_s} < 0" if message.blocked_s < 0.0 else None,
-                sequence_entry_problem(message.team_sequence, 0 if last is None else int(
-                    last.team_sequence), MAX_SEQUENCE_LEAD, "team_sequence")):
+                command_sequence_problem(message.team_sequence, 0 if last is None else int(
+                    last.team_sequence), MAX_SEQUENCE_LEAD)):
             return
         if last is not None and message.step <= last.step:
             return  # an older answer arriving late
@@ -704,16 +705,22 @@ class EvaluatorNode(LeanNode):
     def _robots_without_estimates(self, step: int) -> list[int]:
         """Robots waited for (``_waited_for``) whose estimates of the last keyframe before
         ``step`` have not arrived."""
+        return [robot for robot in range(self.num_robots)
+                if self._waited_for(robot) and self._behind(robot, step)]
+
+    def _behind(self, robot: int, step: int) -> bool:
+        """Whether the robot's estimates of the last keyframe before ``step`` are missing."""
         interval = self.params.slam.keyframe_interval_steps
         needed = stamp_key(self._stamp_s(max(step - 1, 0) // interval * interval))
-        return [robot for robot in range(self.num_robots) if self._waited_for(robot) and any(
-            history.newest_key(robot) is None or history.newest_key(robot) < needed
-            for history in (self.paths, self.landmark_estimates))]
+        return any(history.newest_key(robot) is None or history.newest_key(robot) < needed
+                   for history in (self.paths, self.landmark_estimates))
 
     def _waited_for(self, robot: int) -> bool:
         """Whether an evaluation waits for the robot's estimates: unless it is lost (its
         liveliness lapsed) or overdue (an evaluation already went on without its estimates
-        after ``estimate_wait_s``, until it publishes one again). A live robot publishes the
+        after ``estimate_wait_s``, until it has caught up with the latest recorded step: a
+        robot that keeps lagging, as under ``--realtime 1000``, once made every evaluation
+        wait ``estimate_wait_s`` again, 30 s each). A live robot publishes the
         estimates of a keyframe step right after its answer to that step, which the world
         needs before it publishes the next step's ground truth, so the wait ends; when the
         messages of the different topics reach this node (a flooded or loaded node takes

@@ -55,7 +55,7 @@ from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from em_exploration_ros.core.agent.liveness import UnseenLiveliness
-from em_exploration_ros.core.agent.input_checks import command_problem, sequence_entry_problem
+from em_exploration_ros.core.agent.input_checks import command_problem, command_sequence_problem
 from em_exploration_ros.core.agent.team_data import MAX_SEQUENCE_LEAD
 from em_exploration_ros.core.node_settings import LOCKSTEP, REALTIME, WorldNodeSettings
 from em_exploration_ros.core.evaluation.run_monitor import final_step
@@ -316,10 +316,8 @@ class WorldNode(LeanNode):
                 or command_problem(twist.linear.x, twist.angular.z, motion.speed_mps,
                                    motion.max_turn_per_step_rad, motion.time_step_s)
                 or content_problem(message)
-                or (f"team_sequence {message.team_sequence} is behind {last_sequence}"
-                    if message.team_sequence < last_sequence else None)
-                or sequence_entry_problem(message.team_sequence, last_sequence,
-                                          MAX_SEQUENCE_LEAD, "team_sequence"))
+                or command_sequence_problem(message.team_sequence, last_sequence,
+                                            MAX_SEQUENCE_LEAD))
 
     def _log_lost(self, robot: int, why: str) -> None:
         """The line run_team.sh --respawn reacts to (it restarts the robot's process)."""
@@ -357,6 +355,10 @@ class WorldNode(LeanNode):
         if outcome == LockstepBarrier.REJOINED:
             self.get_logger().info(f"robot {robot} rejoined at step {self.barrier.step} "
                                    f"(answered step {message.step})")
+        elif outcome == LockstepBarrier.CONFLICT:
+            self.inputs.drop(topic, f"a second, different answer of robot {robot} to step "
+                                    f"{message.step}: the first stands (another publisher "
+                                    f"on its topic?)")
         elif outcome == LockstepBarrier.FUTURE:
             self.get_logger().warn(f"ignored a {outcome} command of robot {robot} for step "
                                    f"{message.step} (current step {self.barrier.step})")

@@ -134,6 +134,15 @@ def sequence_entry_problem(entry: int, received_up_to: int, lead: int, what: str
     return None
 
 
+def command_sequence_problem(entry: int, last: int, lead: int) -> str | None:
+    """Reason if a motion command's barrier entry (``team_sequence``) is behind the robot's
+    last one (``last``: its sequence numbers only grow, a restart included) or more than
+    ``lead`` ahead of it."""
+    if entry < last:
+        return f"team_sequence {entry} is behind {last}"
+    return sequence_entry_problem(entry, last, lead, "team_sequence")
+
+
 def barrier_problem(entries: Sequence[int], num_robots: int,
                     expected_next: dict[int, int], lead: int,
                     own: tuple[int, int] | None = None) -> str | None:

@@ -49,8 +49,8 @@ STAND_STILL = StepAnswer(0.0, 0.0, 0, False)
 class LockstepBarrier:
     """Book-keeping of the lockstep protocol (see module docstring)."""
 
-    ACCEPTED, REJOINED, STALE, DUPLICATE, FUTURE = (
-        "accepted", "rejoined", "stale", "duplicate", "future")
+    ACCEPTED, REJOINED, STALE, DUPLICATE, CONFLICT, FUTURE = (
+        "accepted", "rejoined", "stale", "duplicate", "conflicting", "future")
 
     def __init__(self, num_robots: int, robot_timeout_s: float,
                  resend_period_s: float = math.inf, suspect_timeout_s: float = math.inf) -> None:
@@ -112,7 +112,8 @@ class LockstepBarrier:
         """File a robot's answer; returns how it was taken (ACCEPTED, REJOINED or why not).
 
         REJOINED: a stopped robot answered again and is waited for from now on (its answer
-        counts when it is for the open step)."""
+        counts when it is for the open step). CONFLICT: a second answer to the open step
+        that differs from the first, which stands (two publishers on one robot's topic)."""
         rejoined = robot_id in self.stopped and step <= self.step
         if rejoined:
             self.stopped.discard(robot_id)
@@ -122,7 +123,7 @@ class LockstepBarrier:
         if step > self.step:
             return self.FUTURE
         if robot_id in self._answers:
-            return self.DUPLICATE
+            return self.DUPLICATE if self._answers[robot_id] == answer else self.CONFLICT
         if robot_id in self.stopped:  # stopped and answering the open step: handled above
             return self.STALE
         self._answers[robot_id] = answer
