@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from em_exploration_ros.tools.separate_hosts import cannot_run_reason
+from em_exploration_ros.tools.separate_hosts import cannot_run_reason, subnet_problem
 from ros_process import REPO_ROOT
 
 #: Bound of the whole tool run: set-up check, discovery, a 50 m exploration, em-sim [s].
@@ -47,3 +47,18 @@ def test_team_on_separate_hosts_chooses_the_one_host_targets(tmp_path):
     assert min(traffic.values()) > 10_000 and traffic["world"] == max(traffic.values())
     namespaces = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
     assert f"emh{tool.pid}_" not in namespaces
+
+
+@pytest.mark.parametrize("subnet, problem", [
+    ("10.0.0.0/24", None),
+    ("garbage", "does not appear to be an IPv4 or IPv6 network"),
+    ("10.0.0.1/24", "has host bits set"),
+    ("10.0.0.0/30", "must be a private IPv4 network with room for 4 hosts"),
+    ("8.8.8.0/24", "must be a private IPv4 network"),
+    ("fe80::/120", "must be a private IPv4 network"),  # discovery is IPv4 multicast
+])
+def test_a_subnet_that_cannot_hold_the_team_is_named(subnet, problem):
+    """Checked before any namespace is made (a bad one gave a traceback, an IPv6 one a
+    team that never started)."""
+    found = subnet_problem(subnet, 4)
+    assert found is None if problem is None else problem in found

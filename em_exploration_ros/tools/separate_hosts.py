@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import json
+import math
 import os
 import shutil
 import signal
@@ -81,10 +82,10 @@ class HostNetwork:
     def __init__(self, num_robots: int, subnet: str = DEFAULT_SUBNET) -> None:
         self.prefix = f"emh{os.getpid()}_"
         self.hosts = ["world"] + [f"robot_{i}" for i in range(num_robots)]
+        problem = subnet_problem(subnet, len(self.hosts))
+        if problem:
+            raise ValueError(problem)
         network = ipaddress.ip_network(subnet)
-        if network.num_addresses - 2 < len(self.hosts) or not network.is_private:
-            raise ValueError(f"subnet {subnet} must be private with room for "
-                             f"{len(self.hosts)} hosts")
         hosts = network.hosts()
         self.addresses = {host: f"{next(hosts)}/{network.prefixlen}" for host in self.hosts}
         self.bridge = f"{self.prefix}bridge"
@@ -158,6 +159,20 @@ def _targets(summary: dict) -> list:
     return [[[t["x"], t["y"], t["type"]] for t in robot["targets"]] for robot in summary["robots"]]
 
 
+def subnet_problem(subnet: str, num_hosts: int) -> str | None:
+    """Why ``subnet`` cannot hold ``num_hosts`` hosts, or None: it must be a private IPv4
+    network (discovery goes over IPv4 multicast) written without host bits, with room for
+    every host."""
+    try:
+        network = ipaddress.ip_network(subnet)
+    except ValueError as error:
+        return f"--subnet {subnet!r}: {error}"
+    if network.version != 4 or not network.is_private or network.num_addresses - 2 < num_hosts:
+        return (f"--subnet {subnet}: must be a private IPv4 network with room for "
+                f"{num_hosts} hosts")
+    return None
+
+
 def run_team_apart(params: ExplorationParams, out_dir: Path, subnet: str = DEFAULT_SUBNET,
                    timeout_s: float = DEFAULT_TIMEOUT_S,
                    domain_id: int | None = None) -> SeparateHostsResult:
@@ -229,6 +244,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         params = params_from_args(args, args.seed)
     except ValueError as error:
         parser.error(str(error))
+    problem = subnet_problem(args.subnet, params.world.num_robots + 1)
+    if problem:
+        parser.error(problem)
+    if not 0.0 < args.timeout < math.inf:
+        parser.error(f"--timeout must be a positive number of seconds, got {args.timeout}")
     out = args.out or Path(tempfile.mkdtemp(prefix="separate_hosts_"))
     signal.signal(signal.SIGTERM, _raise_on_sigterm)
     result = run_team_apart(params, out, args.subnet, args.timeout, args.domain_id)
