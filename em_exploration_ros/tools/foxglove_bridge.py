@@ -53,6 +53,10 @@ DEFAULT_PORT = 8765
 DEFAULT_HOST = "127.0.0.1"
 #: Keep-last depth of the bridge's subscriptions.
 QUEUE_DEPTH = 100
+#: Messages the server holds for each client that reads slower than the team publishes;
+#: beyond them the oldest is dropped (the SDK's default, 1024, let one stalled client
+#: hold over a gigabyte of 1 MB maps).
+MESSAGE_BACKLOG = 32
 #: Wall period of the graph poll and of the server-time broadcast [s].
 POLL_PERIOD_S = 0.5
 TIME_PERIOD_S = 0.1
@@ -155,7 +159,8 @@ class FoxgloveBridge(Node):
             self.server = foxglove.start_server(
                 name="em_exploration_ros", host=options.host, port=options.port,
                 capabilities=[Capability.Time],
-                server_listener=_ReplayLatestOnSubscribe(self._channels, self._latest))
+                server_listener=_ReplayLatestOnSubscribe(self._channels, self._latest),
+                message_backlog_size=MESSAGE_BACKLOG)
         except RuntimeError as error:  # port taken, address not of this machine
             raise ValueError(f"cannot serve on {options.host}:{options.port}: {error}") from None
         steady = Clock(clock_type=ClockType.STEADY_TIME)
