@@ -16,7 +16,7 @@ from typing import Any
 
 import yaml
 
-from em_exploration_ros.bag_format.bag_writer import BagWriter
+from em_exploration_ros.bag_format.bag_writer import BagWriteError, BagWriter
 from em_exploration_ros.bag_format.rosbag2_metadata import (
     BagMetadata, MetadataFormatError, bag_metadata_node, parse_bag_metadata)
 from em_exploration_ros.core.untrusted_yaml import load_yaml, shown_value
@@ -127,11 +127,21 @@ class BagDirectoryWriter(BagWriter):
         super().__init__(self.directory / storage_file_name(self.directory), **options)
 
     def close(self) -> None:
-        """Close the MCAP file, then write ``metadata.yaml`` (atomically). Idempotent."""
+        """Close the MCAP file, then write ``metadata.yaml`` (atomically), also after a
+        BagWriteError (it then describes what reached the file). Idempotent. Raises
+        BagWriteError if the OS refuses the last records of the MCAP file or metadata.yaml
+        (then none is left)."""
         if self.closed:
             return
-        super().close()
-        target = self.directory / METADATA_FILE
-        partial = target.with_name(f".{METADATA_FILE}.partial")
-        partial.write_text(metadata_yaml(self.metadata()), encoding="utf-8")
-        partial.replace(target)
+        try:
+            super().close()
+        finally:
+            target = self.directory / METADATA_FILE
+            partial = target.with_name(f".{METADATA_FILE}.partial")
+            try:
+                partial.write_text(metadata_yaml(self.metadata()), encoding="utf-8")
+                partial.replace(target)
+            except OSError as error:
+                partial.unlink(missing_ok=True)
+                raise BagWriteError(f"cannot write {target}: {error.strerror or error}; the bag "
+                                    f"has no {METADATA_FILE}") from error

@@ -7,11 +7,17 @@ what a crash can lose. Schemas and channels are written into the chunk where the
 used, so the readable chunks of a killed recording are self-describing. ``close()`` writes
 the ``rosbag2`` metadata record, the summary (schemas, channels, statistics, chunk, metadata
 indexes) and the footer.
+
+A write the operating system refuses (a full disk: ``OSError``) raises ``BagWriteError``
+and ends the file: the counts and times fall back to what reached the file (the chunks
+written before), nothing more is written to it, and ``close()`` only closes it.
 """
 from __future__ import annotations
 
 import io
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -36,16 +42,24 @@ COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE}
 
 
+class BagWriteError(Exception):
+    """The operating system refused a write to the bag (e.g. a full disk); one line naming
+    the file and the OS error."""
+
+
 class _UnbufferedSink:
     """The file-like object the MCAP writer writes to: every write goes straight to the OS."""
 
     def __init__(self, raw: io.FileIO) -> None:
         self._raw = raw
+        self.bytes_written = 0
 
     def write(self, data: bytes) -> int:
         view = memoryview(data)
         while view:
-            view = view[self._raw.write(view):]
+            written = self._raw.write(view)
+            self.bytes_written += written
+            view = view[written:]
         return len(data)
 
     def tell(self) -> int:
@@ -65,6 +79,7 @@ class _Topic:
     offered_qos: tuple[QosProfile, ...]
     type_hash: str
     count: int = 0
+    stored: int = 0  # of count, messages in chunks handed to the OS
 
 
 class BagWriter:
@@ -91,12 +106,19 @@ class BagWriter:
         self._topics: dict[int, _Topic] = {}
         self._start_ns: int | None = None
         self._end_ns = 0
+        self._stored_span: tuple[int | None, int] = (None, 0)  # start, end of stored messages
+        self._failure: BagWriteError | None = None
         self._closed = False
 
     @property
     def closed(self) -> bool:
         """True once ``close()`` was called."""
         return self._closed
+
+    @property
+    def failure(self) -> BagWriteError | None:
+        """The write the OS refused, which ended the file; None while all went well."""
+        return self._failure
 
     @property
     def message_count(self) -> int:
@@ -116,15 +138,16 @@ class BagWriter:
         """
         if any(topic.name == name for topic in self._topics.values()):
             raise ValueError(f"topic {name} is already registered")
-        schema_id = self._schema_ids.get(definition.type_name)
-        if schema_id is None:
-            schema_id = self._mcap.register_schema(
-                definition.type_name, definition.encoding, definition.text.encode("utf-8"))
-            self._schema_ids[definition.type_name] = schema_id
-        channel_id = self._mcap.register_channel(
-            name, MessageEncoding.CDR, schema_id,
-            {QOS_METADATA_KEY: qos_profiles_to_yaml(offered_qos),
-             TYPE_HASH_METADATA_KEY: type_hash})
+        with self._writing():
+            schema_id = self._schema_ids.get(definition.type_name)
+            if schema_id is None:
+                schema_id = self._mcap.register_schema(
+                    definition.type_name, definition.encoding, definition.text.encode("utf-8"))
+                self._schema_ids[definition.type_name] = schema_id
+            channel_id = self._mcap.register_channel(
+                name, MessageEncoding.CDR, schema_id,
+                {QOS_METADATA_KEY: qos_profiles_to_yaml(offered_qos),
+                 TYPE_HASH_METADATA_KEY: type_hash})
         self._topics[channel_id] = _Topic(name, definition.type_name, tuple(offered_qos),
                                           type_hash)
         return channel_id
@@ -135,20 +158,46 @@ class BagWriter:
 
         ``log_time_ns`` is the time of receipt, ``publish_time_ns`` (default: the log time)
         the time of publication; the sequence number counts messages per channel from 1.
+        Raises BagWriteError if the OS refuses the chunk this message completes.
         """
-        topic = self._topics[channel_id]
-        topic.count += 1
-        self._start_ns = log_time_ns if self._start_ns is None else min(self._start_ns, log_time_ns)
-        self._end_ns = max(self._end_ns, log_time_ns)
-        self._mcap.add_message(
-            channel_id=channel_id, log_time=log_time_ns, data=data,
-            publish_time=log_time_ns if publish_time_ns is None else publish_time_ns,
-            sequence=topic.count)
+        with self._writing():
+            topic = self._topics[channel_id]
+            topic.count += 1
+            self._start_ns = (log_time_ns if self._start_ns is None
+                              else min(self._start_ns, log_time_ns))
+            self._end_ns = max(self._end_ns, log_time_ns)
+            self._mcap.add_message(
+                channel_id=channel_id, log_time=log_time_ns, data=data,
+                publish_time=log_time_ns if publish_time_ns is None else publish_time_ns,
+                sequence=topic.count)
 
     def flush(self) -> None:
-        """Close the chunk in progress (if it holds messages) and hand it to the OS."""
+        """Close the chunk in progress (if it holds messages) and hand it to the OS; raises
+        BagWriteError if the OS refuses it."""
         if not self._closed:
-            self._mcap.flush()
+            with self._writing():
+                self._mcap.flush()
+
+    @contextmanager
+    def _writing(self) -> Iterator[None]:
+        """Run a step of the MCAP writer: once it has handed bytes to the OS, every message
+        counted so far is in the file; an OSError ends the file (module docstring)."""
+        if self._failure is not None:
+            raise self._failure
+        written = self._sink.bytes_written
+        try:
+            yield
+        except OSError as error:
+            for topic in self._topics.values():
+                topic.count = topic.stored
+            self._start_ns, self._end_ns = self._stored_span
+            self._failure = BagWriteError(
+                f"cannot write to {self.path}: {error.strerror or error}")
+            raise self._failure from error
+        if self._sink.bytes_written != written:
+            for topic in self._topics.values():
+                topic.stored = topic.count
+            self._stored_span = (self._start_ns, self._end_ns)
 
     def metadata(self) -> BagMetadata:
         """The rosbag2 bag metadata of what was written so far."""
@@ -163,16 +212,23 @@ class BagWriter:
             message_count=self.message_count, topics=topics)
 
     def close(self) -> None:
-        """Write the rosbag2 metadata record, summary and footer; close the file. Idempotent."""
+        """Write the rosbag2 metadata record, summary and footer; close the file. Idempotent.
+
+        After a BagWriteError (``failure``) it only closes the file; raises BagWriteError if
+        the OS refuses these last records.
+        """
         if self._closed:
             return
         self._closed = True
         try:
-            self._mcap.flush()
-            self._mcap.add_metadata(METADATA_RECORD_NAME,
-                                    {SERIALIZED_METADATA_KEY: serialize_bag_metadata(
-                                        self.metadata())})
-            self._mcap.finish()
+            if self._failure is None:
+                with self._writing():
+                    self._mcap.flush()
+                with self._writing():
+                    self._mcap.add_metadata(METADATA_RECORD_NAME,
+                                            {SERIALIZED_METADATA_KEY: serialize_bag_metadata(
+                                                self.metadata())})
+                    self._mcap.finish()
         finally:
             self._sink.close()
 

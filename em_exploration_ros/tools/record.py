@@ -13,6 +13,14 @@ with a deep keep-last queue. Chunks close at ``--chunk-size`` bytes or every
 recorder leaves a file whose chunks ``em-bag repair`` recovers. Ctrl-C or SIGTERM writes the
 summary, the rosbag2 metadata record and the footer, then metadata.yaml.
 
+When the OS refuses a write (a full disk), the recorder stops: it prints one line naming the
+file and the error, closes the file (its complete chunks stay readable; ``em-bag repair``),
+writes metadata.yaml of what reached the file if it can (else it says so) and exits with
+status 3.
+
+Exit codes: 0 the recording was closed; 2 bad arguments, or the output cannot be created;
+3 the bag could not be written (``EXIT_WRITE_FAILED``).
+
     em-record [-o DIR] [--topics T ...] [--regex RE] [--exclude RE]
               [--compression zstd|lz4|none] [--chunk-size BYTES] [--chunk-interval S]
               [--ros-args ...]
@@ -32,7 +40,8 @@ from rclpy.node import Node
 from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from em_exploration_ros.bag_format.bag_directory import BagDirectoryWriter
-from em_exploration_ros.bag_format.bag_writer import COMPRESSIONS, DEFAULT_CHUNK_SIZE
+from em_exploration_ros.bag_format.bag_writer import (COMPRESSIONS, DEFAULT_CHUNK_SIZE,
+                                                      BagWriteError)
 from em_exploration_ros.bag_format.interface_index import read_type_hash
 from em_exploration_ros.bag_format.qos_yaml import request_for_offers
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
@@ -46,6 +55,8 @@ from em_exploration_ros.tools.bag_ros import (
     qos_from_rclpy, qos_to_rclpy)
 
 EXIT_USAGE = 2
+#: Exit code of a recording the OS refused to write (e.g. a full disk).
+EXIT_WRITE_FAILED = 3
 
 
 @dataclass(frozen=True)
@@ -65,7 +76,9 @@ def parse_options(args: list[str]) -> RecordOptions:
     """Parse em-record arguments (ROS arguments removed); exits with status 2 on bad ones."""
     parser = argparse.ArgumentParser(
         prog="em-record",
-        description="Record ROS 2 topics into a bag directory (rosbag2 format, MCAP storage).")
+        description="Record ROS 2 topics into a bag directory (rosbag2 format, MCAP storage).",
+        epilog="exit codes: 0 recording closed; 2 bad arguments or output not creatable; "
+        f"{EXIT_WRITE_FAILED} the bag could not be written (e.g. a full disk)")
     parser.add_argument("-o", "--output", default=None,
                         help="output bag directory (default: em_run_<date>_<time>); must not "
                         "exist")
@@ -175,12 +188,30 @@ class Recorder(Node):
         self.get_logger().info(f"recording {topic} [{type_name}] "
                                f"({request.reliability}, {request.durability})")
 
-    def finish(self) -> None:
-        """Close the file: summary, rosbag2 metadata and footer. Safe to call twice."""
-        self._writer.close()
+    def finish(self) -> int:
+        """Close the file: summary, rosbag2 metadata and footer; returns the exit code."""
+        code = close_bag(self._writer)
         counts = self._writer.topic_counts()
         self.get_logger().info(f"wrote {sum(counts.values())} messages on {len(counts)} topics "
                                f"to {self._writer.directory}")
+        return code
+
+
+def close_bag(writer: BagDirectoryWriter) -> int:
+    """Close the bag; print one line to stderr for the write that ended it (if any) and one
+    for a failure to close it; returns 0 or EXIT_WRITE_FAILED."""
+    try:
+        writer.close()
+        close_error = None
+    except BagWriteError as error:
+        close_error = error
+    failure = writer.failure
+    if failure is not None:
+        sys.stderr.write(f"em-record: {failure}; stopped recording after "
+                         f"{writer.message_count} messages\n")
+    if close_error is not None and close_error is not failure:
+        sys.stderr.write(f"em-record: {close_error}\n")
+    return EXIT_WRITE_FAILED if failure is not None or close_error is not None else 0
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -200,14 +231,17 @@ def main(argv: list[str] | None = None) -> None:
             if not interrupted():  # a Ctrl-C before rclpy.init ends the recording empty
                 recorder = Recorder(writer, options)
                 lean_executor.spin(recorder)
-        except ExternalShutdownException:
-            pass
+        except (ExternalShutdownException, BagWriteError):
+            pass  # a BagWriteError is writer.failure, reported when the bag is closed
         finally:
             if recorder is not None:
-                recorder.finish()
+                code = recorder.finish()
                 recorder.destroy_node()
-            writer.close()
+            else:
+                code = close_bag(writer)
             rclpy.try_shutdown()
+    if code:
+        sys.exit(code)
 
 
 if __name__ == "__main__":
