@@ -12,13 +12,17 @@ over that run's (peak VmRSS).
 from __future__ import annotations
 
 import json
+import signal
 import sys
 import time
 from pathlib import Path
 
+import pytest
 
 from ros_process import (RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
                          start_team_run)
+
+from em_exploration_ros.tools import fuzz
 
 #: Bound of one team run [s] and of the attack [s], and its rate [messages/s].
 RUN_TIMEOUT_S = 180.0
@@ -169,3 +173,30 @@ def test_a_start_file_that_never_appears_ends_the_fuzzer_with_code_1(tmp_path):
     with fuzzer:
         assert fuzzer.wait(RUN_TIMEOUT_S) == 1
     assert "did not appear within 3 s; nothing sent" in fuzzer.output()
+
+
+def test_sigterm_ends_the_attack_like_ctrl_c(tmp_path):
+    start = tmp_path / "start"
+    start.touch()  # attack at once, no settling pause
+    fuzzer = NodeProcess([sys.executable, "-m", "em_exploration_ros.tools.fuzz",
+                          "--duration", "60", "--nodes", "no_such_node", "--start-file",
+                          str(start)], tmp_path / "fuzz.out")
+    with fuzzer:
+        time.sleep(1.5)  # rclpy initialized: its handler turns SIGTERM into a shutdown
+        fuzzer.signal_group(signal.SIGTERM)
+        assert fuzzer.wait(10.0) == 0, fuzzer.output()
+    assert "Traceback" not in fuzzer.output()
+    assert json.loads(fuzzer.output().strip().splitlines()[-1])["messages"] == 0
+
+
+@pytest.mark.parametrize("args, phrase", [
+    (["--duration", "inf"], "--duration must be a positive finite number, got inf"),
+    (["--rate", "nan"], "--rate must be a positive finite number, got nan"),
+    (["--start-timeout", "nan"], "--start-timeout must be a positive finite number"),
+    (["--report", "/nonexistent/x.json"], "the folder /nonexistent does not exist"),
+    (["--report", "."], "is a directory")])
+def test_bad_arguments_are_refused_before_the_attack(args, phrase, capsys):
+    with pytest.raises(SystemExit) as stopped:
+        fuzz.main(args)
+    assert stopped.value.code == 2
+    assert phrase in capsys.readouterr().err

@@ -26,13 +26,16 @@ With ``--start-file FILE`` it reads the graph until FILE exists and attacks then
 the settling pause: a test starts it with the team and attacks mid-run even when the run
 lasts only seconds.
 
-Exit code 0 (1: the start file did not appear in time); the last stdout line is a JSON
-report (``--report FILE`` writes it too).
+Ctrl-C or SIGTERM ends the attack early (the report tells what was sent until then).
+Exit code 0 (1: the start file did not appear in time; 2: bad arguments, such as a
+non-finite number or a --report file that cannot be written); the last stdout line is a
+JSON report (``--report FILE`` writes it too).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import random
 import sys
 import time
@@ -42,10 +45,12 @@ from typing import Any
 
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 
+from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.tools.bag_ros import import_message_class
 
 #: Node names whose subscriptions are attacked by default.
@@ -211,7 +216,21 @@ class Fuzzer(Node):
     def discover(self) -> None:
         """Add every topic with a subscriber among the target nodes (publishers' QoS:
         reliable, transient local when a subscriber asks for it, keep last 10); note the
-        subscribers of known topics."""
+        subscribers of known topics. Raises ExternalShutdownException once a signal has shut
+        the context down (the graph cannot be read any more)."""
+        try:
+            self._read_graph()
+        except RCLError:
+            self._stop_if_shut_down()
+            raise
+
+    def _stop_if_shut_down(self) -> None:
+        """Raise ExternalShutdownException if a signal (SIGINT, SIGTERM) has shut the
+        context down: the attack ends there."""
+        if not self.context.ok():
+            raise ExternalShutdownException()
+
+    def _read_graph(self) -> None:
         for topic, types in self.get_topic_names_and_types():
             subscribers = [info for info in self.get_subscriptions_info_by_topic(topic)
                            if info.node_name in self._target_nodes]
@@ -238,6 +257,7 @@ class Fuzzer(Node):
         deadline = time.monotonic() + timeout_s
         next_discovery = time.monotonic() + GRAPH_SETTLE_S
         while not start_file.exists():
+            self._stop_if_shut_down()
             now = time.monotonic()
             if now > deadline:
                 return False
@@ -255,6 +275,7 @@ class Fuzzer(Node):
         next_discovery = start
         sent = 0
         while (now := time.monotonic()) < start + duration_s:
+            self._stop_if_shut_down()
             if now >= next_discovery:
                 self.discover()
                 next_discovery = now + REDISCOVER_S
@@ -299,8 +320,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--start-timeout", type=float, default=600.0,
                         help="wall seconds to wait for --start-file (600); exit code 1 after")
     args = parser.parse_args(argv)
-    if args.duration <= 0 or args.rate <= 0 or args.start_timeout <= 0:
-        parser.error("--duration, --rate and --start-timeout must be positive")
+    for name in ("duration", "rate", "start_timeout"):
+        value = getattr(args, name)
+        if not (math.isfinite(value) and value > 0):
+            parser.error(f"--{name.replace('_', '-')} must be a positive finite number, "
+                         f"got {value:g}")
+    if args.report is not None:
+        problem = output_path_problem(args.report, "--report")
+        if problem is not None:
+            parser.error(problem)
     rclpy.init()
     fuzzer = Fuzzer(tuple(args.nodes), args.seed)
     try:
@@ -310,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
             if started:
                 fuzzer.attack(args.duration, args.rate,
                               settle_s=GRAPH_SETTLE_S if args.start_file is None else 0.0)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, ExternalShutdownException):  # SIGINT, SIGTERM
             started = True  # report what was sent until then
         report = fuzzer.report(args.duration) if started else None
     finally:
