@@ -6,7 +6,7 @@ import argparse
 import importlib
 import math
 import sys
-from collections.abc import Container, Iterator
+from collections.abc import Container, Iterator, Mapping
 from typing import Any, Callable
 
 from rclpy.duration import Duration
@@ -74,6 +74,23 @@ def new_selected_topics(node: Node, selection: TopicSelection, known: Container[
         publishers = node.get_publishers_info_by_topic(topic)
         if publishers:
             yield topic, types, publishers
+
+
+def other_types_of_taken_topics(node: Node, taken: Mapping[str, str],
+                                reported: set[tuple[str, str]]) -> list[str]:
+    """One line for every type a taken topic (``taken``: topic -> the type a tool records
+    or serves it as) now carries besides that one, once per topic and type (``reported``
+    holds what was said): em-record and em-foxglove keep a topic's first type, and its
+    messages of another type would otherwise be missing without a word."""
+    lines = []
+    for topic, types in node.get_topic_names_and_types():
+        kept = taken.get(topic)
+        for other in types:
+            if kept is not None and other != kept and (topic, other) not in reported:
+                reported.add((topic, other))
+                lines.append(f"{topic} now carries {other} too; only {kept} is taken "
+                             f"(messages of {other} are left out)")
+    return lines
 
 
 def _policy_name(value: Any) -> str:

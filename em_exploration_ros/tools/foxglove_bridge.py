@@ -44,7 +44,7 @@ from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
-    qos_from_rclpy, qos_to_rclpy)
+    other_types_of_taken_topics, qos_from_rclpy, qos_to_rclpy)
 
 #: What a viewer of the team needs (the default selection).
 VIEW_TOPICS = (r"^/(tf|tf_static|mission/anchor_pose|evaluation/metrics|world/(markers|landmarks)|"
@@ -152,8 +152,9 @@ class FoxgloveBridge(Node):
         install_validated_clock(self, InputGuard(self))
         self._options = options
         self._channels: dict[int, foxglove.Channel] = {}
-        self._served: set[str] = set()
+        self._served: dict[str, str] = {}  # topic -> the type it is served as
         self._skipped: set[str] = set()
+        self._other_types: set[tuple[str, str]] = set()
         self._latest = LatestMessages()
         try:
             self.server = foxglove.start_server(
@@ -176,9 +177,11 @@ class FoxgloveBridge(Node):
             self.server.broadcast_time(now)
 
     def _discover(self) -> None:
-        known = self._served | self._skipped
+        known = self._served.keys() | self._skipped
         for topic, types, publishers in new_selected_topics(self, self._options.selection, known):
             self._serve(topic, types[0], publishers)
+        for line in other_types_of_taken_topics(self, self._served, self._other_types):
+            self.get_logger().warning(line)
 
     def _serve(self, topic: str, type_name: str, publishers: list[TopicEndpointInfo]) -> None:
         try:
@@ -203,7 +206,7 @@ class FoxgloveBridge(Node):
             channel.log(data, log_time=stamp)
 
         self.create_subscription(message_class, topic, forward, qos_to_rclpy(qos), raw=True)
-        self._served.add(topic)
+        self._served[topic] = type_name
         self.get_logger().info(f"serving {topic} [{type_name}] ({qos.reliability}, "
                                f"{qos.durability})")
 

@@ -52,7 +52,7 @@ from em_exploration_ros.nodes.recorder_presence import RECORDER_NODE_NAME
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
-    qos_from_rclpy, qos_to_rclpy)
+    other_types_of_taken_topics, qos_from_rclpy, qos_to_rclpy)
 
 EXIT_USAGE = 2
 #: Exit code of a recording the OS refused to write (e.g. a full disk).
@@ -132,6 +132,7 @@ class Recorder(Node):
         self._options = options
         self._recorded: dict[str, str] = {}
         self._skipped: set[str] = set()
+        self._other_types: set[tuple[str, str]] = set()
         # Wall-clock timers: with use_sim_time the ROS clock may stand still (no /clock yet).
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(options.poll_interval_s, self._discover, clock=steady)
@@ -154,6 +155,8 @@ class Recorder(Node):
         known = self._recorded.keys() | self._skipped
         for topic, types, publishers in new_selected_topics(self, self._options.selection, known):
             self._subscribe(topic, types, publishers)
+        for line in other_types_of_taken_topics(self, self._recorded, self._other_types):
+            self.get_logger().warning(line)
 
     def _skip(self, topic: str, reason: str) -> None:
         self._skipped.add(topic)
