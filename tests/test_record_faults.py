@@ -95,27 +95,17 @@ def test_record_on_a_full_disk_stops_with_one_line_and_exit_code_3(tmp_path: Pat
     assert read_metadata_yaml(bag).message_count == stored
 
 
-class _Graph:
-    """A stand-in for a node's view of the ROS graph: (topic, types) pairs."""
-
-    def __init__(self, topics: list[tuple[str, list[str]]]) -> None:
-        self.topics = topics
-
-    def get_topic_names_and_types(self) -> list[tuple[str, list[str]]]:
-        return self.topics
-
-
 def test_a_taken_topic_that_carries_another_type_is_reported_once() -> None:
     """em-record and em-foxglove keep a topic's first type; a publisher of another type on
     it (beside the first, or after it left) is named once, not left out without a word."""
     taken = {"/robot_0/target": "std_msgs/msg/String", "/clock": "rosgraph_msgs/msg/Clock"}
-    graph = _Graph([("/robot_0/target", ["std_msgs/msg/String", "nav_msgs/msg/OccupancyGrid"]),
-                    ("/clock", ["rosgraph_msgs/msg/Clock"]),
-                    ("/not_taken", ["std_msgs/msg/String", "std_msgs/msg/Empty"])])
+    graph = [("/robot_0/target", ["std_msgs/msg/String", "nav_msgs/msg/OccupancyGrid"]),
+             ("/clock", ["rosgraph_msgs/msg/Clock"]),
+             ("/not_taken", ["std_msgs/msg/String", "std_msgs/msg/Empty"])]
     reported: set[tuple[str, str]] = set()
     assert other_types_of_taken_topics(graph, taken, reported) == [
         "/robot_0/target now carries nav_msgs/msg/OccupancyGrid too; only std_msgs/msg/String "
         "is taken (messages of nav_msgs/msg/OccupancyGrid are left out)"]
     assert other_types_of_taken_topics(graph, taken, reported) == []
-    graph.topics = [("/robot_0/target", ["std_msgs/msg/Empty"])]  # the first type gone
+    graph = [("/robot_0/target", ["std_msgs/msg/Empty"])]  # the first type gone
     assert len(other_types_of_taken_topics(graph, taken, reported)) == 1

@@ -64,11 +64,16 @@ def message_type_support(type_name: str) -> tuple[type, MessageDefinition]:
         raise MessageTypeError(str(error)) from None
 
 
-def new_selected_topics(node: Node, selection: TopicSelection, known: Container[str]
+#: The ROS graph's topics with their types, as ``Node.get_topic_names_and_types`` gives them.
+TopicGraph = list[tuple[str, list[str]]]
+
+
+def new_selected_topics(node: Node, graph: TopicGraph, selection: TopicSelection,
+                        known: Container[str]
                         ) -> Iterator[tuple[str, list[str], list[TopicEndpointInfo]]]:
-    """``(topic, types, publishers)`` of every topic of the ROS graph that ``selection``
-    takes, that is not in ``known`` and that has publishers now."""
-    for topic, types in node.get_topic_names_and_types():
+    """``(topic, types, publishers)`` of every topic of ``graph`` (``node``'s view of the ROS
+    graph) that ``selection`` takes, that is not in ``known`` and that has publishers now."""
+    for topic, types in graph:
         if topic in known or not selection.matches(topic):
             continue
         publishers = node.get_publishers_info_by_topic(topic)
@@ -76,14 +81,14 @@ def new_selected_topics(node: Node, selection: TopicSelection, known: Container[
             yield topic, types, publishers
 
 
-def other_types_of_taken_topics(node: Node, taken: Mapping[str, str],
+def other_types_of_taken_topics(graph: TopicGraph, taken: Mapping[str, str],
                                 reported: set[tuple[str, str]]) -> list[str]:
     """One line for every type a taken topic (``taken``: topic -> the type a tool records
     or serves it as) now carries besides that one, once per topic and type (``reported``
     holds what was said): em-record and em-foxglove keep a topic's first type, and its
     messages of another type would otherwise be missing without a word."""
     lines = []
-    for topic, types in node.get_topic_names_and_types():
+    for topic, types in graph:
         kept = taken.get(topic)
         for other in types:
             if kept is not None and other != kept and (topic, other) not in reported:

@@ -178,9 +178,11 @@ class FoxgloveBridge(Node):
 
     def _discover(self) -> None:
         known = self._served.keys() | self._skipped
-        for topic, types, publishers in new_selected_topics(self, self._options.selection, known):
+        graph = self.get_topic_names_and_types()
+        for topic, types, publishers in new_selected_topics(self, graph, self._options.selection,
+                                                            known):
             self._serve(topic, types[0], publishers)
-        for line in other_types_of_taken_topics(self, self._served, self._other_types):
+        for line in other_types_of_taken_topics(graph, self._served, self._other_types):
             self.get_logger().warning(line)
 
     def _serve(self, topic: str, type_name: str, publishers: list[TopicEndpointInfo]) -> None:

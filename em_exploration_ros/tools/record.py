@@ -153,9 +153,11 @@ class Recorder(Node):
     def _discover(self) -> None:
         """Subscribe to every selected topic that has publishers and is not recorded yet."""
         known = self._recorded.keys() | self._skipped
-        for topic, types, publishers in new_selected_topics(self, self._options.selection, known):
+        graph = self.get_topic_names_and_types()
+        for topic, types, publishers in new_selected_topics(self, graph, self._options.selection,
+                                                            known):
             self._subscribe(topic, types, publishers)
-        for line in other_types_of_taken_topics(self, self._recorded, self._other_types):
+        for line in other_types_of_taken_topics(graph, self._recorded, self._other_types):
             self.get_logger().warning(line)
 
     def _skip(self, topic: str, reason: str) -> None:
