@@ -60,8 +60,7 @@ def load_params(path: str | Path, base: ExplorationParams | None = None) -> Expl
     text = _read_text(file_path)
     document = load_yaml(text, str(file_path), ParamsFileError)
     try:
-        check_expansion(document)
-        check_list_types(document)
+        check_document(document)
         groups = nest_dotted(parameter_section(document))
         base = base or ExplorationParams()
         return base.replace(**groups) if groups else base
@@ -90,41 +89,34 @@ def _read_text(file_path: Path) -> str:
                               f"{error.reason})") from None
 
 
-def check_expansion(document: Any) -> None:
+def check_document(document: Any) -> None:
     """``ValueError`` if a parsed YAML document expands to more than ``MAX_FILE_VALUES``
-    values or nests deeper than ``MAX_FILE_DEPTH`` levels. Stops counting at the bound, so
-    it takes at most ``MAX_FILE_VALUES`` steps whatever the aliases expand to."""
-    pending = [(document, 0)]
+    values, nests deeper than ``MAX_FILE_DEPTH`` levels, or holds a list whose items are
+    not all of one kind (booleans, integers, floats or strings; named by its place).
+
+    Values are counted wherever an alias uses them, and the walk stops at the bound, so it
+    takes at most ``MAX_FILE_VALUES`` steps whatever the aliases expand to. The ROS nodes
+    read the same file with rcl's parser, which refuses a mixed list ("Sequence should be
+    of same type"): a file em-sim takes would stop every node of run_team.sh."""
+    pending: list[tuple[Any, int, str]] = [(document, 0, "")]
     count = 0
     while pending:
-        value, depth = pending.pop()
+        value, depth, where = pending.pop()
         count += 1
         if count > MAX_FILE_VALUES:
             raise ValueError(f"the file expands to more than {MAX_FILE_VALUES} values "
                              "(YAML aliases of aliases?)")
         if depth > MAX_FILE_DEPTH:
             raise ValueError(f"the file nests deeper than {MAX_FILE_DEPTH} levels")
-        children = value.values() if isinstance(value, Mapping) else (
-            value if isinstance(value, list) else ())
-        pending.extend((child, depth + 1) for child in children)
-
-
-def check_list_types(document: Any) -> None:
-    """``ValueError`` naming the first list whose items are not all of one kind (booleans,
-    integers, floats or strings). The ROS nodes read the same file with rcl's parser, which
-    refuses such a list ("Sequence should be of same type"): a file em-sim takes would stop
-    every node of run_team.sh. Call after :func:`check_expansion` (it bounds the walk)."""
-    pending: list[tuple[Any, str]] = [(document, "")]
-    while pending:
-        value, where = pending.pop()
         if isinstance(value, Mapping):
-            pending.extend((child, f"{where}.{key}" if where else str(key))
+            pending.extend((child, depth + 1, f"{where}.{key}" if where else str(key))
                            for key, child in value.items())
         elif isinstance(value, list):
             kinds = {_SCALAR_KINDS.get(type(item)) for item in value} - {None}
             if len(kinds) > 1:
                 raise ValueError(
                     f"{where}: the list {shown_value(value)} mixes {' and '.join(sorted(kinds))}"
+            pending.extend((child, depth + 1, where) for child in value)
                     f"; a ROS 2 parameter file needs one type per list (e.g. 1.0, not 1, "
                     f"among floats)")
 
