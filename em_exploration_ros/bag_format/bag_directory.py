@@ -19,6 +19,7 @@ import yaml
 from em_exploration_ros.bag_format.bag_writer import BagWriteError, BagWriter
 from em_exploration_ros.bag_format.rosbag2_metadata import (
     BagMetadata, MetadataFormatError, bag_metadata_node, parse_bag_metadata)
+from em_exploration_ros.core.output_paths import write_replacing
 from em_exploration_ros.core.untrusted_yaml import load_yaml, shown_value
 
 METADATA_FILE = "metadata.yaml"
@@ -137,11 +138,9 @@ class BagDirectoryWriter(BagWriter):
             super().close()
         finally:
             target = self.directory / METADATA_FILE
-            partial = target.with_name(f".{METADATA_FILE}.partial")
+            text = metadata_yaml(self.metadata())
             try:
-                partial.write_text(metadata_yaml(self.metadata()), encoding="utf-8")
-                partial.replace(target)
+                write_replacing(target, lambda partial: partial.write_text(text, encoding="utf-8"))
             except OSError as error:
-                partial.unlink(missing_ok=True)
                 raise BagWriteError(f"cannot write {target}: {error.strerror or error}; the bag "
                                     f"has no {METADATA_FILE}") from error

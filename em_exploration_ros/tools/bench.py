@@ -43,7 +43,7 @@ from multiprocessing.connection import wait
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence, TextIO
 
-from em_exploration_ros.core.output_paths import output_path_problem
+from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import ParamsFileError
 from em_exploration_ros.core.sim.team_runner import TeamRunner
@@ -236,11 +236,10 @@ def _numbers_or_null(data: dict[str, Any], keys: Iterable[str]) -> bool:
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
-    """Write JSON atomically (temporary file, then rename)."""
+    """Write JSON whole or not at all (``write_replacing``), its folder made first."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(path.name + ".tmp")
-    temporary.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
-    os.replace(temporary, path)
+    text = json.dumps(data, indent=1) + "\n"
+    write_replacing(path, lambda temporary: temporary.write_text(text, encoding="utf-8"))
 
 
 def _base_record(spec: TrialSpec) -> dict[str, Any]:
