@@ -23,8 +23,6 @@ name is refused with the closest valid one. A file must be a regular file of at 
 from __future__ import annotations
 
 import dataclasses
-import os
-import stat
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -32,6 +30,8 @@ import yaml
 
 from em_exploration_ros.core.node_settings import NODE_SETTINGS, checked_settings
 from em_exploration_ros.core.params import ExplorationParams, closest_name_hint
+from em_exploration_ros.core.untrusted_files import (FileTooLarge, NotRegularFile,
+                                                    read_regular_file)
 from em_exploration_ros.core.untrusted_yaml import load_yaml, shown_value
 
 ROS_PARAMETERS_KEY = "ros__parameters"
@@ -72,16 +72,14 @@ def _read_text(file_path: Path) -> str:
     """The text of the parameter file ``file_path``: a regular file of at most
     ``MAX_FILE_BYTES`` bytes of UTF-8 (``ParamsFileError`` otherwise)."""
     try:
-        # O_NONBLOCK: opening a FIFO does not wait for a writer (it is refused below).
-        with open(os.open(file_path, os.O_RDONLY | os.O_NONBLOCK), "rb") as file:
-            if not stat.S_ISREG(os.fstat(file.fileno()).st_mode):
-                raise ParamsFileError(f"parameter file {file_path} is not a regular file")
-            data = file.read(MAX_FILE_BYTES + 1)
+        data = read_regular_file(file_path, MAX_FILE_BYTES)
+    except NotRegularFile:
+        raise ParamsFileError(f"parameter file {file_path} is not a regular file") from None
+    except FileTooLarge:
+        raise ParamsFileError(f"parameter file {file_path} is larger than "
+                              f"{MAX_FILE_BYTES // 1024} KiB") from None
     except OSError as error:
         raise ParamsFileError(f"cannot read parameter file {file_path}: {error.strerror}") from None
-    if len(data) > MAX_FILE_BYTES:
-        raise ParamsFileError(f"parameter file {file_path} is larger than "
-                              f"{MAX_FILE_BYTES // 1024} KiB")
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as error:
@@ -116,9 +114,9 @@ def check_document(document: Any) -> None:
             if len(kinds) > 1:
                 raise ValueError(
                     f"{where}: the list {shown_value(value)} mixes {' and '.join(sorted(kinds))}"
-            pending.extend((child, depth + 1, where) for child in value)
                     f"; a ROS 2 parameter file needs one type per list (e.g. 1.0, not 1, "
                     f"among floats)")
+            pending.extend((child, depth + 1, where) for child in value)
 
 
 #: The kinds of list items rcl's parameter-file parser tells apart.

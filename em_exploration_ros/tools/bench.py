@@ -31,7 +31,6 @@ import multiprocessing
 import os
 import select
 import signal
-import stat
 import subprocess
 import sys
 import time
@@ -46,6 +45,8 @@ from typing import Any, Callable, Iterable, Sequence, TextIO
 from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import ParamsFileError
+from em_exploration_ros.core.untrusted_files import (FileTooLarge, NotRegularFile,
+                                                    read_regular_file)
 from em_exploration_ros.core.sim.team_runner import TeamRunner
 from em_exploration_ros.core.evaluation.rendezvous_stats import activity_totals
 from em_exploration_ros.core.evaluation.trial_stats import mean_ci, paired_difference
@@ -184,17 +185,14 @@ def read_record(path: Path) -> dict[str, Any] | None:
     (``record_problem``); a file that is there but unusable is logged, and its trial runs
     again."""
     try:
-        kind = path.stat()
-        if not stat.S_ISREG(kind.st_mode):
-            problem = "not a regular file"
-        elif kind.st_size > MAX_RECORD_BYTES:
-            problem = (f"{kind.st_size} bytes, more than a trial record's "
-                       f"{MAX_RECORD_BYTES} at most")
-        else:
-            record = json.loads(path.read_text(encoding="utf-8"))
-            problem = record_problem(record)
+        record = json.loads(read_regular_file(path, MAX_RECORD_BYTES).decode("utf-8"))
+        problem = record_problem(record)
     except FileNotFoundError:
         return None
+    except NotRegularFile:
+        problem = "not a regular file"
+    except FileTooLarge as error:
+        problem = f"{error.size} bytes, more than a trial record's {MAX_RECORD_BYTES} at most"
     except (OSError, ValueError) as error:
         problem = f"unreadable ({describe_error(error)})"
     if problem is not None:
