@@ -11,12 +11,14 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.tools import bench, bench_plots, math_platform
 from process_tree import alive, children, command_line, interruptible
+from ros_process import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -413,14 +415,16 @@ KILLED_SERVER_RUN = ["planners", "--planners", "CE", "--landmarks", "4", "--tria
 
 def _two_running_workers(bench_pid: int) -> tuple[int, list[int]]:
     """em-bench's fork server and its two workers, once both have started (60 s at most)."""
-    server, workers, deadline = None, [], time.monotonic() + 60.0
-    while len(workers) < 2 and time.monotonic() < deadline:
-        server = next((child for child in children(bench_pid)
-                       if b"forkserver" in command_line(child)), None)
-        workers = children(server) if server else []
-        time.sleep(0.01)
-    assert server is not None and len(workers) == 2, "the two first trials did not start"
-    return server, workers
+    found: dict[str, Any] = {"server": None, "workers": []}
+
+    def both_started() -> bool:
+        found["server"] = next((child for child in children(bench_pid)
+                                if b"forkserver" in command_line(child)), None)
+        found["workers"] = children(found["server"]) if found["server"] else []
+        return len(found["workers"]) == 2
+
+    wait_until(both_started, 60.0, "the two first trials", poll_s=0.01)
+    return found["server"], found["workers"]
 
 
 def test_trials_of_a_killed_fork_server_are_stopped_failed_and_run_again(tmp_path):
@@ -471,7 +475,8 @@ def test_ctrl_c_stops_every_trial_quietly_and_a_rerun_resumes(tmp_path):
     assert bench_process.returncode == 130, stderr
     assert "interrupted; finished trials are kept, rerun to resume" in stderr
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
-    time.sleep(0.5)
+    wait_until(lambda: not any(alive(pid) for pid in (server, *workers)), 10.0,
+               "the fork server and the workers to end")
     assert not any(alive(pid) for pid in (server, *workers))
     rerun = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=240,
                            check=False)

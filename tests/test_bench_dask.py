@@ -13,6 +13,7 @@ import pytest
 
 from em_exploration_ros.tools.bench_dask import parse_address
 from process_tree import alive, descendants, interruptible
+from ros_process import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 # Two nearest-frontier trials on a small map, and two on a 12 m map where the world
@@ -97,10 +98,9 @@ def test_ctrl_c_on_a_local_cluster_stops_it_without_tracebacks(tmp_path):
     reader = threading.Thread(target=lambda: lines.extend(bench_process.stderr), daemon=True)
     reader.start()
     try:
-        deadline = time.monotonic() + 90.0
-        while not any("worker thread(s)" in line for line in lines):
-            assert time.monotonic() < deadline and bench_process.poll() is None, lines
-            time.sleep(0.05)
+        wait_until(lambda: any("worker thread(s)" in line for line in lines)
+                   or bench_process.poll() is not None, 90.0, "the cluster's workers")
+        assert bench_process.poll() is None, lines
         time.sleep(1.0)  # into the trials
         cluster = descendants(bench_process.pid)
         os.killpg(bench_process.pid, signal.SIGINT)
@@ -114,7 +114,8 @@ def test_ctrl_c_on_a_local_cluster_stops_it_without_tracebacks(tmp_path):
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
     assert "distributed.scheduler" not in stderr  # dask's INFO chatter stays out
     assert len(cluster) >= 2  # the two workers at least
-    time.sleep(1.0)
+    wait_until(lambda: not any(alive(pid) for pid in cluster), 10.0,
+               "the cluster's processes to end")
     assert not any(alive(pid) for pid in cluster)
 
 
