@@ -228,8 +228,7 @@ def record_problem(record: Any) -> str | None:
 
 
 def _numbers_or_null(data: dict[str, Any], keys: Iterable[str]) -> bool:
-    return all(key in data and (data[key] is None or (isinstance(data[key], (int, float))
-                                                      and not isinstance(data[key], bool)))
+    return all(key in data and (data[key] is None or bench_plots.is_number(data[key]))
                for key in keys)
 
 

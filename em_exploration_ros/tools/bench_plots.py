@@ -217,10 +217,10 @@ def _setting_problem(info: Any) -> str | None:
     if not isinstance(info, dict):
         return "not an object"
     size = info.get("map_size_m")
-    if not (isinstance(size, list) and len(size) == 2 and all(_is_number(v) for v in size)):
+    if not (isinstance(size, list) and len(size) == 2 and all(is_number(v) for v in size)):
         return "map_size_m is not two numbers"
     for key in ("cell_size_m", "until_explored", "num_robots", "num_landmarks"):
-        if not _is_number(info.get(key)):
+        if not is_number(info.get(key)):
             return f"{key} is not a number"
     if not isinstance(info.get("planners"), dict):
         return "no planners"
@@ -235,10 +235,10 @@ def _planner_problem(entry: Any) -> str | None:
     if not isinstance(entry, dict):
         return "not an object"
     for key in ("trials_done", "trials_failed", "reached_explored_target"):
-        if not _is_number(entry.get(key)):
+        if not is_number(entry.get(key)):
             return f"{key} is not a number"
     if "wall_s_mean" not in entry or not (entry["wall_s_mean"] is None
-                                          or _is_number(entry["wall_s_mean"])):
+                                          or is_number(entry["wall_s_mean"])):
         return "wall_s_mean is not a number or null"
     final = entry.get("final")
     if not isinstance(final, dict) or not all(_is_mean_ci(final.get(key))
@@ -279,13 +279,14 @@ def _paired_problem(differences: Any) -> str | None:
     return None
 
 
-def _is_number(value: Any) -> bool:
+def is_number(value: Any) -> bool:
+    """A JSON number: an int or float, not a boolean."""
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _is_mean_ci(value: Any) -> bool:
     return isinstance(value, dict) and all(
-        key in value and (value[key] is None or _is_number(value[key]))
+        key in value and (value[key] is None or is_number(value[key]))
         for key in ("mean", "ci95"))
 
 
