@@ -11,6 +11,7 @@ import signal
 import numpy as np
 import pytest
 import rclpy
+from em_exploration_msgs.msg import TeamUpdateRequest
 from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -22,9 +23,13 @@ from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
 from em_exploration_ros.core.sim.links import FrameKind
+from em_exploration_ros.core.sim.lockstep import StepAnswer
 from em_exploration_ros.core.sim.team_runner import TeamRunner
 from em_exploration_ros.nodes.conversions import time_to_seconds
-from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS
+from em_exploration_ros.nodes.input_guard import InputGuard
+from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, TEAM_QOS
+from em_exploration_ros.nodes.team_relay import TeamRelay
+from em_exploration_ros.nodes.team_topics import REQUESTS_TOPIC
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, finish_team_run, processes_in_domain,
                          robot_pid, start_team_run, wait_for_liveliness, wait_until)
 
@@ -98,6 +103,65 @@ def test_relay_waits_only_for_messages_an_answer_counts_and_not_yet_heard():
     assert relay.holds({2: SentCounts(0, 1)}) == []
     # A restarted process counts from zero again: never waited for.
     assert relay.holds({1: SentCounts(0, 0)}) == []
+
+
+def test_relay_counts_what_a_restarted_writer_published_before_it_was_heard():
+    """A restarted process's first request was published before the relay's reader matched
+    its writer, so DDS never delivered it; its second carries publication sequence 2. The
+    relay must not wait for the lost one (it used to, 30 s at every step: the count of heard
+    messages stayed one short for the rest of the run)."""
+    relay = LinkRelay(ExplorationParams())
+    relay.request_heard(1, 1, 1, 40, 300, "asks for its own stream again", 2)
+    assert relay.holds({1: SentCounts(0, 2)}) == []
+    relay.update_heard(1, 14, 60, 301, "u14", 1)
+    relay.update_heard(1, 15, 60, 302, "u15", 2)
+    assert relay.holds({1: SentCounts(2, 2)}) == []
+    assert relay.holds({1: SentCounts(3, 2)}) == [1]
+    # Without sequence numbers the relay counts what it hears.
+    relay.request_heard(2, 0, 1, 40, 302, "r")
+    assert relay.holds({2: SentCounts(0, 2)}) == [2]
+
+
+def test_relay_waits_once_for_messages_that_never_come():
+    relay = LinkRelay(ExplorationParams())
+    relay.update_heard(0, 1, 60, 0, "u")
+    answers = {0: SentCounts(2, 1), 1: SentCounts(0, 0)}
+    assert relay.holds(answers) == [0]
+    relay.written_off(answers)
+    assert relay.holds(answers) == []
+    assert relay.received[0] == SentCounts(2, 1) and relay.received[1] == SentCounts(0, 0)
+    # Counting goes on from there.
+    relay.update_heard(0, 2, 60, 1, "u2")
+    assert relay.holds({0: SentCounts(3, 1)}) == []
+
+
+def test_the_world_relay_counts_requests_published_before_its_reader_matched():
+    """The race behind a CI failure: a restarted robot asks for its own stream at its first
+    scan, possibly before its writer has matched the relay's reader. The relay node must
+    hand the relay the messages' publication sequence numbers, so the lost request is not
+    waited for."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    executor = SingleThreadedExecutor(context=context)
+    try:
+        robot, world = Node("restarted_robot", context=context), Node("world", context=context)
+        publisher = robot.create_publisher(TeamUpdateRequest, REQUESTS_TOPIC, TEAM_QOS)
+        own_stream = TeamUpdateRequest(requester_id=1, robot_id=1, first_sequence=1,
+                                       last_sequence=0)
+        publisher.publish(own_stream)  # no reader yet: never delivered (volatile)
+        relay = TeamRelay(world, ExplorationParams(), InputGuard(world), lambda: 100,
+                          lambda: None)
+        executor.add_node(world)
+        wait_until(lambda: publisher.get_subscription_count() >= 1, 10.0,
+                   "the relay's reader matched")
+        publisher.publish(own_stream)
+        wait_until(lambda: relay.relay.received[1].requests > 0, 10.0, "the request heard",
+                   while_waiting=lambda: executor.spin_once(timeout_sec=0.05))
+        answer = StepAnswer(0.0, 0.0, 0, False, team_messages=0, team_requests=2)
+        assert relay.missing_from({1: answer}) == []
+    finally:
+        executor.shutdown()
+        rclpy.try_shutdown(context=context)
 
 
 #: A small mission whose links lose, delay, cut and queue team data.

@@ -21,7 +21,7 @@ carries the three heard topics between vehicles.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 from em_exploration_msgs.msg import TeamLinkCounts, TeamUpdate, TeamUpdateRequest
@@ -43,6 +43,21 @@ from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, TEAM_QOS
 from em_exploration_ros.nodes.team_topics import (LINK_COUNTS_TOPIC, REQUESTS_TOPIC,
                                                   delivered_requests_topic,
                                                   delivered_updates_topic, history_copies_topic)
+
+#: A received message's metadata as rclpy hands it to a two-argument callback.
+MessageInfo = dict[str, Any]
+
+
+def publication_sequence(info: MessageInfo) -> int | None:
+    """The writer's sequence number of a received message (how many it had published up to
+    and with this one), or None where the middleware does not give it."""
+    number = info.get("publication_sequence_number")
+    return number if isinstance(number, int) and number > 0 else None
+
+
+def _sent_counts(answers: dict[int, StepAnswer]) -> dict[int, SentCounts]:
+    return {robot: SentCounts(a.team_messages, a.team_requests) for robot, a in answers.items()}
+
 
 class TeamRelay:
     """Hears, checks and relays team data on ``node`` (see module docstring). ``open_step``
@@ -69,7 +84,8 @@ class TeamRelay:
             ns = robot_namespace(robot)
             node.create_subscription(
                 TeamUpdate, f"/{ns}/team/updates",
-                lambda message, sender=robot: self._on_update(sender, message), TEAM_QOS)
+                lambda message, info, sender=robot: self._on_update(sender, message, info),
+                TEAM_QOS)
             node.create_subscription(
                 TeamUpdate, history_copies_topic(robot),
                 lambda message, sender=robot: self._on_history(sender, message), TEAM_QOS)
@@ -93,11 +109,11 @@ class TeamRelay:
             return None
         return update
 
-    def _on_update(self, sender: int, message: TeamUpdate) -> None:
+    def _on_update(self, sender: int, message: TeamUpdate, info: MessageInfo) -> None:
         update = self._checked(f"/{robot_namespace(sender)}/team/updates", message, sender)
         if update is not None:
             self.relay.update_heard(sender, update.sequence, cdr_size(update),
-                                    self._open_step(), message)
+                                    self._open_step(), message, publication_sequence(info))
             self._on_heard()
 
     def _on_history(self, sender: int, message: TeamUpdate) -> None:
@@ -113,7 +129,7 @@ class TeamRelay:
             self.relay.history_heard(sender, owner, update.sequence, cdr_size(update),
                                      self._open_step(), message)
 
-    def _on_request(self, message: TeamUpdateRequest) -> None:
+    def _on_request(self, message: TeamUpdateRequest, info: MessageInfo) -> None:
         requester, owner = int(message.requester_id), int(message.robot_id)
         if requester == TeamUpdateRequest.OBSERVER:
             return  # the evaluator's: robots hear it directly
@@ -128,13 +144,17 @@ class TeamRelay:
                                       TeamUpdateRequest.OBSERVER)
         if self.inputs.check(REQUESTS_TOPIC, problem):
             self.relay.request_heard(requester, owner, int(message.first_sequence),
-                                     request_cdr_size(), self._open_step(), message)
+                                     request_cdr_size(), self._open_step(), message,
+                                     publication_sequence(info))
             self._on_heard()
 
     def missing_from(self, answers: dict[int, StepAnswer]) -> list[int]:
         """Robots whose answers (robot -> StepAnswer) count team messages not heard yet."""
-        return self.relay.holds({robot: SentCounts(a.team_messages, a.team_requests)
-                                 for robot, a in answers.items()})
+        return self.relay.holds(_sent_counts(answers))
+
+    def write_off(self, answers: dict[int, StepAnswer]) -> None:
+        """Stop waiting for what ``answers`` count and was not heard (given up on)."""
+        self.relay.written_off(_sent_counts(answers))
 
     def transmit(self, step: int, true_positions: np.ndarray) -> None:
         """Start the transmissions of ``step`` (true positions ``(N, 2)`` [m], world frame)."""

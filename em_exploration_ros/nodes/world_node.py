@@ -390,7 +390,9 @@ class WorldNode(LeanNode):
         if now - self._frames_wait_since_s < self.barrier.robot_timeout_s:
             return False
         self.get_logger().warn(f"step {self.barrier.step}: team messages of robots {missing} "
-                               f"counted in their answers never reached the relay; going on")
+                               f"counted in their answers never reached the relay; going on "
+                               f"without them (not waited for again)")
+        self.relay.write_off(self.barrier.answers())
         self._frames_wait_since_s = None
         return True
 

@@ -13,14 +13,21 @@ topics. The node hands this class what it hears, with the step open at that mome
 - on ``/robot_<i>/team/history`` from teammate s: a ``HISTORY`` frame from s to i.
 
 Lockstep, exactly as em-sim: a robot publishes what it sends at step k before it answers
-step k, and its answer (MotionCommand) says how many update-topic messages and requests it
-has published so far. The world closes step k only once the relay ``holds`` them all (DDS
-keeps one writer's messages in order, not those of different topics), then calls
+step k, and its answer (MotionCommand) says how many update-topic messages and requests its
+process has published so far. The world closes step k only once the relay ``holds`` them all
+(DDS keeps one writer's messages in order, not those of different topics), then calls
 ``transmit(k, positions)``. Before it publishes step k+1 it delivers ``deliveries(k+1)`` and
 each robot's SonarScan carries how many deliveries of each kind it has been sent in all,
 so the robot processes step k+1 only once it holds them. Every frame of a step is thus
 offered, queued, drawn and delivered as in ``TeamRunner``, and seeded runs choose the same
 targets in both.
+
+How many messages a robot has published is read from each message's publication sequence
+number when the middleware gives one (the writer's own count, from 1 in every process): the
+relay then knows how many a restarted process published, those it published before the
+relay's reader matched its writer included, which DDS (volatile durability) never delivers.
+Without one, the relay counts what it hears. Either way a count that is never reached costs
+one wait: ``written_off`` takes the answers' counts as heard.
 
 A restarted robot's history exchange happens outside the steps (its frames join the step
 open when they arrive), so runs with restarts are not repeatable frame for frame.
@@ -46,6 +53,13 @@ class SentCounts:
     requests: int
 
 
+def published_so_far(heard_before: int, publication_sequence: int | None) -> int:
+    """How many messages a writer has published up to the one just heard: its publication
+    sequence number (counted by the writer from 1; a restarted process's writer starts
+    again), or without one ``heard_before`` + 1."""
+    return heard_before + 1 if publication_sequence is None else publication_sequence
+
+
 class LinkRelay:
     """Team data through the link model, with the counts of the lockstep hand-over (see
     module docstring). Payloads are opaque: the node's messages, delivered as received."""
@@ -64,11 +78,13 @@ class LinkRelay:
         return tuple(r for r in range(self.num_robots) if r != robot)
 
     def update_heard(self, sender: int, sequence: int, size_bytes: int, step: int,
-                     payload: Any) -> FrameKind:
-        """A record of ``sender``'s stream on its update topic while ``step`` is open; returns
-        whether it was taken as the new update or a re-send."""
+                     payload: Any, publication_sequence: int | None = None) -> FrameKind:
+        """A record of ``sender``'s stream on its update topic while ``step`` is open, with the
+        message's publication sequence number if known; returns whether it was taken as the
+        new update or a re-send."""
         counts = self.received[sender]
-        self.received[sender] = SentCounts(counts.updates + 1, counts.requests)
+        self.received[sender] = SentCounts(
+            published_so_far(counts.updates, publication_sequence), counts.requests)
         kind = FrameKind.RESEND
         if sequence > self._latest_sequence[sender]:
             kind = FrameKind.UPDATE
@@ -79,10 +95,13 @@ class LinkRelay:
         return kind
 
     def request_heard(self, requester: int, owner: int, first_sequence: int,
-                      size_bytes: int, step: int, payload: Any) -> None:
-        """A robot's request for records of ``owner``'s stream while ``step`` is open."""
+                      size_bytes: int, step: int, payload: Any,
+                      publication_sequence: int | None = None) -> None:
+        """A robot's request for records of ``owner``'s stream while ``step`` is open, with the
+        message's publication sequence number if known."""
         counts = self.received[requester]
-        self.received[requester] = SentCounts(counts.updates, counts.requests + 1)
+        self.received[requester] = SentCounts(
+            counts.updates, published_so_far(counts.requests, publication_sequence))
         receivers = self._teammates(requester) if owner == requester else (owner,)
         self.links.offer(Frame(FrameKind.REQUEST, requester, receivers, first_sequence,
                                size_bytes, step, payload))
@@ -95,11 +114,19 @@ class LinkRelay:
 
     def holds(self, sent: dict[int, SentCounts]) -> list[int]:
         """The robots among ``sent`` (robot -> what its answer says it published) whose
-        messages have not all been heard yet. A robot that says less than was heard (a
-        restarted process counts from zero again) is not waited for."""
+        messages have not all been heard yet. A restarted process whose first message has not
+        been heard yet is compared with its predecessor's count, so it may not be waited for."""
         return [robot for robot, counts in sorted(sent.items())
                 if self.received[robot].updates < counts.updates
                 or self.received[robot].requests < counts.requests]
+
+    def written_off(self, sent: dict[int, SentCounts]) -> None:
+        """Take what ``sent`` counts as heard: the world gave up waiting for it. Messages that
+        never come are then not waited for again at every step."""
+        for robot, counts in sent.items():
+            heard = self.received[robot]
+            self.received[robot] = SentCounts(max(heard.updates, counts.updates),
+                                              max(heard.requests, counts.requests))
 
     def transmit(self, step: int, positions: np.ndarray) -> None:
         """Start the transmissions of ``step`` with the true positions ``(N, 2)`` [m]."""
