@@ -16,6 +16,7 @@ from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
+from em_exploration_ros.core.agent.delivery_tally import RECORDS, REQUESTS, DeliveryTally
 from em_exploration_ros.core.agent.link_sender import LinkSender
 from em_exploration_ros.core.agent.team_data import (MissingRange, TeamUpdate, TeamUpdateInbox,
                                                      TeamUpdateOutbox)
@@ -133,6 +134,41 @@ def test_relay_waits_once_for_messages_that_never_come():
     # Counting goes on from there.
     relay.update_heard(0, 2, 60, 1, "u2")
     assert relay.holds({0: SentCounts(3, 1)}) == []
+
+
+def test_a_restarted_robot_holds_the_deliveries_made_before_its_reader_matched():
+    """Relay mode, robot side: a process restarted at a scan counting (5, 2) deliveries.
+    One record delivered after that scan but before its reader matched the relay's writer
+    never reaches it; the next carries publication sequence 7. It must not wait for the
+    lost one (it used to: barrier_timeout_s, 10 s, at every later step)."""
+    tally = DeliveryTally()
+    tally.start_at((5, 2))
+    assert tally.holds((5, 2)) and not tally.holds((6, 2))
+    tally.heard(RECORDS, 7)
+    assert tally.held() == (7, 2) and tally.holds((7, 2)) and not tally.holds((7, 3))
+    tally.heard(REQUESTS, 3)
+    assert tally.holds((7, 3))
+
+
+def test_a_robot_counts_deliveries_it_hears_without_sequence_numbers():
+    tally = DeliveryTally()
+    tally.heard(RECORDS, None)
+    tally.start_at((4, 1))  # restarted: one record heard before its first scan counted 4
+    assert tally.held() == (4, 1)
+    tally.heard(RECORDS, None)
+    assert tally.holds((5, 1)) and not tally.holds((6, 1))
+
+
+@pytest.mark.parametrize("sequence_numbers", [True, False])
+def test_a_robot_waits_once_for_deliveries_that_never_come(sequence_numbers):
+    tally = DeliveryTally()
+    for sequence in (1, 2):
+        tally.heard(RECORDS, sequence if sequence_numbers else None)
+    assert not tally.holds((3, 0))
+    tally.write_off((3, 0))  # record 3 is lost for good
+    assert tally.holds((3, 0)) and not tally.holds((4, 0))
+    tally.heard(RECORDS, 4 if sequence_numbers else None)
+    assert tally.holds((4, 0)) and not tally.holds((5, 0))
 
 
 def test_the_world_relay_counts_requests_published_before_its_reader_matched():

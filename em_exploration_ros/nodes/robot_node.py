@@ -17,7 +17,9 @@ Relay mode (``links.*`` not perfect): the robot hears no teammate directly. The 
 link relay (``nodes/team_relay.py``) delivers teammates' records and requests on
 ``/robot_<i>/team/delivered_updates`` and ``/robot_<i>/team/delivered_requests``; each
 SonarScan says how many it has delivered in all, and the step waits for those instead of
-the barrier's sequence numbers. The robot sends at steps only, as em-sim
+the barrier's sequence numbers (counted by the deliveries' publication sequence numbers,
+``core.agent.delivery_tally``; after ``barrier_timeout_s`` the missing ones are written
+off, not waited for again). The robot sends at steps only, as em-sim
 (``core.agent.link_sender.LinkSender``: gap request, broadcast re-sends, new update), and
 its MotionCommand counts what it has published (``team_messages``, ``team_requests``).
 
@@ -65,6 +67,7 @@ from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, Rejection
                                                         landmark_reading_problem, request_problem,
                                                         size_problem, stamp_step_problem,
                                                         step_problem)
+from em_exploration_ros.core.agent.delivery_tally import RECORDS, REQUESTS, DeliveryTally
 from em_exploration_ros.core.agent.link_sender import LinkSender
 from em_exploration_ros.core.agent.resend import ResendScheduler
 from em_exploration_ros.core.agent.team_data import (MAX_READINGS_PER_KEYFRAME,
@@ -87,6 +90,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, given_up_to_msg,
                                                   teammate_reading_from_msg)
 from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveliness
+from em_exploration_ros.nodes.message_info import MessageInfo, publication_sequence
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.odometry_cdr import PlanarOdometry
 from em_exploration_ros.nodes.recorder_presence import topics_not_recorded
@@ -111,6 +115,12 @@ def requester_name(requester_id: int) -> str:
     return f"robot {requester_id}"
 
 
+def delivered_counts(scan: SonarScan) -> tuple[int, int]:
+    """Relay mode: the records and requests the link relay had delivered to the robot in all
+    when the world published ``scan``."""
+    return int(scan.delivered_updates), int(scan.delivered_requests)
+
+
 class RobotNode(LeanNode):
     """One robot of the team (see module docstring)."""
 
@@ -133,8 +143,7 @@ class RobotNode(LeanNode):
         self.relay_mode = not perfect_links(self.params.links)
         self.link_sender = LinkSender(self.robot_id, self.params)
         self.team_messages = self.team_requests = 0
-        self.received_deliveries = [0, 0]  # records, requests (relay mode)
-        self._delivery_offset: list[int] | None = None
+        self.deliveries = DeliveryTally()  # relay mode
         self.archive = StreamArchive(self.robot_id, self.num_robots)
         self._recovery: OwnHistoryRecovery | None = None
         self._served_history: dict[int, float] = {}
@@ -338,20 +347,20 @@ class RobotNode(LeanNode):
             self.rejected_updates += 1
             self.inputs.drop(topic, f"rejected a team update: {error}")
 
-    def _on_delivered_update(self, message: TeamUpdate) -> None:
+    def _on_delivered_update(self, message: TeamUpdate, info: MessageInfo) -> None:
         """Relay mode: a record the links delivered (a teammate's, or a copy of this robot's
         own after a restart)."""
-        self.received_deliveries[0] += 1
+        self.deliveries.heard(RECORDS, publication_sequence(info))
         if message.robot_id == self.robot_id:
             self._on_own_history(message)
         else:
             self._file_team_update(delivered_updates_topic(self.robot_id), message, None)
         self._process_ready_steps()
 
-    def _on_delivered_request(self, message: TeamUpdateRequest) -> None:
+    def _on_delivered_request(self, message: TeamUpdateRequest, info: MessageInfo) -> None:
         """Relay mode: a request the links delivered: a teammate's for this robot's records
         (re-sent at a coming step, ``LinkSender``) or a restarted teammate's for its own."""
-        self.received_deliveries[1] += 1
+        self.deliveries.heard(REQUESTS, publication_sequence(info))
         asker, owner = int(message.requester_id), int(message.robot_id)
         topic = delivered_requests_topic(self.robot_id)
         if asker == owner:
@@ -470,9 +479,13 @@ class RobotNode(LeanNode):
             for gap in self.inbox.missing(self._barrier):
                 self._publish_request(gap.robot_id, gap.first_sequence, gap.last_sequence)
         if now - self._waiting_since > self.settings.barrier_timeout_s:
-            missing = (f"deliveries of the link relay (held {self.received_deliveries}, "
-                       f"offset {self._delivery_offset})" if self.relay_mode
-                       else f"teammates' updates {self._barrier}")
+            missing = f"teammates' updates {self._barrier}"
+            scan = self._scans.get(self._next_step)
+            if self.relay_mode and scan is not None:
+                needed = delivered_counts(scan)
+                missing = (f"deliveries of the link relay (records, requests: held "
+                           f"{self.deliveries.held()} of {needed})")
+                self.deliveries.write_off(needed)  # not waited for again at every step
             self.get_logger().warn(
                 f"step {self._next_step}: {missing} still missing after "
                 f"{self.settings.barrier_timeout_s} s; going on without them")
@@ -566,12 +579,9 @@ class RobotNode(LeanNode):
             if self._next_step is None and self._scans:
                 self._next_step = min(self._scans)
                 first = self._scans[self._next_step]
-                self._delivery_offset = [0, 0]
                 if self._next_step > 0:
                     # Restarted: the deliveries before this process subscribed are not its own.
-                    self._delivery_offset = [
-                        int(first.delivered_updates) - self.received_deliveries[0],
-                        int(first.delivered_requests) - self.received_deliveries[1]]
+                    self.deliveries.start_at(delivered_counts(first))
                     self._start_recovery(first)
             if self._recovery is not None:
                 if not self._recovery.complete(time.monotonic()):
@@ -601,9 +611,7 @@ class RobotNode(LeanNode):
         every teammate's records up to the barrier ``limits``."""
         if not self.relay_mode:
             return not limits or self.inbox.holds_up_to(limits)
-        needed = (int(scan.delivered_updates), int(scan.delivered_requests))
-        return all(received + offset >= count for received, offset, count in
-                   zip(self.received_deliveries, self._delivery_offset, needed))
+        return self.deliveries.holds(delivered_counts(scan))
 
     def _recorder_listening(self) -> bool:
         """Before the first step: True once the recorder subscribes to every topic this robot

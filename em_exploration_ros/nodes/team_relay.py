@@ -21,7 +21,7 @@ carries the three heard topics between vehicles.
 """
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 from em_exploration_msgs.msg import TeamLinkCounts, TeamUpdate, TeamUpdateRequest
@@ -39,21 +39,11 @@ from em_exploration_ros.core.sim.lockstep import StepAnswer
 from em_exploration_ros.nodes.conversions import robot_namespace
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   publish_or_log)
+from em_exploration_ros.nodes.message_info import MessageInfo, publication_sequence
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, TEAM_QOS
 from em_exploration_ros.nodes.team_topics import (LINK_COUNTS_TOPIC, REQUESTS_TOPIC,
                                                   delivered_requests_topic,
                                                   delivered_updates_topic, history_copies_topic)
-
-#: A received message's metadata as rclpy hands it to a two-argument callback.
-MessageInfo = dict[str, Any]
-
-
-def publication_sequence(info: MessageInfo) -> int | None:
-    """The writer's sequence number of a received message (how many it had published up to
-    and with this one), or None where the middleware does not give it."""
-    number = info.get("publication_sequence_number")
-    return number if isinstance(number, int) and number > 0 else None
-
 
 def _sent_counts(answers: dict[int, StepAnswer]) -> dict[int, SentCounts]:
     return {robot: SentCounts(a.team_messages, a.team_requests) for robot, a in answers.items()}

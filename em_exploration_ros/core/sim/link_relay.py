@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from em_exploration_ros.core.agent.delivery_tally import published_so_far
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.links import (Delivery, DeliveryLedger, Frame, FrameKind,
                                                TeamLinks)
@@ -51,13 +52,6 @@ class SentCounts:
 
     updates: int
     requests: int
-
-
-def published_so_far(heard_before: int, publication_sequence: int | None) -> int:
-    """How many messages a writer has published up to the one just heard: its publication
-    sequence number (counted by the writer from 1; a restarted process's writer starts
-    again), or without one ``heard_before`` + 1."""
-    return heard_before + 1 if publication_sequence is None else publication_sequence
 
 
 class LinkRelay:
