@@ -13,6 +13,11 @@ with a deep keep-last queue. Chunks close at ``--chunk-size`` bytes or every
 recorder leaves a file whose chunks ``em-bag repair`` recovers. Ctrl-C or SIGTERM writes the
 summary, the rosbag2 metadata record and the footer, then metadata.yaml.
 
+Messages published while the recorder listened that never reached it (a best-effort stream
+dropped them, or a subscription's queue overflowed while the recorder fell behind) are
+counted from the writers' publication sequence numbers (``bag_format/message_losses.py``)
+and reported at the next poll and when the bag is closed.
+
 When the OS refuses a write (a full disk), the recorder stops: it prints one line naming the
 file and the error, closes the file (its complete chunks stay readable; ``em-bag repair``),
 writes metadata.yaml of what reached the file if it can (else it says so) and exits with
@@ -37,16 +42,19 @@ import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.subscription import Subscription
 from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from em_exploration_ros.bag_format.bag_directory import BagDirectoryWriter
 from em_exploration_ros.bag_format.bag_writer import (COMPRESSIONS, DEFAULT_CHUNK_SIZE,
                                                       BagWriteError)
 from em_exploration_ros.bag_format.interface_index import read_type_hash
+from em_exploration_ros.bag_format.message_losses import MessageLosses
 from em_exploration_ros.bag_format.qos_yaml import request_for_offers
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.nodes import lean_executor
 from em_exploration_ros.nodes.input_guard import InputGuard
+from em_exploration_ros.nodes.message_info import MessageInfo, publication_sequence
 from em_exploration_ros.nodes.node_main import interrupt_shuts_down
 from em_exploration_ros.nodes.recorder_presence import RECORDER_NODE_NAME
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
@@ -131,6 +139,7 @@ class Recorder(Node):
         self._writer = writer
         self._options = options
         self._recorded: dict[str, str] = {}
+        self._losses: dict[str, tuple[Subscription, MessageLosses]] = {}
         self._skipped: set[str] = set()
         self._other_types: set[tuple[str, str]] = set()
         # Wall-clock timers: with use_sim_time the ROS clock may stand still (no /clock yet).
@@ -159,6 +168,18 @@ class Recorder(Node):
             self._subscribe(topic, types, publishers)
         for line in other_types_of_taken_topics(graph, self._recorded, self._other_types):
             self.get_logger().warning(line)
+        self._report_losses()
+
+    def _report_losses(self) -> None:
+        """One line per topic that lost messages since the last poll."""
+        for topic, (subscription, losses) in self._losses.items():
+            losses.writers(subscription.get_publisher_count())
+            new = losses.unreported()
+            if new:
+                self.get_logger().warning(
+                    f"{topic}: {new} messages published while recording never reached the "
+                    f"recorder (dropped on the way, or the recorder fell behind: "
+                    f"--queue-depth); {losses.lost} in all")
 
     def _skip(self, topic: str, reason: str) -> None:
         self._skipped.add(topic)
@@ -183,12 +204,16 @@ class Recorder(Node):
         clock = self.get_clock()
         write = self._writer.write
 
-        def on_message(data: bytes) -> None:
+        losses = MessageLosses(len(publishers))
+
+        def on_message(data: bytes, info: MessageInfo) -> None:
             stamp = clock.now().nanoseconds
             write(channel_id, stamp, data, stamp)
+            losses.received(publication_sequence(info))
 
-        self.create_subscription(message_class, topic, on_message, qos_to_rclpy(request),
-                                 raw=True)
+        subscription = self.create_subscription(message_class, topic, on_message,
+                                                qos_to_rclpy(request), raw=True)
+        self._losses[topic] = (subscription, losses)
         self._recorded[topic] = type_name
         self.get_logger().info(f"recording {topic} [{type_name}] "
                                f"({request.reliability}, {request.durability})")
@@ -199,6 +224,11 @@ class Recorder(Node):
         counts = self._writer.topic_counts()
         self.get_logger().info(f"wrote {sum(counts.values())} messages on {len(counts)} topics "
                                f"to {self._writer.directory}")
+        lost = {topic: losses.lost for topic, (_, losses) in self._losses.items() if losses.lost}
+        if lost:
+            self.get_logger().warning(
+                f"{sum(lost.values())} messages published while recording never reached the "
+                "recorder: " + ", ".join(f"{topic} {count}" for topic, count in lost.items()))
         return code
 
 

@@ -1,0 +1,103 @@
+"""em-record counts what was published while it recorded but never reached it
+(bag_format/message_losses.py): from the writers' publication sequence numbers, without
+false counts on topics with several writers."""
+from __future__ import annotations
+
+import re
+import signal
+import time
+from pathlib import Path
+
+import rclpy
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from ros_process import REPO_ROOT, NodeProcess, wait_until
+from std_msgs.msg import UInt32
+
+from em_exploration_ros.bag_format.bag_reader import scan_bag
+from em_exploration_ros.bag_format.message_losses import MessageLosses
+
+TOPIC = "/em_test/flood"
+BURST = 300
+MARKERS = 5
+
+
+def test_a_single_writers_gaps_are_counted_and_reported_once():
+    losses = MessageLosses(writers=1)
+    for sequence in (1, 2, 5, 6, 10):
+        losses.received(sequence)
+    assert losses.lost == 5
+    assert losses.unreported() == 5 and losses.unreported() == 0
+    losses.received(None)  # a middleware without numbers: nothing to say
+    losses.received(11)
+    assert losses.lost == 5
+
+
+def test_two_writers_interleaved_count_no_losses():
+    losses = MessageLosses(writers=1)  # the second writer appeared after the last poll
+    for sequence in (500, 501, 1, 502, 2, 3, 503):
+        losses.received(sequence)
+    assert losses.lost == 0
+    losses.writers(2)
+    for sequence in (504, 4, 600, 5):
+        losses.received(sequence)
+    assert losses.lost == 0
+
+
+def test_a_restarted_writer_is_counted_again_once_it_is_alone():
+    losses = MessageLosses(writers=1)
+    for sequence in (40, 41):
+        losses.received(sequence)
+    losses.received(3)  # the restarted process: its first two never reached the recorder
+    assert losses.lost == 0  # ... but nothing tells it from a second writer yet
+    losses.writers(2)  # the dead one still matched
+    losses.received(4)
+    losses.writers(1)
+    for sequence in (50, 51, 54):  # the first after the poll starts the count afresh
+        losses.received(sequence)
+    assert losses.lost == 2
+
+
+def test_em_record_reports_every_message_it_did_not_receive(tmp_path: Path):
+    """A best-effort flood while the recorder is stopped (SIGSTOP) with a keep-last queue of
+    one: most of the burst is lost, and what the bag holds plus what em-record reports lost
+    is exactly what was published while it listened."""
+    bag = tmp_path / "rec"
+    recorder = NodeProcess([
+        "python", "-m", "em_exploration_ros.tools.record", "-o", str(bag), "--topics", TOPIC,
+        "--queue-depth", "1", "--poll-interval", "0.2"], tmp_path / "record.log",
+        {"PYTHONPATH": str(REPO_ROOT)})
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        with recorder:
+            node = Node("em_test_flood", context=context)
+            publisher = node.create_publisher(
+                UInt32, TOPIC, QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+            wait_until(lambda: publisher.get_subscription_count() >= 1, 30.0,
+                       "em-record subscribed")
+            recorder.wait_for_output(f"recording {TOPIC}", 30.0)
+            publisher.publish(UInt32(data=0))  # received: the count starts from it
+            time.sleep(1.0)
+            recorder.signal_group(signal.SIGSTOP)
+            for count in range(1, BURST):
+                publisher.publish(UInt32(data=count))
+            time.sleep(0.5)
+            recorder.signal_group(signal.SIGCONT)
+            time.sleep(1.0)
+            for count in range(MARKERS):  # the last one surely arrives: it ends the count
+                publisher.publish(UInt32(data=BURST + count))
+                time.sleep(0.2)
+            time.sleep(1.0)
+            assert recorder.stop() == 0, recorder.output()
+    finally:
+        rclpy.try_shutdown(context=context)
+    output = recorder.output()
+    written = scan_bag(bag).topic_counts()[TOPIC]
+    reported = re.search(r"(\d+) messages published while recording never reached the "
+                         rf"recorder: {TOPIC} (\d+)", output)
+    assert reported, output
+    assert int(reported.group(1)) == int(reported.group(2))
+    assert written + int(reported.group(2)) == BURST + MARKERS, (written, output)
+    assert written < BURST // 2, written  # the flood was lost, not recorded
+    assert re.search(rf"{TOPIC}: \d+ messages published while recording never reached", output)
