@@ -45,7 +45,9 @@ from em_exploration_ros.nodes.team_topics import (LINK_COUNTS_TOPIC, REQUESTS_TO
                                                   delivered_requests_topic,
                                                   delivered_updates_topic, history_copies_topic)
 
+
 def _sent_counts(answers: dict[int, StepAnswer]) -> dict[int, SentCounts]:
+    """What each robot's answer (robot -> StepAnswer) says it has published."""
     return {robot: SentCounts(a.team_messages, a.team_requests) for robot, a in answers.items()}
 
 
