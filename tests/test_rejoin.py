@@ -79,30 +79,31 @@ def test_keyframe_ranges():
     assert keyframe_ranges(np.array([], dtype=int)) == "0 []"
 
 
-def crashed_team() -> tuple[TeamRunner, RobotAgent]:
-    """A team whose robot 1 crashed between two keyframes (the motion since is unrecorded)
-    and stood still for a while; returns the runner and robot 1's crashed agent."""
+def crashed_team(robot: int = 1) -> tuple[TeamRunner, RobotAgent]:
+    """A team whose robot ``robot`` crashed between two keyframes (the motion since is
+    unrecorded) and stood still for a while; returns the runner and its crashed agent."""
     runner = TeamRunner(PARAMS)
     interval = PARAMS.slam.keyframe_interval_steps
     for _ in range(12 * interval + 3):
         runner.step_once()
     sim = runner.simulation
     for _ in range(2 * interval + 4):     # downtime: the vehicle stands still
-        for robot in range(PARAMS.world.num_robots):
-            sim.apply_command(robot, 0.0, 0.0)
+        for vehicle in range(PARAMS.world.num_robots):
+            sim.apply_command(vehicle, 0.0, 0.0)
         sim.advance()
-    return runner, runner.agents[1]
+    return runner, runner.agents[robot]
 
 
 def step_to_next_keyframe(agent: RobotAgent, runner: TeamRunner) -> TeamUpdate:
     """Step robot ``agent`` (the vehicle standing still) up to its next keyframe; the update
     carrying it."""
     sim, interval = runner.simulation, PARAMS.slam.keyframe_interval_steps
+    robot = agent.robot_id
     while sim.step % interval:
-        agent.step(step_input(sim.sense(1), PARAMS.motion.time_step_s))
-        sim.apply_command(1, 0.0, 0.0)
+        agent.step(step_input(sim.sense(robot), PARAMS.motion.time_step_s))
+        sim.apply_command(robot, 0.0, 0.0)
         sim.advance()
-    agent.step(step_input(sim.sense(1), PARAMS.motion.time_step_s))
+    agent.step(step_input(sim.sense(robot), PARAMS.motion.time_step_s))
     return agent.take_outgoing()
 
 
@@ -165,3 +166,39 @@ def test_an_agent_resumed_without_its_latest_records_numbers_after_them_and_brid
     assert np.all(np.diag(keyframe.odom_covariance) >= np.diag(per_step) * (bridged - interval))
     # The dead reckoning measured the unrecorded motion: the robot still knows where it is.
     assert np.linalg.norm(new.current_pose()[:2] - sim.true_pose(1)[:2]) < 1.0
+
+
+def test_robot_0_resumed_with_none_of_its_records_continues_its_stream_from_the_start():
+    """Teammates out of range gave back none of robot 0's records (seen in a relay-mode run
+    with three kills: the team's SLAM diverged to 40 m RMSE and the mission stalled). Its
+    next keyframe must not start a new stream: robot 0's first keyframe is anchored at the
+    mission's start pose, far from where the vehicle is now. It continues from its first
+    keyframe, which the teammates hold, with the dead reckoning of every step since."""
+    runner, old = crashed_team(robot=0)
+    sim, interval = runner.simulation, PARAMS.slam.keyframe_interval_steps
+    new = RobotAgent(0, PARAMS, sim.world.start_poses[0])
+    new.resume([], old.outbox.last_sequence, sim.step)
+    new.apply_team_updates([update for robot in (1, 2)
+                            for update in runner.agents[robot].outbox.resend(1, 0)])
+    update = step_to_next_keyframe(new, runner)
+    assert update.sequence == old.outbox.last_sequence + 1
+    keyframe = update.keyframes[0]
+    assert not keyframe.is_first and keyframe.previous_index == 0
+    # Record 1 is rebuilt with that first keyframe for a teammate that lost its copy too.
+    assert [k.index for k in new.outbox.resend(1, 1)[0].keyframes] == [0]
+    assert [u.keyframes for u in new.outbox.resend(2, old.outbox.last_sequence)] == [()] * (
+        old.outbox.last_sequence - 1)
+    motion = PARAMS.motion
+    per_step = odometry_covariance_per_step(motion.speed_mps * motion.time_step_s, True,
+                                            PARAMS.sensors)
+    bridged = keyframe.index * interval
+    assert np.all(np.diag(keyframe.odom_covariance) >= np.diag(per_step) * (bridged - interval))
+    true_position = sim.true_pose(0)[:2]
+    assert np.linalg.norm(sim.world.start_poses[0][:2] - true_position) > 5.0  # it moved
+    assert np.linalg.norm(new.current_pose()[:2] - true_position) < 2.0
+    # A teammate that holds robot 0's whole earlier stream takes the new keyframe where the
+    # vehicle is, without a jump of its graph.
+    teammate = runner.agents[1]
+    teammate.apply_team_updates([update])
+    estimate = teammate.slam.pose(0, keyframe.index)
+    assert np.linalg.norm(estimate[:2] - true_position) < 2.0

@@ -215,7 +215,17 @@ class RobotAgent:
         speed: ``keyframe_interval_steps`` when the history is complete (the vehicle moved
         for less than one interval before it stopped), every step from the last keyframe
         to ``first_step`` when records are missing.
+
+        When no record came back but its earlier process had sent some, the stream is
+        continued from its first keyframe (step 0, at the odometry origin): record 1 is
+        rebuilt with that keyframe without its readings (a teammate that holds the real one
+        keeps it), and the next reading bridges every step since. (A new first keyframe
+        would instead restart the stream mid-run; robot 0's is anchored at the mission's
+        start pose, so a teammate's graph and its own were pulled to where the vehicle was
+        at step 0 and diverged.)
         """
+        if not history and through_sequence > 0:
+            history = [self._stream_start()]
         self.outbox.restore(history, through_sequence)
         odom_pose, last_keyframe = np.zeros(3), None
         for update in history:
@@ -245,6 +255,14 @@ class RobotAgent:
         moving_steps = interval if len(history) >= through_sequence else max(
             first_step - last_keyframe.index * interval, interval)
         self._gap_covariance = per_step * moving_steps
+
+    def _stream_start(self) -> TeamUpdate:
+        """Record 1 of this robot's stream as far as it can be rebuilt (``resume``): its first
+        keyframe (step 0, at the odometry origin) without its readings."""
+        return TeamUpdate(self.robot_id, 1, 0.0, keyframes=(KeyframeMeasurements(
+            robot_id=self.robot_id, index=0, stamp_s=0.0, is_first=True, previous_index=-1,
+            odom_delta=np.zeros(3), odom_covariance=np.zeros((3, 3)), landmarks=(),
+            teammates=()),))
 
     def step(self, sensed: StepInput) -> MotionCommand:
         """Process one step of own sensor data; returns the motion for the next step."""
