@@ -111,3 +111,42 @@ def test_a_restarted_robot_gets_the_short_timeout_on_the_open_step_only():
     barrier.close()
     barrier.open(2, now_s=20.0)                # the steps after: the long timeout
     assert barrier.expire(49.9) == [] and barrier.expire(50.0) == [0, 1]
+
+
+def test_a_team_whose_every_robot_is_restarting_waits_for_them_instead_of_ending():
+    """--respawn, every robot killed within seconds: each new process recovers while the
+    others are stopped. The world stepped over at once ("every robot finished or
+    stopped", exit 3 at explored 0.61); it must wait for a rejoining robot, for at most
+    ``robot_timeout_s``, and only then end the run."""
+    barrier = LockstepBarrier(2, robot_timeout_s=30.0, suspect_timeout_s=4.0)
+    barrier.open(0, now_s=0.0)
+    barrier.restarted(0, now_s=1.0)
+    barrier.restarted(1, now_s=2.0)
+    assert barrier.expire(6.0) == [0, 1]
+    assert not barrier.complete and not barrier.all_done  # waiting for the rejoiners
+    # Robot 1 comes back and answers the open step.
+    assert barrier.answer(1, 0, GO, 9.0) == LockstepBarrier.REJOINED
+    assert barrier.complete and not barrier.all_done
+    barrier.close()
+    barrier.open(1, now_s=9.5)
+    barrier.expire(31.5)                      # robot 0's rejoin deadline (1 + 30) passed
+    assert barrier.rejoining == {}
+    assert not barrier.complete               # robot 1 is live and has not answered
+    assert barrier.answer(1, 1, GO, 31.6) == LockstepBarrier.ACCEPTED
+    assert barrier.complete and not barrier.all_done
+    barrier.close()
+    barrier.open(2, now_s=32.0)
+    assert barrier.expire(62.0) == [1]         # robot 1 silent again, nobody rejoining
+    assert barrier.complete and barrier.all_done
+
+
+def test_a_rejoining_robot_that_never_answers_is_given_up_after_the_robot_timeout():
+    barrier = LockstepBarrier(1, robot_timeout_s=30.0, suspect_timeout_s=4.0)
+    barrier.open(0, now_s=0.0)
+    barrier.restarted(0, now_s=1.0)
+    assert barrier.expire(5.0) == [0]
+    assert not barrier.complete and not barrier.all_done
+    barrier.expire(30.9)
+    assert not barrier.complete
+    barrier.expire(31.0)
+    assert barrier.complete and barrier.all_done

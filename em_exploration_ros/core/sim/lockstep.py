@@ -18,7 +18,12 @@ for step k). The barrier repairs itself before it gives up on anyone:
 - a stopped robot that answers again (a wedged process that recovered, or a process
   restarted with the same id) *rejoins*: an answer to the open step is used at once, an
   answer to an earlier step puts it back on the list of robots the open step waits for,
-  with a fresh deadline.
+  with a fresh deadline;
+- a robot whose new process reported its liveliness is *rejoining* until it answers, for
+  at most ``robot_timeout_s``: the run is not over while it is (``all_done``), and when no
+  robot is live, the open step waits for it (``complete``) instead of the world stepping
+  on, or over, with nobody (every robot of a ``--respawn`` team killed within seconds
+  once ended the mission).
 
 Nothing is kept beyond one step: bookkeeping is O(number of robots).
 """
@@ -65,6 +70,7 @@ class LockstepBarrier:
         self.suspects: set[int] = set()
         self.step = -1
         self.stopped: set[int] = set()
+        self.rejoining: dict[int, float] = {}  # robot -> wall deadline [s]
         self.finished = [False] * num_robots
         self.team_sequences = [0] * num_robots
         self._answers: dict[int, StepAnswer] = {}
@@ -104,9 +110,11 @@ class LockstepBarrier:
         to answer is gone, even if its own loss was never reported (a process restarted
         within its liveliness lease). The new one first recovers its stream from its
         teammates, so, as after a loss, it has ``suspect_timeout_s`` from now to answer the
-        open step; later steps get ``robot_timeout_s`` again."""
+        open step; later steps get ``robot_timeout_s`` again. It is *rejoining* until it
+        answers, for at most ``robot_timeout_s``."""
         self.suspect(robot, now_s)
         self.trust(robot)
+        self.rejoining[robot] = now_s + self.robot_timeout_s
 
     def answer(self, robot_id: int, step: int, answer: StepAnswer, now_s: float) -> str:
         """File a robot's answer; returns how it was taken (ACCEPTED, REJOINED or why not).
@@ -115,6 +123,8 @@ class LockstepBarrier:
         counts when it is for the open step). CONFLICT: a second answer to the open step
         that differs from the first, which stands (two publishers on one robot's topic)."""
         rejoined = robot_id in self.stopped and step <= self.step
+        if step <= self.step:
+            self.rejoining.pop(robot_id, None)
         if rejoined:
             self.stopped.discard(robot_id)
             self._arm(robot_id, now_s)
@@ -149,9 +159,13 @@ class LockstepBarrier:
         return due
 
     def expire(self, now_s: float) -> list[int]:
-        """Stop the live robots still silent at their deadline; returns those newly stopped."""
+        """Stop the live robots still silent at their deadline, and stop waiting for
+        rejoining robots past theirs; returns the robots newly stopped."""
         late = [r for r in self.waiting_for() if now_s >= self._deadline_s[r]]
         self.stopped.update(late)
+        for robot, deadline_s in list(self.rejoining.items()):
+            if now_s >= deadline_s:
+                del self.rejoining[robot]
         return late
 
     def stop(self, robot_ids: list[int]) -> list[int]:
@@ -163,7 +177,10 @@ class LockstepBarrier:
 
     @property
     def complete(self) -> bool:
-        """True when every live robot has answered the open step."""
+        """True when every live robot has answered the open step, and some robot is live or
+        none is rejoining."""
+        if len(self.stopped) == self.num_robots and self.rejoining:
+            return False
         return not self.waiting_for()
 
     def close(self) -> list[StepAnswer]:
@@ -182,5 +199,6 @@ class LockstepBarrier:
 
     @property
     def all_done(self) -> bool:
-        """True when every robot has finished or is stopped."""
-        return all(self.finished[r] or r in self.stopped for r in range(self.num_robots))
+        """True when every robot has finished or is stopped and not rejoining."""
+        return all(self.finished[r] or (r in self.stopped and r not in self.rejoining)
+                   for r in range(self.num_robots))
