@@ -137,3 +137,26 @@ def test_huge_claimed_sequence_numbers_cost_nothing_and_open_bounded_gaps():
     assert gaps == [MissingRange(1, 2, 2), MissingRange(1, 4, 1 + MAX_SEQUENCE_LEAD),
                     MissingRange(2, 1, 1 + MAX_SEQUENCE_LEAD)]
     assert inbox.holds_up_to({1: 1, 2: 0})
+
+
+def test_records_given_up_on_are_not_waited_for_again_until_they_arrive():
+    """A restarted robot missed record 27 of a teammate that died right after sending it:
+    after barrier_timeout_s it goes on (``waive``), and must not wait 10 s again at every
+    later step for a record only the dead robot could re-send."""
+    inbox = TeamUpdateInbox(0, 3)
+    streams = {robot: updates_from(robot, 4) for robot in (1, 2)}
+    for robot in (1, 2):
+        for update in streams[robot][:2]:
+            inbox.receive(update)
+    inbox.pop_ready()
+    assert not inbox.holds_up_to({1: 3, 2: 2})
+    inbox.waive({1: 3, 2: 2})
+    assert inbox.holds_up_to({1: 3, 2: 2}) and inbox.holds_up_to({1: 5, 2: 2})
+    assert not inbox.holds_up_to({1: 5, 2: 3})  # robot 2 is still waited for
+    # Once record 3 arrives robot 1 is waited for again.
+    inbox.receive(streams[1][2])
+    inbox.pop_ready()
+    assert not inbox.holds_up_to({1: 4, 2: 2})
+    inbox.receive(streams[1][3])
+    inbox.pop_ready()
+    assert inbox.holds_up_to({1: 4, 2: 2})

@@ -9,7 +9,8 @@ updates and what users see, it publishes its TF ``map`` -> ``robot_i/odom`` ->
 Lockstep: each SonarScan carries the world's barrier (``team_sequences``). The node
 processes a step only when it holds every teammate's updates up to the barrier, asking
 for missing ones again (TeamUpdateRequest) while it waits; a teammate silent past
-``barrier_timeout_s`` is skipped with a warning. In real-time mode the barrier is empty
+``barrier_timeout_s`` is skipped with a warning, and not waited for again until the
+records given up on arrive (``TeamUpdateInbox.waive``: their sender may be dead). In real-time mode the barrier is empty
 and steps are processed as they come. A step the world sends again (its barrier repair) is
 answered again with the same command.
 
@@ -479,7 +480,10 @@ class RobotNode(LeanNode):
             for gap in self.inbox.missing(self._barrier):
                 self._publish_request(gap.robot_id, gap.first_sequence, gap.last_sequence)
         if now - self._waiting_since > self.settings.barrier_timeout_s:
-            missing = f"teammates' updates {self._barrier}"
+            missing = "teammates' updates " + ", ".join(
+                f"robot {gap.robot_id} #{gap.first_sequence}-{gap.last_sequence}"
+                for gap in self.inbox.missing(self._barrier))
+            self.inbox.waive(self._barrier)  # not waited for again at every step
             scan = self._scans.get(self._next_step)
             if self.relay_mode and scan is not None:
                 needed = delivered_counts(scan)

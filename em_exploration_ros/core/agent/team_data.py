@@ -258,6 +258,7 @@ class TeamUpdateInbox:
         self._num_robots = num_robots
         self._streams = {robot: _PeerStream() for robot in range(num_robots)
                          if robot != own_robot_id}
+        self._waived: dict[int, int] = {}
 
     def receive(self, update: TeamUpdate, sender: int | None = None) -> bool:
         """File one record, which arrived on robot ``sender``'s topic (if known).
@@ -298,16 +299,27 @@ class TeamUpdateInbox:
 
     def holds_up_to(self, limits: dict[int, int]) -> bool:
         """True when every robot's records up to ``limits[robot]`` are received (a limit
-        more than ``MAX_SEQUENCE_LEAD`` ahead can never be met)."""
+        more than ``MAX_SEQUENCE_LEAD`` ahead can never be met), leaving out a robot while
+        a gap ``waive`` gave up on is still open in its stream."""
         for robot, limit in limits.items():
             stream = self._streams.get(robot)
-            if stream is None or limit < stream.next_sequence:
+            if (stream is None or limit < stream.next_sequence
+                    or stream.next_sequence <= self._waived.get(robot, 0)):
                 continue
             needed = limit - stream.next_sequence + 1
             if needed > len(stream.early) or any(
                     seq not in stream.early for seq in range(stream.next_sequence, limit + 1)):
                 return False
         return True
+
+    def waive(self, limits: dict[int, int]) -> None:
+        """Stop waiting for the records up to ``limits`` that are missing now (given up
+        after a timeout: their sender may be dead): ``holds_up_to`` leaves that robot out
+        until its stream has them, instead of waiting for them again at every step."""
+        for robot, limit in limits.items():
+            stream = self._streams.get(robot)
+            if stream is not None and stream.next_sequence <= limit:
+                self._waived[robot] = max(self._waived.get(robot, 0), limit)
 
     def next_expected(self, robot_id: int) -> int:
         """The next sequence number expected from ``robot_id``."""
