@@ -473,12 +473,19 @@ class RobotNode(LeanNode):
                 self._last_request = now
                 self._request_own_history()
             return
+        # Missing records are asked for while the step waits for them, and after it stopped
+        # waiting (``waive``) until they arrive.
+        wanted = self.inbox.waived()
+        if self._waiting_since is not None:
+            wanted.update({robot: max(limit, wanted.get(robot, 0))
+                           for robot, limit in self._barrier.items()})
+        if (not self.relay_mode and wanted
+                and now - self._last_request >= self.settings.request_period_s):
+            self._last_request = now
+            for gap in self.inbox.missing(wanted):
+                self._publish_request(gap.robot_id, gap.first_sequence, gap.last_sequence)
         if self._waiting_since is None:
             return
-        if not self.relay_mode and now - self._last_request >= self.settings.request_period_s:
-            self._last_request = now
-            for gap in self.inbox.missing(self._barrier):
-                self._publish_request(gap.robot_id, gap.first_sequence, gap.last_sequence)
         if now - self._waiting_since > self.settings.barrier_timeout_s:
             missing = "teammates' updates " + ", ".join(
                 f"robot {gap.robot_id} #{gap.first_sequence}-{gap.last_sequence}"

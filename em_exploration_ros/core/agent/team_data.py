@@ -321,6 +321,12 @@ class TeamUpdateInbox:
             if stream is not None and stream.next_sequence <= limit:
                 self._waived[robot] = max(self._waived.get(robot, 0), limit)
 
+    def waived(self) -> dict[int, int]:
+        """Robot -> the limit of a gap ``waive`` gave up on that is still open (records to
+        keep asking for)."""
+        return {robot: limit for robot, limit in self._waived.items()
+                if self._streams[robot].next_sequence <= limit}
+
     def next_expected(self, robot_id: int) -> int:
         """The next sequence number expected from ``robot_id``."""
         return self._streams[robot_id].next_sequence
