@@ -1,8 +1,9 @@
 """Kill robots of a ``--respawn`` team at random moments; print how the run ended.
 
 Runs ``./launch_scripts/run_team.sh --respawn --seed SEED --summary DIR/summary.json
---domain-id ID [run_team.sh options]`` and, from ``--first-kill`` wall seconds on, SIGKILLs
-a robot process ``--kills`` times, each after a pause drawn uniformly from ``--pause``
+--domain-id ID [run_team.sh options]`` and, from ``--first-kill`` wall seconds on, sends a
+robot process SIGKILL (``--signal STOP``: SIGSTOP, a wedged process, which run_team.sh
+restarts once the world reports the robot lost) ``--kills`` times, each after a pause drawn uniformly from ``--pause``
 seconds and chosen at random among the robots running then (a ``random.Random(SEED)``
 draws both, so the kill times and targets repeat; what the robots were doing at those wall
 times does not). Robot processes are the run's descendants (``team_cpu.sample_descendants``).
@@ -50,6 +51,8 @@ def main() -> None:
                         help="wall seconds after the start before the first pause")
     parser.add_argument("--pause", type=float, nargs=2, default=(2.0, 7.0), metavar=("MIN", "MAX"),
                         help="range of the wall seconds between two kills")
+    parser.add_argument("--signal", choices=("KILL", "STOP"), default="KILL",
+                        help="what each robot gets: SIGKILL (dead) or SIGSTOP (wedged)")
     parser.add_argument("--domain-id", type=int, default=70)
     parser.add_argument("--out", type=Path, default=None, help="run directory (default: new)")
     parser.add_argument("team_args", nargs="*", help="run_team.sh options (after --)")
@@ -75,7 +78,7 @@ def main() -> None:
                     robots = robot_processes(run.pid, names)
                     if robots:
                         robot = draws.choice(sorted(robots))
-                        os.kill(robots[robot], signal.SIGKILL)
+                        os.kill(robots[robot], getattr(signal, f"SIG{options.signal}"))
                         kills.append((round(elapsed, 1), robot))
                     next_kill_s = elapsed + draws.uniform(*options.pause)
                 time.sleep(POLL_S)
