@@ -55,6 +55,8 @@ options:
   --seed S                seed of the world and of every noise draw, >= 0 (default: 0)
   --planner NAME          one of: ${PLANNERS[*]} (default: EM_3)
   --map-size M            side of the square map [m], 10..2000 (default: 100)
+  --cell-size M           virtual map cell size [m], 0.1..50 (default: 2; the paper's 200 m
+                          map: 4)
   --landmarks K           number of landmarks, 0..1000 (default: 20)
   --until-explored R      stop at this team explored ratio, 0..1 (default: 0.85)
   --max-sim-time S        stop after S seconds of simulation time (default: no limit)
@@ -143,7 +145,7 @@ exit_status_text() {
 }
 
 # -- arguments -------------------------------------------------------------------------------
-ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME="" COMM_RANGE="" COMM_LOSS="" COMM_LATENCY="" COMM_BANDWIDTH=""
+ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" CELL_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME="" COMM_RANGE="" COMM_LOSS="" COMM_LATENCY="" COMM_BANDWIDTH=""
 PARAMS_FILE="$EM_REPO_ROOT/config/exploration.yaml"
 REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH="" FOXGLOVE_PORT="" RESPAWN="" NETNS=""
 TRACE_DIR=""
@@ -173,6 +175,7 @@ while (( $# )); do
                 || usage_error "unknown planner '$1' (one of: ${PLANNERS[*]})"
             PLANNER=$1; shift ;;
         --map-size) needs_value "$@"; check_number "$arg" "$1" 10 2000; MAP_SIZE=$1; shift ;;
+        --cell-size) needs_value "$@"; check_number "$arg" "$1" 0.1 50; CELL_SIZE=$1; shift ;;
         --landmarks) needs_value "$@"; check_number "$arg" "$1" 0 1000 int; LANDMARKS=$1; shift ;;
         --until-explored) needs_value "$@"; check_number "$arg" "$1" 0 1; UNTIL=$1; shift ;;
         --max-sim-time) needs_value "$@"; check_number "$arg" "$1" 0 1e9; MAX_SIM_TIME=$1; shift ;;
@@ -230,6 +233,7 @@ OVERRIDES=()
 [[ -n $PLANNER ]] && OVERRIDES+=(-p "planner.name:=$PLANNER")
 [[ -n $MAP_SIZE ]] && OVERRIDES+=(-p "world.width_m:=$(as_double "$MAP_SIZE")"
                                   -p "world.height_m:=$(as_double "$MAP_SIZE")")
+[[ -n $CELL_SIZE ]] && OVERRIDES+=(-p "map.cell_size_m:=$(as_double "$CELL_SIZE")")
 [[ -n $LANDMARKS ]] && OVERRIDES+=(-p "world.num_landmarks:=$LANDMARKS")
 [[ -n $UNTIL ]] && OVERRIDES+=(-p "run.until_explored:=$(as_double "$UNTIL")")
 [[ -n $COMM_RANGE ]] && OVERRIDES+=(-p "links.range_m:=$(as_double "$COMM_RANGE")")

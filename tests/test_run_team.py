@@ -45,6 +45,7 @@ def run_team(*args: str, timeout_s: float = 20.0) -> subprocess.CompletedProcess
     (["--seed", "-4"], "--seed expects a whole number, got '-4'"),
     (["--seed", "1.5"], "--seed expects a whole number"),
     (["--map-size", "5"], "--map-size must be in [10, 2000]"),
+    (["--cell-size", "0"], "--cell-size must be in [0.1, 50]"),
     (["--until-explored=1.2"], "--until-explored must be in [0, 1]"),
     (["--max-sim-time", "soon"], "--max-sim-time expects a number"),
     (["--planner", "RANDOM"], "unknown planner 'RANDOM'"),
@@ -70,6 +71,9 @@ def test_refuses_bad_arguments(args, message):
     ("/em_world:\n  ros__parameters:\n    robot_timout_s: 3.0\n", [],
      "did you mean 'robot_timeout_s'"),
     ("/**:\n  ros__parameters:\n    world.width_m: abc\n", [], "must be a number"),
+    # --cell-size reaches the parameters the nodes would get: checked against the world's side
+    ("", ["--map-size", "40", "--cell-size", "20"],
+     "MapParams.cell_size_m = 20.0 m gives fewer than 4 cells along the world's 40.0 m side"),
     ("", ["--summary", "/proc/em_run/summary.json"], "--summary: cannot create the folder"),
     ("", ["--summary", "/proc/summary.json"], "--summary /proc/summary.json: cannot write"),
     ("", ["--record", "/proc/run.mcap"], "--record /proc/run.mcap: cannot write"),
@@ -101,7 +105,7 @@ def test_refuses_a_recording_into_a_folder_the_run_makes_before_starting(tmp_pat
 def test_help_lists_the_options():
     result = run_team("--help")
     assert result.returncode == 0
-    for flag in ("--robots", "--seed", "--planner", "--map-size", "--landmarks",
+    for flag in ("--robots", "--seed", "--planner", "--map-size", "--cell-size", "--landmarks",
                  "--until-explored", "--max-sim-time", "--params", "--realtime", "--summary",
                  "--domain-id", "--record", "--foxglove", "--comm-range", "--comm-loss",
                  "--comm-latency", "--comm-bandwidth"):
