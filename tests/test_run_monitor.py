@@ -47,6 +47,15 @@ def test_summary_holds_the_values_of_the_step_where_the_rule_fired():
     assert check_summary(summary.to_dict()) == []
 
 
+def test_summary_names_the_map_it_was_run_on():
+    """Map side and cell side both: the paper's two maps differ in both (100 m with 2 m
+    cells, 200 m with 4 m cells), so a summary without the cell would not say which ran."""
+    params = ExplorationParams().replace(world={"width_m": 200.0, "height_m": 200.0},
+                                         map={"cell_size_m": 4.0})
+    data = RunMonitor(params).summary([[], []], wall_s=1.0).to_dict()
+    assert (data["map_size_m"], data["cell_size_m"]) == ([200.0, 200.0], 4.0)
+
+
 def test_targets_given_up_count_when_made_before_the_step_where_the_rule_fired():
     monitor = RunMonitor(ExplorationParams().replace(run={"until_explored": 0.8}))
     monitor.observe(20, metrics(20, 0.803))

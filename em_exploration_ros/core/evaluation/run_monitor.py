@@ -227,6 +227,7 @@ class RunMonitor:
         summary = RunSummary(seed=self.params.run.seed, planner=self.params.planner.name,
                              num_robots=world.num_robots,
                              map_size_m=(world.width_m, world.height_m),
+                             cell_size_m=self.params.map.cell_size_m,
                              num_landmarks=world.num_landmarks, stop_reason=self.stop_reason,
                              wall_s=wall_s)
         final = self.final_metrics

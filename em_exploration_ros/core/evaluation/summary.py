@@ -14,7 +14,8 @@ forward motion) and ``slam_recoveries`` (SLAM updates that diverged or failed an
 re-solved in batch); ``given_up``, ``blocked_s`` and ``slam_recoveries`` are null where the
 writer cannot know them),
 plus ``seed``,
-``planner``, ``num_robots``, ``map_size_m``, ``num_landmarks``, ``stop_reason`` and
+``planner``, ``num_robots``, ``map_size_m``, ``cell_size_m`` (the virtual map's cell side),
+``num_landmarks``, ``stop_reason`` and
 ``history``: samples of the metrics against distance travelled; ``decisions_by_type``
 (decisions per frontier type), ``planner_failures`` (decisions where the planner failed and
 the nearest frontier rule chose), ``rendezvous`` (requested / met / timed_out / open, see
@@ -122,6 +123,8 @@ class RunSummary:
     planner: str
     num_robots: int
     map_size_m: tuple[float, float]
+    #: Side of a virtual map cell [m] (the paper: 2 m on the 100 m map, 4 m on the 200 m map).
+    cell_size_m: float
     num_landmarks: int
     explored_ratio: float = 0.0
     distance_m: float = 0.0
