@@ -9,7 +9,7 @@ from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArch
                                                   keyframe_ranges)
 from em_exploration_ros.core.agent.robot_agent import RobotAgent
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, TeamUpdate,
-                                                     TeamUpdateOutbox)
+                                                     TeamUpdateInbox, TeamUpdateOutbox)
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sim.sensors import odometry_covariance_per_step
 from em_exploration_ros.core.sim.team_runner import TeamRunner, step_input
@@ -50,6 +50,34 @@ def test_recovery_waits_for_the_needed_records_then_settles():
     lonely = OwnHistoryRecovery(1, 3, needed_sequence=2, started_s=0.0, settle_s=1.0,
                                 give_up_s=20.0)
     assert not lonely.complete(19.9) and lonely.complete(20.0) and lonely.short_of == 2
+
+
+def test_a_restarted_robot_gets_back_the_records_the_barrier_held_back():
+    """Robot 1 published records 4 and 5, then died before the world counted them: its
+    barrier entry stayed 3 (seen in a 200 m run: a robot lost to the world published while
+    it caught up, and was restarted). Robot 0 holds 4 and 5 back for the barrier. Served
+    only the records it had applied, the new process numbered its next record 4, and robot
+    0 dropped that as a duplicate of the old 4, and with it the new process's first
+    keyframe, which every later one chains from."""
+    old = stream(1, 5)
+    inbox, archive = TeamUpdateInbox(0, 3), StreamArchive(own_robot_id=0, num_robots=3)
+    for update in old:
+        inbox.receive(update)
+    archive.keep(inbox.pop_ready({1: 3, 2: 0}))
+    assert inbox.held_back(1) == old[3:] and inbox.held_back(2) == [] and inbox.held_back(0) == []
+    served = archive.held(1) + inbox.held_back(1)
+    assert served == old
+    recovery = OwnHistoryRecovery(1, 3, needed_sequence=3, started_s=0.0, settle_s=1.0,
+                                  give_up_s=20.0)
+    for update in served:
+        recovery.receive(update)
+    assert recovery.complete(1.0) and recovery.history() == old
+    outbox = TeamUpdateOutbox(1)
+    outbox.restore(recovery.history(), through_sequence=3)
+    assert inbox.receive(outbox.publish(9.0))  # sequence 6: new to robot 0
+    applied_only = TeamUpdateOutbox(1)
+    applied_only.restore(archive.held(1), through_sequence=3)
+    assert not inbox.receive(applied_only.publish(9.0))  # 4: taken for the old record 4
 
 
 def test_outbox_restore_continues_numbering_and_refuses_a_gap():

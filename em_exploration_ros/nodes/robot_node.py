@@ -391,8 +391,8 @@ class RobotNode(LeanNode):
             self.get_logger().warn(f"rejected a relayed record of this robot's history: {error}")
 
     def _serve_history(self, topic: str, request: TeamUpdateRequest) -> None:
-        """Re-send what this robot holds of a restarted teammate's stream, the teammate's
-        request checked first (``history_request_problem``), at most once per
+        """Re-send what this robot holds of a restarted teammate's stream (the records it
+        applied, then those the barrier still holds back), the teammate's request checked first (``history_request_problem``), at most once per
         ``request_period_s`` per teammate, logged at most once per ``LOG_PERIOD_S`` per
         teammate. Nothing tells a forged request from a real one (DDS carries no identity
         without security), so that bound is what a forger gets."""
@@ -405,7 +405,7 @@ class RobotNode(LeanNode):
         if now - self._served_history.get(requester, -float("inf")) < self.settings.request_period_s:
             return
         self._served_history[requester] = now
-        held = self.archive.held(requester)
+        held = self.archive.held(requester) + self.inbox.held_back(requester)
         publisher = (self.history_copies_pub if self.relay_mode
                      else self.history_pubs[requester])
         for update in held:

@@ -327,6 +327,23 @@ class TeamUpdateInbox:
         return {robot: limit for robot, limit in self._waived.items()
                 if self._streams[robot].next_sequence <= limit}
 
+    def held_back(self, robot_id: int) -> list[TeamUpdate]:
+        """Records of ``robot_id`` received in sequence after the last one released but not
+        released yet (the lockstep barrier holds them back until the world counts them), in
+        order; empty for this robot or an unknown id. A robot that restarts after it
+        published them and before the world counted them must get them back with its
+        earlier records, or its new process numbers new records with their sequence numbers,
+        and a teammate takes each new record for a duplicate of the one it holds."""
+        stream = self._streams.get(robot_id)
+        if stream is None:
+            return []
+        records = []
+        sequence = stream.next_sequence
+        while sequence in stream.early:
+            records.append(stream.early[sequence])
+            sequence += 1
+        return records
+
     def next_expected(self, robot_id: int) -> int:
         """The next sequence number expected from ``robot_id``."""
         return self._streams[robot_id].next_sequence
