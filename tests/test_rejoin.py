@@ -230,3 +230,28 @@ def test_robot_0_resumed_with_none_of_its_records_continues_its_stream_from_the_
     teammate.apply_team_updates([update])
     estimate = teammate.slam.pose(0, keyframe.index)
     assert np.linalg.norm(estimate[:2] - true_position) < 2.0
+
+
+def test_a_robot_restarted_before_the_world_counted_any_record_continues_from_keyframe_0():
+    """A robot wedged at the start (its process never answered a step the world counted)
+    and restarted later recovered no record and had none to number after. Its next keyframe
+    started a new stream, and a robot other than 0 anchors a first keyframe only through a
+    teammate's reading at the same keyframe index: it stayed unanchored and stood still for
+    the rest of the mission (seen in separate-host runs with wedged robots). It continues
+    from keyframe 0 at the odometry origin, which its teammates' readings of it anchor."""
+    runner, _ = crashed_team(robot=2)
+    sim, interval = runner.simulation, PARAMS.slam.keyframe_interval_steps
+    new = RobotAgent(2, PARAMS, sim.world.start_poses[0])
+    new.resume([], 0, sim.step)
+    new.apply_team_updates([update for robot in (0, 1)
+                            for update in runner.agents[robot].outbox.resend(1, 0)])
+    update = step_to_next_keyframe(new, runner)
+    keyframe = update.keyframes[0]
+    assert not keyframe.is_first and keyframe.previous_index == 0
+    assert update.sequence == 2 and [k.index for k in new.outbox.resend(1, 1)[0].keyframes] == [0]
+    motion = PARAMS.motion
+    per_step = odometry_covariance_per_step(motion.speed_mps * motion.time_step_s, True,
+                                            PARAMS.sensors)
+    bridged = keyframe.index * interval
+    assert np.all(np.diag(keyframe.odom_covariance) >= np.diag(per_step) * (bridged - interval))
+    assert np.linalg.norm(new.current_pose()[:2] - sim.true_pose(2)[:2]) < 2.0

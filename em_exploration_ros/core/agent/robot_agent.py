@@ -216,15 +216,18 @@ class RobotAgent:
         for less than one interval before it stopped), every step from the last keyframe
         to ``first_step`` when records are missing.
 
-        When no record came back but its earlier process had sent some, the stream is
-        continued from its first keyframe (step 0, at the odometry origin): record 1 is
-        rebuilt with that keyframe without its readings (a teammate that holds the real one
-        keeps it), and the next reading bridges every step since. (A new first keyframe
-        would instead restart the stream mid-run; robot 0's is anchored at the mission's
-        start pose, so a teammate's graph and its own were pulled to where the vehicle was
-        at step 0 and diverged.)
+        When no record came back (its earlier process sent some, or died before the world
+        counted any), the stream is continued from its first keyframe (step 0, at the
+        odometry origin): record 1 is rebuilt with that keyframe without its readings (a
+        teammate that holds the real one keeps it; the teammates' readings of it anchor it),
+        and the next reading bridges every step since. (A new first keyframe would instead
+        restart the stream mid-run: robot 0's is anchored at the mission's start pose, so a
+        teammate's graph and its own were pulled to where the vehicle was at step 0 and
+        diverged; another robot's is anchored only by a teammate's reading at the same
+        keyframe, which may never come, and the robot stood still for the rest of the run.)
         """
-        if not history and through_sequence > 0:
+        rebuilt = not history and (through_sequence > 0 or first_step > 0)
+        if rebuilt:
             history = [self._stream_start()]
         self.outbox.restore(history, through_sequence)
         odom_pose, last_keyframe = np.zeros(3), None
@@ -252,7 +255,8 @@ class RobotAgent:
         per_step = odometry_covariance_per_step(motion.speed_mps * motion.time_step_s, True,
                                                 self.params.sensors)
         interval = self.params.slam.keyframe_interval_steps
-        moving_steps = interval if len(history) >= through_sequence else max(
+        complete = len(history) >= through_sequence and not rebuilt
+        moving_steps = interval if complete else max(
             first_step - last_keyframe.index * interval, interval)
         self._gap_covariance = per_step * moving_steps
 
