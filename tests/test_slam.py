@@ -486,24 +486,29 @@ def _loop_closure_keyframes(seed: int) -> list[KeyframeMeasurements]:
     truth = np.stack([30.0 * np.sin(angles), 30.0 * (1.0 - np.cos(angles)), angles], axis=1)
     landmark = np.array([3.0, -2.0])
     covariance = np.diag([0.05 ** 2, 0.05 ** 2, 0.1 ** 2])
+    return [_chain_keyframe(index, truth, (_sonar_reading(0, landmark - pose[:2], pose[2]),)
+                            if index in (0, len(truth) - 1) else (), covariance, rng)
+            for index, pose in enumerate(truth)]
+
+
+def _sonar_reading(landmark_id: int, offset: np.ndarray, heading: float) -> LandmarkReading:
+    """An exact sonar reading of a landmark ``offset`` (2,) [m] away in the map frame from a
+    robot heading ``heading`` [rad], with the sonar's noise variances."""
     sensors = PARAMS.sensors
-    keyframes = []
-    for index, pose in enumerate(truth):
-        first = index == 0
-        reading = ()
-        if index in (0, len(truth) - 1):
-            offset = landmark - pose[:2]
-            reading = (LandmarkReading(0, float(np.hypot(*offset)),
-                                       float(wrap_angle(np.arctan2(offset[1], offset[0])
-                                                        - pose[2])),
-                                       sensors.sonar_range_sigma_m ** 2,
-                                       sensors.sonar_bearing_sigma_rad ** 2),)
-        delta = (np.zeros(3) if first else between(truth[index - 1], pose)
-                 + rng.multivariate_normal(np.zeros(3), covariance))
-        keyframes.append(KeyframeMeasurements(0, index, float(index), first, index - 1, delta,
-                                              np.zeros((3, 3)) if first else covariance,
-                                              reading, ()))
-    return keyframes
+    return LandmarkReading(landmark_id, float(np.hypot(*offset)),
+                           float(wrap_angle(np.arctan2(offset[1], offset[0]) - heading)),
+                           sensors.sonar_range_sigma_m ** 2, sensors.sonar_bearing_sigma_rad ** 2)
+
+
+def _chain_keyframe(index: int, truth: np.ndarray, readings: tuple, covariance: np.ndarray,
+                    rng: np.random.Generator) -> KeyframeMeasurements:
+    """Keyframe ``index`` of robot 0 driving through the ``truth`` poses (K, 3): odometry from
+    the previous pose with noise drawn from ``covariance``, and ``readings``."""
+    first = index == 0
+    delta = (np.zeros(3) if first else between(truth[index - 1], truth[index])
+             + rng.multivariate_normal(np.zeros(3), covariance))
+    return KeyframeMeasurements(0, index, float(index), first, index - 1, delta,
+                                np.zeros((3, 3)) if first else covariance, readings, ())
 
 
 def test_a_diverging_update_is_resolved_in_batch_and_isam2_restarted() -> None:
@@ -546,23 +551,13 @@ def _lawnmower_keyframes(seed: int, legs: int = 4, per_leg: int = 20) -> list[
     grid = np.array([(x, y) for x in np.arange(0.0, 2.0 * per_leg, 8.0)
                      for y in np.arange(-5.0, 10.0 * legs, 10.0)])
     covariance = np.diag([0.02 ** 2, 0.02 ** 2, 0.05 ** 2])
-    sensors = PARAMS.sensors
     keyframes = []
     for index, pose in enumerate(truth):
         offsets = grid - pose[:2]
-        ranges = np.hypot(offsets[:, 0], offsets[:, 1])
-        readings = tuple(
-            LandmarkReading(int(landmark), float(ranges[landmark]),
-                            float(wrap_angle(np.arctan2(offsets[landmark, 1],
-                                                        offsets[landmark, 0]) - pose[2])),
-                            sensors.sonar_range_sigma_m ** 2, sensors.sonar_bearing_sigma_rad ** 2)
-            for landmark in np.flatnonzero(ranges < 8.0))
-        first = index == 0
-        delta = (np.zeros(3) if first else between(truth[index - 1], pose)
-                 + rng.multivariate_normal(np.zeros(3), covariance))
-        keyframes.append(KeyframeMeasurements(0, index, float(index), first, index - 1, delta,
-                                              np.zeros((3, 3)) if first else covariance,
-                                              readings, ()))
+        near = np.flatnonzero(np.hypot(offsets[:, 0], offsets[:, 1]) < 8.0)
+        readings = tuple(_sonar_reading(int(landmark), offsets[landmark], pose[2])
+                         for landmark in near)
+        keyframes.append(_chain_keyframe(index, truth, readings, covariance, rng))
     return keyframes
 
 
