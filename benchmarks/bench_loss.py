@@ -50,6 +50,19 @@ def sh(*args: str, namespace: str | None = None, check: bool = True) -> str:
     return result.stdout
 
 
+def add_random_loss(namespace: str, device: str, n: int) -> None:
+    """Drop about 1 in ``n`` packets leaving ``device`` of ``namespace`` (module docstring)."""
+    def tc(*args: str) -> None:
+        sh("tc", *args, namespace=namespace)
+    tc("qdisc", "add", "dev", device, "root", "handle", "1:", "htb", "default", "1")
+    for minor in ("1", "2"):
+        tc("class", "add", "dev", device, "parent", "1:", "classid", f"1:{minor}", "htb", "rate",
+           "10gbit")
+    tc("qdisc", "add", "dev", device, "parent", "1:2", "handle", "20:", "pfifo", "limit", "0")
+    tc("filter", "add", "dev", device, "parent", "1:", "protocol", "all", "prio", "1", "bpf",
+       "bytecode", RANDOM_MATCH_BPF.format(n=n), "classid", "1:2")
+
+
 class LossyNamespace:
     """A network namespace whose loopback drops about one packet in ``n`` (``n`` = 0: none)."""
 
@@ -62,17 +75,7 @@ class LossyNamespace:
         try:
             sh("ip", "link", "set", "lo", "up", namespace=self.name)
             if self.n > 0:
-                tc = ("tc",)
-                sh(*tc, "qdisc", "add", "dev", "lo", "root", "handle", "1:", "htb", "default",
-                   "1", namespace=self.name)
-                for minor in ("1", "2"):
-                    sh(*tc, "class", "add", "dev", "lo", "parent", "1:", "classid",
-                       f"1:{minor}", "htb", "rate", "10gbit", namespace=self.name)
-                sh(*tc, "qdisc", "add", "dev", "lo", "parent", "1:2", "handle", "20:", "pfifo",
-                   "limit", "0", namespace=self.name)
-                sh(*tc, "filter", "add", "dev", "lo", "parent", "1:", "protocol", "all", "prio",
-                   "1", "bpf", "bytecode", RANDOM_MATCH_BPF.format(n=self.n), "classid", "1:2",
-                   namespace=self.name)
+                add_random_loss(self.name, "lo", self.n)
         except Exception:
             self.__exit__()
             raise

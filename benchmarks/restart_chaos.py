@@ -43,6 +43,34 @@ def robot_processes(root: int, names: dict[int, str]) -> dict[int, int]:
             if pid in cpu_s and name.startswith("robot ") and name.split()[1].isdigit()}
 
 
+class KillSchedule:
+    """Seeded signals to the robot processes of a run: the first once ``first_kill_s`` plus
+    a pause drawn from ``pause`` (wall seconds) have passed, each next one a new pause later,
+    ``count`` in all, each to a robot drawn among those running then (``random.Random(seed)``
+    draws pauses and robots). ``kills``: (elapsed wall s, robot) of the signals sent."""
+
+    def __init__(self, seed: int, count: int, first_kill_s: float, pause: tuple[float, float],
+                 signal_name: str) -> None:
+        self._draws = random.Random(seed)
+        self._count = count
+        self._pause = pause
+        self._signal = getattr(signal, f"SIG{signal_name}")
+        self.next_kill_s = first_kill_s + self._draws.uniform(*pause)
+        self.kills: list[tuple[float, int]] = []
+
+    def poll(self, root: int, names: dict[int, str], elapsed_s: float) -> None:
+        """Signal a robot under ``root`` if one is due at ``elapsed_s`` (``names`` as
+        :func:`robot_processes` keeps it)."""
+        if len(self.kills) >= self._count or elapsed_s < self.next_kill_s:
+            return
+        robots = robot_processes(root, names)
+        if robots:
+            robot = self._draws.choice(sorted(robots))
+            os.kill(robots[robot], self._signal)
+            self.kills.append((round(elapsed_s, 1), robot))
+        self.next_kill_s = elapsed_s + self._draws.uniform(*self._pause)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seed", type=int, default=1, help="mission seed and kill draws")
@@ -59,28 +87,21 @@ def main() -> None:
     options = parser.parse_args()
     out = options.out or Path(tempfile.mkdtemp(prefix="restart_chaos_"))
     out.mkdir(parents=True, exist_ok=True)
-    draws = random.Random(options.seed)
     command = [str(REPO / "launch_scripts" / "run_team.sh"), "--respawn", "--seed",
                str(options.seed), "--summary", str(out / "summary.json"), "--domain-id",
                str(options.domain_id), *options.team_args]
     env = dict(os.environ, ROS_DOMAIN_ID=str(options.domain_id))
     names: dict[int, str] = {}
-    kills: list[tuple[float, int]] = []
+    schedule = KillSchedule(options.seed, options.kills, options.first_kill, options.pause,
+                            options.signal)
+    kills = schedule.kills
     started = time.monotonic()
     with open(out / "run_team.out", "wb") as output:
         run = subprocess.Popen(command, cwd=REPO, env=env, stdout=output,
                                stderr=subprocess.STDOUT, start_new_session=True)
         try:
-            next_kill_s = options.first_kill + draws.uniform(*options.pause)
             while run.poll() is None and time.monotonic() - started < RUN_LIMIT_S:
-                elapsed = time.monotonic() - started
-                if len(kills) < options.kills and elapsed >= next_kill_s:
-                    robots = robot_processes(run.pid, names)
-                    if robots:
-                        robot = draws.choice(sorted(robots))
-                        os.kill(robots[robot], getattr(signal, f"SIG{options.signal}"))
-                        kills.append((round(elapsed, 1), robot))
-                    next_kill_s = elapsed + draws.uniform(*options.pause)
+                schedule.poll(run.pid, names, time.monotonic() - started)
                 time.sleep(POLL_S)
         finally:
             stop(run, list(names))
