@@ -251,8 +251,9 @@ class WorldNode(LeanNode):
         # only because a teammate is missing goes on.
         missing = [r for r in range(self.num_robots) if not self.robot_started(r)]
         if missing:
-            self.get_logger().warn(f"robots {missing} not connected after "
-                                   f"{self.startup_timeout_s:g} s: treated as stopped")
+            for robot in missing:  # run_team.sh --respawn restarts each (a wedged start)
+                self._log_lost(robot, f"not connected after {self.startup_timeout_s:g} s "
+                                      f"(treated as stopped)")
             self.barrier.stop(missing)
         if not self._observers_connected():
             self.get_logger().warn("the evaluator or the recorder does not listen yet; "
