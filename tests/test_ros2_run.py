@@ -19,7 +19,7 @@ from catkin_pkg.package import parse_package
 
 from ros_process import REPO_ROOT, NodeProcess, ProcessSet, ros_args
 
-from em_exploration_ros.tools.ament_install import console_scripts
+from em_exploration_ros.tools.ament_install import console_scripts, launcher_text
 
 PACKAGE = "em_exploration_ros"
 STARTUP_S = 40.0
@@ -58,6 +58,24 @@ def test_every_console_script_is_an_executable_of_the_package() -> None:
     result = subprocess.run([str(executables["em-bag"]), "--help"], capture_output=True,
                             text=True, timeout=60)
     assert result.returncode == 0 and "usage: em-bag" in result.stdout
+
+
+def test_launchers_export_the_teams_fast_dds_profile_unless_one_is_chosen() -> None:
+    """``ros2 run`` gets the heartbeat profile the launch scripts export (without it a lost
+    packet stalls a lockstep team for 3 s); a profile the caller set is kept."""
+    script = launcher_text(Path(sys.prefix), Path(sys.executable), "os:getcwd").rsplit(
+        "exec ", 1)[0] + 'echo "$FASTRTPS_DEFAULT_PROFILES_FILE"\n'
+    environment = {name: value for name, value in os.environ.items()
+                   if name != "FASTRTPS_DEFAULT_PROFILES_FILE"}
+
+    def exported(extra: dict[str, str]) -> str:
+        return subprocess.run(["sh", "-c", script], env=dict(environment, **extra),
+                              capture_output=True, text=True, timeout=30).stdout.strip()
+
+    team_profile = Path(exported({}))
+    assert team_profile.read_bytes() == (REPO_ROOT / "config" / "fastdds_profiles.xml").read_bytes()
+    assert exported({"FASTRTPS_DEFAULT_PROFILES_FILE": "/etc/my_profiles.xml"}) == \
+        "/etc/my_profiles.xml"
 
 
 def foreign_ros_environment(tmp_path: Path) -> dict[str, str]:

@@ -7,7 +7,8 @@ launch_scripts/setup_env.sh runs it after the editable pip install, with the ven
 - ``share/em_exploration_ros/package.xml`` and ``share/em_exploration_ros/config/*``;
 - ``lib/em_exploration_ros/<name>``: one executable per console script of the project, a
   small shell launcher that runs the console script's function with the venv's Python in
-  the venv's own ROS 2 environment (what launch_scripts/_common.sh ``em_activate`` exports),
+  the venv's own ROS 2 environment (what launch_scripts/_common.sh ``em_activate`` exports,
+  the team's Fast DDS profile included),
   so it works from a shell that sourced a full ROS 2 install (whose PYTHONPATH and libraries
   belong to another Python). ``ros2 run em_exploration_ros <name>`` looks for executables
   exactly there (``<prefix>/lib/<package>/``); the console scripts in ``bin/`` stay.
@@ -49,11 +50,15 @@ def launcher_text(prefix: Path, python: Path, target: str) -> str:
     module, function = target.split(":")
     code = f"import sys; from {module} import {function}; sys.exit({function}())"
     venv = shlex.quote(str(prefix))
+    profiles = shlex.quote(str(prefix / "share" / PACKAGE / "config" / "fastdds_profiles.xml"))
     return ("#!/bin/sh\n"
             f"# em_exploration_ros executable: {module}:{function} with the venv's Python in\n"
             "# the venv's ROS 2 environment (written by em_exploration_ros.tools.ament_install).\n"
             f"export VIRTUAL_ENV={venv} AMENT_PREFIX_PATH={venv} CMAKE_PREFIX_PATH={venv}\n"
             f"export PATH={venv}/bin:\"$PATH\" RMW_IMPLEMENTATION=rmw_fastrtps_cpp\n"
+            "# the team's Fast DDS profile (config/fastdds_profiles.xml) unless one is chosen\n"
+            f"[ -n \"$FASTRTPS_DEFAULT_PROFILES_FILE\" ] || FASTRTPS_DEFAULT_PROFILES_FILE={profiles}\n"
+            "export FASTRTPS_DEFAULT_PROFILES_FILE\n"
             "unset PYTHONPATH PYTHONHOME LD_LIBRARY_PATH COLCON_PREFIX_PATH "
             "_ROS_WHEELS_BOOTSTRAP_COMPLETE\n"
             f"exec {shlex.quote(str(python))} -c {shlex.quote(code)} \"$@\"\n")
