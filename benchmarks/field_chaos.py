@@ -1,14 +1,13 @@
 """Field chaos: robots on separate hosts, lossy links, and robot processes killed mid-mission.
 
-Composes three existing tools into the scenario of a deployed team:
+Composes two existing tools into the scenario of a deployed team:
 
 - ``separate_hosts.HostNetwork`` puts the world/evaluator and every robot in a network
   namespace of its own, joined by veths to a bridge; ``run_team.sh --netns`` then runs DDS
   over UDPv4 only, with multicast discovery on that subnet;
-- ``--loss N`` drops about 1 packet in N on every robot's veth, in both directions (egress of
-  the robot's ``eth0`` and of its bridge port), with the random-loss qdisc of
-  ``bench_loss.py`` (htb + classic-BPF random filter + a ``pfifo limit 0`` class; no netem
-  here). World <-> robot packets cross one lossy hop, robot <-> robot packets two;
+- ``--loss N`` drops about 1 packet in N at both ends of every robot's veth
+  (``HostNetwork``'s random-loss qdisc; world <-> robot packets cross one lossy hop,
+  robot <-> robot packets two);
 - as in ``restart_chaos.py`` (same seeded draws of times and robots), from ``--first-kill``
   wall seconds on (after the start, or with ``--after-first-step`` after the world's first
   step) a robot process gets SIGKILL (``--signal STOP``: SIGSTOP, a wedged
@@ -40,7 +39,6 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_loss import add_random_loss, sh
 from restart_chaos import POLL_S, RUN_LIMIT_S, KillSchedule
 from team_cpu import stop
 
@@ -57,23 +55,6 @@ FIRST_STEP = "all set after"
 EXPECTED = re.compile(r"liveliness lost \(process dead|lost: its process was restarted")
 #: run_team.sh options this script sets itself.
 OWN_OPTIONS = ("--respawn", "--netns", "--summary", "--domain-id", "--seed")
-
-
-def lossy_links(network: HostNetwork) -> list[tuple[str, str]]:
-    """(namespace, device) of both ends of every robot's veth."""
-    return [end for index, host in enumerate(network.hosts) if host.startswith("robot_")
-            for end in ((network.namespace(host), "eth0"), (network.bridge, f"port{index}"))]
-
-
-def drop_ratio(links: list[tuple[str, str]]) -> float:
-    """Packets dropped / packets offered, over the root qdiscs of ``links``."""
-    sent = dropped = 0
-    for namespace, device in links:
-        for qdisc in json.loads(sh("tc", "-s", "-j", "qdisc", "show", "dev", device,
-                                   namespace=namespace)):
-            if qdisc.get("root"):
-                sent, dropped = sent + qdisc["packets"], dropped + qdisc["drops"]
-    return dropped / max(sent + dropped, 1)
 
 
 def run_with_kills(command: list[str], out: Path, options: argparse.Namespace
@@ -171,8 +152,6 @@ def main() -> int:
     parser.add_argument("--out", type=Path, help="run directory (default: a new temp one)")
     parser.add_argument("team_args", nargs="*", metavar="-- run_team.sh options")
     options = parser.parse_args()
-    if options.loss < 0 or options.loss == 1:
-        parser.error("--loss must be 0 (none) or at least 2")
     if any(arg.split("=", 1)[0] in OWN_OPTIONS for arg in options.team_args):
         parser.error(f"{', '.join(OWN_OPTIONS)} are set by this script")
     robots = argparse.ArgumentParser(add_help=False)
@@ -186,15 +165,16 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     # SIGTERM unwinds like Ctrl-C: the run is stopped and the namespaces are removed.
     signal.signal(signal.SIGTERM, lambda signum, _frame: sys.exit(128 + signum))
-    with HostNetwork(num_robots) as network:
-        links = lossy_links(network)
-        for namespace, device in links if options.loss else ():
-            add_random_loss(namespace, device, options.loss)
+    try:
+        network = HostNetwork(num_robots, loss_one_in=options.loss)
+    except ValueError as error:
+        parser.error(str(error))
+    with network:
         command = ["bash", str(RUN_TEAM), "--respawn", "--netns", network.prefix, "--seed",
                    str(options.seed), "--summary", str(out / "summary.json"), "--domain-id",
                    str(options.domain_id), *options.team_args]
         code, kills, wall_s = run_with_kills(command, out, options)
-        dropped = drop_ratio(links)
+        dropped = network.drop_ratio()
     print(f"{num_robots} robots on separate hosts, loss 1/{options.loss or 'inf'} per robot "
           f"veth end (measured {100 * dropped:.1f} %), SIG{options.signal}, seed {options.seed}")
     print(f"kills (wall s since the start, robot): {kills}")

@@ -10,6 +10,11 @@ every process in its host's namespace with ``FASTDDS_BUILTIN_TRANSPORTS=UDPv4`` 
 memory between processes) and ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET`` (multicast
 discovery over the bridge), in lockstep.
 
+``--loss N`` drops about 1 packet in N leaving either end of every robot's veth (this kernel
+has no netem: an ``htb`` root qdisc sends the packets a classic-BPF filter picks at random
+to a class whose ``pfifo limit 0`` drops them), so world <-> robot packets cross one lossy
+hop and robot <-> robot packets two; discovery is lossy too.
+
 Afterwards em-sim's team runs in process with the same parameters (they go to run_team.sh
 as one parameter file) and every robot's targets, in order, are compared with the
 separate-host run's: em-sim's targets are those of the one-host ROS run of the same seed.
@@ -19,7 +24,7 @@ end, error, Ctrl-C, SIGTERM).
 Needs root and ``ip`` with network-namespace support. Usage::
 
     sudo .venv/bin/python -m em_exploration_ros.tools.separate_hosts --robots 3 \\
-        --map-size 50 --landmarks 4 --seed 1 [--planner EM_3] [--json result.json]
+        --map-size 50 --landmarks 4 --seed 1 [--planner EM_3] [--loss 5] [--json result.json]
 
 Exit code: 0 same targets, 1 different targets or the team run failed, 2 cannot run here
 (not root, no ``ip netns``, bad arguments).
@@ -51,6 +56,10 @@ RUN_TEAM = REPO_ROOT / "launch_scripts" / "run_team.sh"
 DEFAULT_SUBNET = "10.213.77.0/24"
 #: Bound of the team run [s] (set-up check, discovery, exploration, shutdown).
 DEFAULT_TIMEOUT_S = 600.0
+#: Classic BPF in tc's "count,code jt jf k,..." form: A = random; A %= N; A == 0 ? match : no.
+#: 32 = LD|W|ABS (k = SKF_AD_OFF + SKF_AD_RANDOM = -4096 + 56), 148 = ALU|MOD|K,
+#: 21 = JMP|JEQ|K, 6 = RET|K (-1: the filter's class, 0: no match).
+RANDOM_MATCH_BPF = "5,32 0 0 4294963256,148 0 0 {n},21 0 1 0,6 0 0 4294967295,6 0 0 0"
 #: How long run_team.sh gets to stop its processes after SIGINT [s] (its own grace periods
 #: are 10 s after SIGINT and 3 s after SIGTERM).
 STOP_GRACE_S = 20.0
@@ -68,18 +77,38 @@ def cannot_run_reason() -> str | None:
     return None
 
 
-def _ip(*args: str) -> None:
+def _ip(*args: str) -> str:
     result = subprocess.run(["ip", *args], capture_output=True, text=True)
     if result.returncode != 0:
         raise RuntimeError(f"ip {' '.join(args)}: {result.stderr.strip()}")
+    return result.stdout
+
+
+def add_random_loss(namespace: str, device: str, one_in: int) -> None:
+    """Drop about 1 in ``one_in`` packets leaving ``device`` of ``namespace`` (the qdisc of
+    the module docstring)."""
+    def tc(*args: str) -> None:
+        _ip("netns", "exec", namespace, "tc", *args)
+    tc("qdisc", "add", "dev", device, "root", "handle", "1:", "htb", "default", "1")
+    for minor in ("1", "2"):
+        tc("class", "add", "dev", device, "parent", "1:", "classid", f"1:{minor}", "htb", "rate",
+           "10gbit")
+    tc("qdisc", "add", "dev", device, "parent", "1:2", "handle", "20:", "pfifo", "limit", "0")
+    tc("filter", "add", "dev", device, "parent", "1:", "protocol", "all", "prio", "1", "bpf",
+       "bytecode", RANDOM_MATCH_BPF.format(n=one_in), "classid", "1:2")
 
 
 class HostNetwork:
     """The namespaces of one world host and ``num_robots`` robot hosts on one bridge
-    (module docstring); a context manager that removes them, and every process still in
-    them, on exit."""
+    (module docstring), each robot's veth dropping about 1 packet in ``loss_one_in`` at both
+    ends (0: none); a context manager that removes them, and every process still in them,
+    on exit."""
 
-    def __init__(self, num_robots: int, subnet: str = DEFAULT_SUBNET) -> None:
+    def __init__(self, num_robots: int, subnet: str = DEFAULT_SUBNET,
+                 loss_one_in: int = 0) -> None:
+        if loss_one_in < 0 or loss_one_in == 1:
+            raise ValueError(f"--loss must be 0 (none) or at least 2, got {loss_one_in}")
+        self.loss_one_in = loss_one_in
         self.prefix = f"emh{os.getpid()}_"
         self.hosts = ["world"] + [f"robot_{i}" for i in range(num_robots)]
         problem = subnet_problem(subnet, len(self.hosts))
@@ -111,6 +140,8 @@ class HostNetwork:
                 _ip("-n", namespace, "link", "set", "eth0", "up")
                 # Multicast (DDS discovery) leaves through eth0; there is no default route.
                 _ip("-n", namespace, "route", "add", "224.0.0.0/4", "dev", "eth0")
+            for namespace, device in self._lossy_ends() if self.loss_one_in else ():
+                add_random_loss(namespace, device, self.loss_one_in)
         except BaseException:
             self.__exit__()
             raise
@@ -123,6 +154,22 @@ class HostNetwork:
         ports = {link["ifname"]: link["stats64"] for link in json.loads(result.stdout)}
         return {host: ports[f"port{index}"]["rx"]["bytes"] + ports[f"port{index}"]["tx"]["bytes"]
                 for index, host in enumerate(self.hosts)}
+
+    def _lossy_ends(self) -> list[tuple[str, str]]:
+        """(namespace, device) of both ends of every robot's veth."""
+        return [end for index, host in enumerate(self.hosts) if host.startswith("robot_")
+                for end in ((self.namespace(host), "eth0"), (self.bridge, f"port{index}"))]
+
+    def drop_ratio(self) -> float:
+        """Packets the lossy qdiscs dropped over packets offered to them so far (0 without
+        loss)."""
+        sent = dropped = 0
+        for namespace, device in self._lossy_ends() if self.loss_one_in else ():
+            for qdisc in json.loads(_ip("netns", "exec", namespace, "tc", "-s", "-j", "qdisc",
+                                        "show", "dev", device)):
+                if qdisc.get("root"):
+                    sent, dropped = sent + qdisc["packets"], dropped + qdisc["drops"]
+        return dropped / max(sent + dropped, 1)
 
     def _add_namespace(self, name: str) -> None:
         _ip("netns", "add", name)
@@ -144,11 +191,13 @@ class HostNetwork:
 @dataclass(frozen=True)
 class SeparateHostsResult:
     """A separate-host run compared with em-sim: each robot's targets as ``[x, y, type]``;
-    ``bridge_bytes``: bytes each host sent and received through the bridge."""
+    ``bridge_bytes``: bytes each host sent and received through the bridge;
+    ``drop_ratio``: share of the packets the lossy links dropped (``--loss``)."""
 
     exit_code: int
     wall_s: float
     bridge_bytes: dict
+    drop_ratio: float
     same_targets: bool
     hosts_targets: list
     em_sim_targets: list
@@ -174,10 +223,11 @@ def subnet_problem(subnet: str, num_hosts: int) -> str | None:
 
 
 def run_team_apart(params: ExplorationParams, out_dir: Path, subnet: str = DEFAULT_SUBNET,
-                   timeout_s: float = DEFAULT_TIMEOUT_S,
-                   domain_id: int | None = None) -> SeparateHostsResult:
-    """Run the lockstep team with every process on its own host (module docstring), then
-    em-sim with the same parameters; compare their targets."""
+                   timeout_s: float = DEFAULT_TIMEOUT_S, domain_id: int | None = None,
+                   loss_one_in: int = 0) -> SeparateHostsResult:
+    """Run the lockstep team with every process on its own host (module docstring), its
+    robots' links dropping about 1 packet in ``loss_one_in`` (0: none), then em-sim with
+    the same parameters; compare their targets."""
     out_dir.mkdir(parents=True, exist_ok=True)
     params_file = out_dir / "params.yaml"
     params_file.write_text(dump_params(params), encoding="utf-8")
@@ -186,7 +236,7 @@ def run_team_apart(params: ExplorationParams, out_dir: Path, subnet: str = DEFAU
                str(summary_path)]
     if domain_id is not None:
         command += ["--domain-id", str(domain_id)]
-    with HostNetwork(params.world.num_robots, subnet) as network, \
+    with HostNetwork(params.world.num_robots, subnet, loss_one_in) as network, \
             open(out_dir / "run_team.out", "wb") as log:
         command += ["--netns", network.prefix]
         started = time.monotonic()
@@ -200,10 +250,11 @@ def run_team_apart(params: ExplorationParams, out_dir: Path, subnet: str = DEFAU
             _stop(team)
         wall_s = time.monotonic() - started
         traffic = network.bytes_through_bridge()
+        dropped = network.drop_ratio()
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
     hosts_targets = _targets(summary) if summary else []
     em_sim_targets = _targets(TeamRunner(params).run().to_dict())
-    return SeparateHostsResult(code, wall_s, traffic, bool(hosts_targets) and
+    return SeparateHostsResult(code, wall_s, traffic, dropped, bool(hosts_targets) and
                                hosts_targets == em_sim_targets, hosts_targets,
                                em_sim_targets, str(out_dir))
 
@@ -230,6 +281,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed of world and noise")
     parser.add_argument("--subnet", default=DEFAULT_SUBNET,
                         help=f"private subnet of the hosts (default {DEFAULT_SUBNET})")
+    parser.add_argument("--loss", type=int, default=0, metavar="N",
+                        help="drop about 1 packet in N at both ends of every robot's link "
+                             "(default 0: none)")
     parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S,
                         help="bound of the team run [s]")
     parser.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: run_team.sh's)")
@@ -247,15 +301,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     problem = subnet_problem(args.subnet, params.world.num_robots + 1)
     if problem:
         parser.error(problem)
+    if args.loss < 0 or args.loss == 1:
+        parser.error(f"--loss must be 0 (none) or at least 2, got {args.loss}")
     if not 0.0 < args.timeout < math.inf:
         parser.error(f"--timeout must be a positive number of seconds, got {args.timeout}")
     out = args.out or Path(tempfile.mkdtemp(prefix="separate_hosts_"))
     signal.signal(signal.SIGTERM, _raise_on_sigterm)
-    result = run_team_apart(params, out, args.subnet, args.timeout, args.domain_id)
+    result = run_team_apart(params, out, args.subnet, args.timeout, args.domain_id, args.loss)
     counts = [len(t) for t in result.hosts_targets]
     print(f"separate hosts: {params.world.num_robots} robots + world, run_team.sh exit "
           f"{result.exit_code}, wall {result.wall_s:.1f} s, targets per robot {counts}, "
-          f"kB through the bridge per host {[round(b / 1000) for b in result.bridge_bytes.values()]}; "
+          f"kB through the bridge per host {[round(b / 1000) for b in result.bridge_bytes.values()]}, "
+          f"packets dropped {100 * result.drop_ratio:.1f} %; "
           f"same targets as em-sim (one host): {'yes' if result.same_targets else 'NO'}; "
           f"run in {out}")
     if args.json:
