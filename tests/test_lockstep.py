@@ -86,12 +86,25 @@ def test_suspect_robot_gets_the_short_timeout_until_trusted():
     barrier.close()
     barrier.open(1, now_s=10.0)                # still suspect: 4 s again
     assert barrier.expire(13.9) == [] and barrier.expire(14.0) == [1]
-    barrier.trust(1)
+    barrier.trust(1, now_s=14.5)
     barrier.answer(1, 1, GO, 15.0)             # rejoins
     barrier.answer(0, 1, GO, 15.0)
     barrier.close()
     barrier.open(2, now_s=20.0)                # trusted again: the long timeout
     assert barrier.expire(49.9) == [] and barrier.expire(50.0) == [0, 1]
+
+
+def test_a_robot_whose_liveliness_comes_back_gets_the_long_timeout_on_the_open_step_too():
+    """Under packet loss a live robot's liveliness assertions get lost and come back: it
+    kept the 4 s of the loss report on the open step, was stopped when that step took
+    longer, and run_team.sh --respawn killed a healthy process."""
+    barrier = LockstepBarrier(2, robot_timeout_s=30.0, suspect_timeout_s=4.0)
+    barrier.open(0, now_s=0.0)
+    barrier.answer(0, 0, GO, 0.5)
+    barrier.suspect(1, now_s=2.0)
+    barrier.trust(1, now_s=2.5)
+    assert barrier.expire(6.0) == [] and barrier.expire(32.4) == []
+    assert barrier.expire(32.5) == [1]
 
 
 def test_a_restarted_robot_gets_the_short_timeout_on_the_open_step_only():

@@ -331,7 +331,7 @@ class WorldNode(LeanNode):
             if restarted:
                 self.barrier.restarted(robot, time.monotonic())
             else:
-                self.barrier.trust(robot)
+                self.barrier.trust(robot, time.monotonic())
             self.get_logger().info(f"robot {robot}: liveliness asserted"
                                    + (" by a new process (restarted)" if restarted else ""))
             return

@@ -100,10 +100,15 @@ class LockstepBarrier:
         self.suspects.add(robot)
         self._deadline_s[robot] = min(self._deadline_s[robot], now_s + self._timeout_s(robot))
 
-    def trust(self, robot: int) -> None:
-        """The robot's liveliness is reported again: from the next step on it gets
-        ``robot_timeout_s`` again."""
-        self.suspects.discard(robot)
+    def trust(self, robot: int, now_s: float) -> None:
+        """The robot's process reported its liveliness again at ``now_s``: it was alive and
+        only its assertions were lost on the network (as under packet loss), so it gets
+        ``robot_timeout_s`` again, on the open step from ``now_s``. (Healthy robots on lossy
+        links kept the short deadline of their last loss report, were stopped when a step
+        took longer, and were restarted by ``run_team.sh --respawn``.)"""
+        if robot in self.suspects:
+            self.suspects.discard(robot)
+            self._deadline_s[robot] = max(self._deadline_s[robot], now_s + self.robot_timeout_s)
 
     def restarted(self, robot: int, now_s: float) -> None:
         """A new process of the robot reported its liveliness at ``now_s``: the one that was
@@ -113,7 +118,7 @@ class LockstepBarrier:
         open step; later steps get ``robot_timeout_s`` again. It is *rejoining* until it
         answers, for at most ``robot_timeout_s``."""
         self.suspect(robot, now_s)
-        self.trust(robot)
+        self.suspects.discard(robot)
         self.rejoining[robot] = now_s + self.robot_timeout_s
 
     def answer(self, robot_id: int, step: int, answer: StepAnswer, now_s: float) -> str:
