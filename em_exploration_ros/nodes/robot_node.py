@@ -425,6 +425,8 @@ class RobotNode(LeanNode):
         asker, owner = int(message.requester_id), int(message.robot_id)
         if self.relay_mode and asker != TeamUpdateRequest.OBSERVER:
             return  # a teammate's request reaches this robot through the links
+        if asker == owner == self.robot_id:  # its own request after a restart, heard back
+            return
         if asker == owner:
             self._serve_history("/team/update_requests", message)
             return
