@@ -34,6 +34,10 @@ KILL_GRACE_S=3
 RESPAWN_GRACE_S=15
 # --respawn: at most this many restarts per robot (a robot that keeps crashing stays down).
 MAX_RESPAWNS=10
+# --respawn: a restarted robot whose liveliness the world has not seen within this many
+# seconds is wedged in its start-up (it is never reported lost: the world counts it stopped
+# already) and is restarted again. Start-up takes 2-4 s here, 20 s on a loaded machine.
+RESPAWN_CONFIRM_S=${EM_RESPAWN_CONFIRM_S:-60}
 # Wall seconds the evaluator has, once the world has stepped over (its log says so), to write
 # the summary and the map and exit; after that it is taken for wedged (or stopped) and the run
 # fails. Generous: the final evaluation and the map of a large run take a few seconds.
@@ -214,6 +218,8 @@ done
 
 is_int "$EVALUATOR_END_GRACE_S" \
     || usage_error "EM_EVALUATOR_END_GRACE_S expects a whole number of seconds, got '$EVALUATOR_END_GRACE_S'"
+is_int "$RESPAWN_CONFIRM_S" \
+    || usage_error "EM_RESPAWN_CONFIRM_S expects a whole number of seconds, got '$RESPAWN_CONFIRM_S'"
 if [[ -n $RECORD && ! -f "$EM_REPO_ROOT/${RECORD_MODULE//.//}.py" ]]; then
     usage_error "--record needs em-record ($RECORD_MODULE), which this checkout does not have"
 fi
@@ -491,7 +497,7 @@ TAIL_PID=$!
 FAILED=""
 # The world's log line when it steps over for good, and when this script saw it [s].
 STEPPED_OVER_LINE="stepping over at step" STEPPED_OVER_AT=""
-declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=()
+declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=() SEEN_BEFORE=()
 
 # respawn_robot INDEX WHY: SIGKILL robot INDEX's process group (if alive) and start the same
 # command line again; it rejoins the team (the world takes it back, its teammates re-send
@@ -514,10 +520,13 @@ respawn_robot() {
     PIDS[$index]=${PIDS[-1]}
     unset 'PIDS[-1]' 'NAMES[-1]'
     STARTED_AT[$robot]=$SECONDS
+    SEEN_BEFORE[$robot]=$(seen_count "$robot")
 }
 
 # lost_count ROBOT: how many times the world has reported robot ROBOT lost so far.
 lost_count() { grep -c "robot $1 lost:" "$LOG_DIR/world.log" 2>/dev/null; }
+# seen_count ROBOT: how many times the world has seen robot ROBOT's liveliness asserted.
+seen_count() { grep -c "robot $1: liveliness asserted" "$LOG_DIR/world.log" 2>/dev/null; }
 
 while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
     for index in "${!PIDS[@]}"; do
@@ -556,6 +565,16 @@ while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
             elif (( lost > ${LOST_SEEN[$robot]:-0} )); then
                 LOST_SEEN[$robot]=$lost
                 respawn_robot "$index" "is alive but lost to the world (wedged or silent)"
+                continue
+            fi
+            if [[ -n ${SEEN_BEFORE[$robot]:-} ]] \
+                    && (( SECONDS - STARTED_AT[$robot] >= RESPAWN_CONFIRM_S )); then
+                if (( $(seen_count "$robot") > SEEN_BEFORE[$robot] )); then
+                    unset 'SEEN_BEFORE[$robot]'  # its new process is up
+                else
+                    why="was restarted $RESPAWN_CONFIRM_S s ago and the world has not seen"
+                    respawn_robot "$index" "$why it alive (wedged in its start-up)"
+                fi
             fi
         fi
     done

@@ -67,6 +67,15 @@ def test_refuses_bad_arguments(args, message):
     assert "--help" in result.stderr
 
 
+def test_refuses_a_respawn_confirmation_time_that_is_not_whole_seconds(monkeypatch):
+    """EM_RESPAWN_CONFIRM_S: how long a restarted robot has to show its liveliness before
+    --respawn restarts it again (a process wedged in its start-up)."""
+    monkeypatch.setenv("EM_RESPAWN_CONFIRM_S", "soon")
+    result = run_team("--respawn")
+    assert result.returncode == 2, result.stderr
+    assert "EM_RESPAWN_CONFIRM_S expects a whole number of seconds, got 'soon'" in result.stderr
+
+
 @pytest.mark.parametrize("text, extra, message", [
     ("/em_world:\n  ros__parameters:\n    robot_timout_s: 3.0\n", [],
      "did you mean 'robot_timeout_s'"),
