@@ -81,8 +81,10 @@ options:
   --foxglove [PORT]       serve the team live to the Foxglove app with em-foxglove on
                           ws://127.0.0.1:PORT (default PORT: 8765); the run goes on if it stops
   --respawn               restart a robot process that dies, or that the world reports lost
-                          (alive but wedged or silent: SIGKILL, then the same command line);
-                          it rejoins the team where it stopped
+                          (alive but wedged or silent: SIGKILL, then the same command line),
+                          or whose restart the world has not seen alive within
+                          EM_RESPAWN_CONFIRM_S seconds (default 60); it rejoins the team
+                          where it stopped
   --trace-steps DIR       record every publish and subscription callback of the world, the
                           robots and the evaluator into DIR/<name>.trace (DIR must not hold
                           traces yet); python -m em_exploration_ros.tools.step_trace report
