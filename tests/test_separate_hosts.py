@@ -12,7 +12,8 @@ import sys
 
 import pytest
 
-from em_exploration_ros.tools.separate_hosts import cannot_run_reason, subnet_problem
+from em_exploration_ros.tools.separate_hosts import (cannot_run_reason, loss_problem,
+                                                      subnet_problem)
 from ros_process import REPO_ROOT
 
 #: Bound of the whole tool run: set-up check, discovery, a 50 m exploration, em-sim [s].
@@ -68,3 +69,11 @@ def test_a_subnet_that_cannot_hold_the_team_is_named(subnet, problem):
     team that never started)."""
     found = subnet_problem(subnet, 4)
     assert found is None if problem is None else problem in found
+
+
+@pytest.mark.parametrize("one_in, fine", [(0, True), (1, False), (-3, False), (2, True),
+                                          (2 ** 32 - 1, True), (2 ** 32, False)])
+def test_a_loss_the_filter_cannot_draw_is_named(one_in, fine):
+    """--loss N is the modulus of a 32-bit BPF constant: tc silently truncated a larger one
+    (99999999999 dropped nothing) instead of refusing it."""
+    assert (loss_problem(one_in) is None) == fine

@@ -60,6 +60,9 @@ DEFAULT_TIMEOUT_S = 600.0
 #: 32 = LD|W|ABS (k = SKF_AD_OFF + SKF_AD_RANDOM = -4096 + 56), 148 = ALU|MOD|K,
 #: 21 = JMP|JEQ|K, 6 = RET|K (-1: the filter's class, 0: no match).
 RANDOM_MATCH_BPF = "5,32 0 0 4294963256,148 0 0 {n},21 0 1 0,6 0 0 4294967295,6 0 0 0"
+#: Largest ``--loss`` N: the filter's modulus is a 32-bit BPF constant (tc silently truncated
+#: a larger one).
+MAX_LOSS_ONE_IN = 2 ** 32 - 1
 #: How long run_team.sh gets to stop its processes after SIGINT [s] (its own grace periods
 #: are 10 s after SIGINT and 3 s after SIGTERM).
 STOP_GRACE_S = 20.0
@@ -84,6 +87,13 @@ def _ip(*args: str) -> str:
     return result.stdout
 
 
+def loss_problem(one_in: int) -> str | None:
+    """Why ``--loss one_in`` cannot be set up, or None (0: no loss)."""
+    if one_in == 0 or 2 <= one_in <= MAX_LOSS_ONE_IN:
+        return None
+    return f"--loss must be 0 (none) or in [2, {MAX_LOSS_ONE_IN}], got {one_in}"
+
+
 def add_random_loss(namespace: str, device: str, one_in: int) -> None:
     """Drop about 1 in ``one_in`` packets leaving ``device`` of ``namespace`` (the qdisc of
     the module docstring)."""
@@ -106,8 +116,9 @@ class HostNetwork:
 
     def __init__(self, num_robots: int, subnet: str = DEFAULT_SUBNET,
                  loss_one_in: int = 0) -> None:
-        if loss_one_in < 0 or loss_one_in == 1:
-            raise ValueError(f"--loss must be 0 (none) or at least 2, got {loss_one_in}")
+        problem = loss_problem(loss_one_in)
+        if problem:
+            raise ValueError(problem)
         self.loss_one_in = loss_one_in
         self.prefix = f"emh{os.getpid()}_"
         self.hosts = ["world"] + [f"robot_{i}" for i in range(num_robots)]
@@ -227,7 +238,9 @@ def run_team_apart(params: ExplorationParams, out_dir: Path, subnet: str = DEFAU
                    loss_one_in: int = 0) -> SeparateHostsResult:
     """Run the lockstep team with every process on its own host (module docstring), its
     robots' links dropping about 1 packet in ``loss_one_in`` (0: none), then em-sim with
-    the same parameters; compare their targets."""
+    the same parameters; compare their targets. Raises ValueError, before any namespace is
+    made, when the world cannot be built from ``params``."""
+    em_sim = TeamRunner(params)
     out_dir.mkdir(parents=True, exist_ok=True)
     params_file = out_dir / "params.yaml"
     params_file.write_text(dump_params(params), encoding="utf-8")
@@ -253,7 +266,7 @@ def run_team_apart(params: ExplorationParams, out_dir: Path, subnet: str = DEFAU
         dropped = network.drop_ratio()
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
     hosts_targets = _targets(summary) if summary else []
-    em_sim_targets = _targets(TeamRunner(params).run().to_dict())
+    em_sim_targets = _targets(em_sim.run().to_dict())
     return SeparateHostsResult(code, wall_s, traffic, dropped, bool(hosts_targets) and
                                hosts_targets == em_sim_targets, hosts_targets,
                                em_sim_targets, str(out_dir))
@@ -301,13 +314,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     problem = subnet_problem(args.subnet, params.world.num_robots + 1)
     if problem:
         parser.error(problem)
-    if args.loss < 0 or args.loss == 1:
-        parser.error(f"--loss must be 0 (none) or at least 2, got {args.loss}")
+    if loss_problem(args.loss):
+        parser.error(loss_problem(args.loss))
     if not 0.0 < args.timeout < math.inf:
         parser.error(f"--timeout must be a positive number of seconds, got {args.timeout}")
     out = args.out or Path(tempfile.mkdtemp(prefix="separate_hosts_"))
     signal.signal(signal.SIGTERM, _raise_on_sigterm)
-    result = run_team_apart(params, out, args.subnet, args.timeout, args.domain_id, args.loss)
+    try:
+        result = run_team_apart(params, out, args.subnet, args.timeout, args.domain_id,
+                                args.loss)
+    except ValueError as error:
+        parser.error(f"cannot build the world: {error}")
     counts = [len(t) for t in result.hosts_targets]
     print(f"separate hosts: {params.world.num_robots} robots + world, run_team.sh exit "
           f"{result.exit_code}, wall {result.wall_s:.1f} s, targets per robot {counts}, "
