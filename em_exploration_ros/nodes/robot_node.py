@@ -10,9 +10,9 @@ Lockstep: each SonarScan carries the world's barrier (``team_sequences``). The n
 processes a step only when it holds every teammate's updates up to the barrier, asking
 for missing ones again (TeamUpdateRequest) while it waits; a teammate silent past
 ``barrier_timeout_s`` is skipped with a warning, and not waited for again until the
-records given up on arrive (``TeamUpdateInbox.waive``: their sender may be dead). In real-time mode the barrier is empty
-and steps are processed as they come. A step the world sends again (its barrier repair) is
-answered again with the same command.
+records given up on arrive (``TeamUpdateInbox.waive``: their sender may be dead). In
+real-time mode the barrier is empty and steps are processed as they come. A step the world
+sends again (its barrier repair) is answered again with the same command.
 
 Relay mode (``links.*`` not perfect): the robot hears no teammate directly. The world's
 link relay (``nodes/team_relay.py``) delivers teammates' records and requests on
@@ -392,9 +392,9 @@ class RobotNode(LeanNode):
 
     def _serve_history(self, topic: str, request: TeamUpdateRequest) -> None:
         """Re-send what this robot holds of a restarted teammate's stream (the records it
-        applied, then those the barrier still holds back), the teammate's request checked first (``history_request_problem``), at most once per
-        ``request_period_s`` per teammate, logged at most once per ``LOG_PERIOD_S`` per
-        teammate. Nothing tells a forged request from a real one (DDS carries no identity
+        applied, then those the barrier still holds back), the teammate's request checked
+        first (``history_request_problem``), at most once per ``request_period_s`` per
+        teammate, logged at most once per ``LOG_PERIOD_S`` per teammate. Nothing tells a forged request from a real one (DDS carries no identity
         without security), so that bound is what a forger gets."""
         requester = int(request.requester_id)
         if not self.inputs.check(topic, history_request_problem(
