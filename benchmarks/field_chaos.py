@@ -39,7 +39,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from restart_chaos import POLL_S, RUN_LIMIT_S, KillSchedule
+from restart_chaos import POLL_S, RUN_LIMIT_S, KillSchedule, summary_line
 from team_cpu import stop
 
 from em_exploration_ros.tools.separate_hosts import RUN_TEAM, HostNetwork, cannot_run_reason
@@ -87,20 +87,13 @@ def run_with_kills(command: list[str], out: Path, options: argparse.Namespace
     return run.returncode, schedule.kills, time.monotonic() - started
 
 
-def metre(value: float | None) -> str:
-    """An RMSE as the summary gives it: None (nothing to compare yet) as n/a."""
-    return "n/a" if value is None else f"{value:.3f} m"
-
-
 def outcome(out: Path, max_lines: int) -> list[str]:
     """The summary's stop reason, explored ratio, RMSEs and robots, then the trouble lines."""
     path = out / "summary.json"
     summary = json.loads(path.read_text()) if path.exists() else {}
     lines = [f"stop: {summary.get('stop_reason')}"]
     if summary:
-        lines += [f"explored {summary['explored_ratio']:.3f}, loc RMSE "
-                  f"{metre(summary['loc_rmse_m'])}, landmark RMSE "
-                  f"{metre(summary['landmark_rmse_m'])}, sim {summary['sim_time_s']} s",
+        lines += [summary_line(summary),
                   "robots at the end: " + ", ".join(
                       f"{r['id']} {r.get('status')} ({r['decisions']} decisions, "
                       f"{r['distance_m']:.0f} m)" for r in summary["robots"])]

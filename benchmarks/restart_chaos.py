@@ -43,6 +43,17 @@ def robot_processes(root: int, names: dict[int, str]) -> dict[int, int]:
             if pid in cpu_s and name.startswith("robot ") and name.split()[1].isdigit()}
 
 
+def metre(value: float | None) -> str:
+    """An RMSE as the summary gives it: None (nothing to compare yet) as n/a."""
+    return "n/a" if value is None else f"{value:.3f} m"
+
+
+def summary_line(summary: dict) -> str:
+    """Explored ratio, RMSEs and simulated time of a run's summary.json data."""
+    return (f"explored {summary['explored_ratio']:.3f}, loc RMSE {metre(summary['loc_rmse_m'])}, "
+            f"landmark RMSE {metre(summary['landmark_rmse_m'])}, sim {summary['sim_time_s']} s")
+
+
 class KillSchedule:
     """Seeded signals to the robot processes of a run: the first once ``first_kill_s`` plus
     a pause drawn from ``pause`` (wall seconds) have passed, each next one a new pause later,
@@ -115,8 +126,7 @@ def main() -> None:
     print(f"run_team.sh exit code {run.returncode} after {time.monotonic() - started:.0f} s; "
           f"stop: {summary.get('stop_reason')}")
     if summary:
-        print(f"explored {summary['explored_ratio']:.3f}, loc RMSE {summary['loc_rmse_m']:.3f} m, "
-              f"landmark RMSE {summary['landmark_rmse_m']:.3f} m, sim {summary['sim_time_s']} s")
+        print(summary_line(summary))
     print(f"records recovered by each restart: {recovered}")
     print(f"waits for team data that never came: "
           f"{sum(t.count('never reached the relay') for t in logs.values())} (world), "
