@@ -163,3 +163,28 @@ def test_a_rejoining_robot_that_never_answers_is_given_up_after_the_robot_timeou
     assert not barrier.complete
     barrier.expire(31.0)
     assert barrier.complete and barrier.all_done
+
+
+def test_a_robot_that_rejoins_from_an_old_step_has_the_long_timeout_to_catch_up():
+    """A wedged robot's liveliness was lost (suspect), its restarted process answered an old
+    step: with the suspect's 4 s to reach the open step it was stopped again while it caught
+    up, the world ran on more than 1000 steps ahead, and the robot never rejoined (a CI
+    run of the respawn system test)."""
+    barrier = LockstepBarrier(2, robot_timeout_s=30.0, suspect_timeout_s=4.0)
+    barrier.open(100, now_s=0.0)
+    barrier.suspect(1, now_s=0.5)
+    barrier.answer(0, 100, GO, 1.0)
+    assert barrier.expire(4.5) == [1]
+    barrier.close()
+    barrier.open(101, now_s=5.0)
+    barrier.answer(0, 101, GO, 5.5)
+    assert barrier.answer(1, 90, GO, 6.0) == LockstepBarrier.REJOINED
+    assert barrier.expire(10.0) == [] and barrier.expire(35.9) == []
+    assert barrier.expire(36.0) == [1]
+    # A loss reported after it rejoined shortens the wait again.
+    barrier.close()
+    barrier.open(102, now_s=37.0)
+    barrier.answer(0, 102, GO, 37.2)
+    assert barrier.answer(1, 101, GO, 37.5) == LockstepBarrier.REJOINED
+    barrier.suspect(1, now_s=38.0)
+    assert barrier.expire(41.9) == [] and barrier.expire(42.0) == [1]

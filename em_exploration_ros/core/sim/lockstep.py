@@ -125,13 +125,18 @@ class LockstepBarrier:
         """File a robot's answer; returns how it was taken (ACCEPTED, REJOINED or why not).
 
         REJOINED: a stopped robot answered again and is waited for from now on (its answer
-        counts when it is for the open step). CONFLICT: a second answer to the open step
+        counts when it is for the open step), with ``robot_timeout_s`` to answer the open
+        step: its answer shows it alive, so a loss reported before (suspect) no longer
+        shortens it. (With the 4 s of a suspect, a restarted robot catching up from an old
+        step was stopped again, the world ran on with the others more than 1000 steps
+        ahead, and the robot never rejoined.) CONFLICT: a second answer to the open step
         that differs from the first, which stands (two publishers on one robot's topic)."""
         rejoined = robot_id in self.stopped and step <= self.step
         if step <= self.step:
             self.rejoining.pop(robot_id, None)
         if rejoined:
             self.stopped.discard(robot_id)
+            self.suspects.discard(robot_id)
             self._arm(robot_id, now_s)
         if step < self.step:
             return self.REJOINED if rejoined else self.STALE
