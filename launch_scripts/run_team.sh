@@ -445,6 +445,22 @@ trap 'on_signal terminated 143' TERM
 # SIGHUP of their own and would run on with no one to stop them.
 trap 'on_signal "hung up" 129' HUP
 
+# shellcheck disable=SC2317  # called through the trap below
+# The last guard: whatever else ends this shell (an error of the script itself, such as an
+# unbound variable, or a signal it does not handle, such as SIGALRM from `timeout -s ALRM` or
+# SIGUSR1) stops the nodes first; each runs in its own session and would run on for good.
+on_unexpected_exit() {
+    local pid
+    for pid in "${PIDS[@]}"; do
+        group_alive "$pid" || continue
+        echo "$PROG: error: ended unexpectedly with nodes running; stopping them" >&2
+        arm_kill_all_now
+        stop_all
+        return
+    done
+}
+trap on_unexpected_exit EXIT
+
 COMMON=(--ros-args --params-file "$PARAMS_FILE" "${OVERRIDES[@]}")
 SIM_LIMIT=()
 [[ -n $MAX_SIM_TIME ]] && SIM_LIMIT=(-p "max_sim_time_s:=$(as_double "$MAX_SIM_TIME")")

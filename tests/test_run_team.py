@@ -322,6 +322,24 @@ def test_a_hangup_stops_every_process_and_keeps_the_summary(tmp_path):
     assert not (tmp_path / "run").exists()  # where " #" cut the path short
 
 
+def test_an_unexpected_end_of_the_script_stops_every_process(tmp_path):
+    """Whatever ends run_team.sh other than the signals it handles (here SIGUSR1; an error of
+    the script itself, such as an unbound variable, the same way) stops the nodes first. The
+    nodes, each in its own session, used to run on for good."""
+    run, domain = start_team_run(tmp_path, "--planner", "NEAREST", "--map-size", "40",
+                                 "--landmarks", "4", "--until-explored", "1")
+    with run:
+        run.wait_for_output("  explored ", RUN_TIMEOUT_S)
+        os.kill(run.pid, signal.SIGUSR1)
+        code = run.wait(30.0)
+    left_running = processes_in_domain(RUN_PROCESS_PATTERN, domain)
+    for pid in left_running:  # without the guard, so that they do not outlive the test
+        os.kill(pid, signal.SIGKILL)
+    assert left_running == [], run.output()[-3000:]
+    assert code == -signal.SIGUSR1
+    assert "ended unexpectedly with nodes running; stopping them" in run.output()
+
+
 def _run_with_the_evaluator_signalled(tmp_path, signum: int) -> tuple[int, str, str]:
     """A small NEAREST run whose evaluator gets ``signum`` once progress shows; the exit
     code, output and ROS domain of run_team.sh."""
