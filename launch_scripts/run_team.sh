@@ -8,7 +8,8 @@
 #
 # Run with --help for the options. Exit code: the evaluator's (0 done, 3 the robots or the world
 # stopped publishing, 4 stalled: the team neither travelled nor explored new area for
-# run.stall_timeout_s), 1 if a process failed, 2 for bad arguments, 130 on Ctrl-C, 143 on SIGTERM,
+# run.stall_timeout_s, 5 every live robot finished below the explored goal while other robots
+# were lost), 1 if a process failed, 2 for bad arguments, 130 on Ctrl-C, 143 on SIGTERM,
 # 129 on SIGHUP (the terminal closed, the SSH connection lost).
 #
 # Environment: EM_EVALUATOR_END_GRACE_S (default 60) wall seconds the evaluator has, after the
@@ -51,7 +52,8 @@ Runs em-world, N em-robot and em-evaluator as separate processes in one ROS 2 do
 waits for the evaluator to end the run. Progress lines come from the evaluator; each process
 logs to <run dir>/logs/<name>.log. Flags override the parameter file for every node.
 Exit code: 0 done, 3 the world or the robots stopped publishing, 4 stalled (no team
-progress for run.stall_timeout_s), 1 a process failed, 2 bad arguments, 130 Ctrl-C,
+progress for run.stall_timeout_s), 5 robots lost (every live robot finished below the
+explored goal), 1 a process failed, 2 bad arguments, 130 Ctrl-C,
 143 SIGTERM, 129 SIGHUP (terminal closed).
 
 options:
@@ -615,8 +617,9 @@ if [[ -z $FAILED ]]; then
     wait "$EVALUATOR_PID"
     CODE=$?
     wait "$TAIL_PID" 2>/dev/null
-    # 0 done, 3 the world or the robots stopped publishing, 4 stalled: the run's outcomes.
-    [[ $CODE == [034] ]] \
+    # 0 done, 3 the world or the robots stopped publishing, 4 stalled, 5 every live robot
+    # finished below the goal while robots were lost: the run's outcomes.
+    [[ $CODE == [0345] ]] \
         || FAILED="the evaluator $(exit_status_text "$CODE") (see $LOG_DIR/evaluator.log)"
 fi
 arm_kill_all_now

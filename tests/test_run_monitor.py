@@ -1,9 +1,13 @@
 """The run monitor: one stop rule and one summary for em-sim and the evaluator node."""
 import math
 
+from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness
 from em_exploration_ros.core.evaluation.evaluator import TeamMetrics
-from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RobotProgressRecord,
-                                                            RunMonitor, StallWatch, final_step)
+from em_exploration_ros.core.evaluation.run_monitor import (EXIT_ROBOTS_LOST, EXIT_STALLED,
+                                                            DecisionEntry, RobotProgressRecord,
+                                                            RunMonitor, StallWatch, TeamFinished,
+                                                            every_live_robot_finished,
+                                                            final_step)
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, check_summary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.frontiers import FrontierType
@@ -92,6 +96,55 @@ def test_every_robot_finished_learned_after_the_evaluation_stops_the_run_there()
     explored = RunMonitor(ExplorationParams().replace(run={"until_explored": 0.5}))
     first = explored.observe(10, metrics(10, 0.6))
     assert first.startswith("explored ratio") and explored.observe_finished(10) == first
+
+
+def test_every_live_robot_finished_names_the_robots_lost_before_they_finished():
+    """The evaluator's view of a chaos run: robot 1 SIGKILLed without --respawn (lost), robot
+    2 restarted and rejoined (--respawn: live again), robot 3 killed after it had finished."""
+    liveness = TeamLiveness(4, grace_s=4.0)
+    liveness.finished(3, 20.0, 5.0)
+    for robot in (1, 2, 3):
+        liveness.liveliness_lost(robot, 30.0, 10.0)
+    liveness.confirm(14.0)
+    liveness.heard(2, 36.0, 18.0, "answers the world again")
+    lost = [liveness.status(robot) == LOST for robot in range(4)]
+    assert lost == [False, True, False, True]
+    # robot 2 is live: it must finish too
+    assert every_live_robot_finished([150, None, None, 100], lost) is None
+    # robot 3 did its part before it was lost; robot 1 did not
+    assert every_live_robot_finished([150, None, 148, 100], lost) == TeamFinished(150, (1,))
+    # nobody lost: the team finished
+    assert every_live_robot_finished([150, 149], [False, False]) == TeamFinished(150, ())
+    # every robot lost: not this rule (the world stepping over or silence ends such a run)
+    assert every_live_robot_finished([None, 100], [True, True]) is None
+
+
+def test_a_run_whose_live_robots_finished_with_others_lost_ends_below_its_goal_with_code_5():
+    """Stopped by the live robots' finishing at explored 0.75 < 0.85 with robot 1 lost: not
+    a success (it once said "every robot finished" and exited 0). A run reaching its goal,
+    or finishing with nobody lost (em-sim's only case), still ends with 0; a stall with 4."""
+    params = ExplorationParams().replace(run={"until_explored": 0.85, "stall_timeout_s": 30.0})
+    monitor = RunMonitor(params)
+    assert monitor.observe(10, metrics(10, 0.5), lost=(1,)) == ""  # the others go on
+    reason = monitor.observe(20, metrics(20, 0.75), all_finished=True, lost=(1,))
+    assert reason == "every live robot finished; robots [1] lost"
+    assert monitor.exit_code == EXIT_ROBOTS_LOST == 5
+    assert monitor.summary([[], []], wall_s=1.0).stop_reason == reason
+    late = RunMonitor(params)  # the robots' answers came after the evaluation
+    late.observe(20, metrics(20, 0.75))
+    assert late.observe_finished(20, lost=(2, 0)) == "every live robot finished; robots [0, 2] lost"
+    assert late.exit_code == EXIT_ROBOTS_LOST
+    team = RunMonitor(params)
+    assert team.observe(20, metrics(20, 0.75), all_finished=True) == "every robot finished"
+    assert team.exit_code == 0
+    reached = RunMonitor(params)
+    assert reached.observe(20, metrics(20, 0.86), all_finished=True, lost=(1,)).startswith(
+        "explored ratio 0.860")
+    assert reached.exit_code == 0
+    stalled = RunMonitor(params)
+    stalled.observe(10, metrics(10, 0.5))
+    assert stalled.observe(160, metrics(160, 0.5), lost=(1,)).startswith("stalled: ")
+    assert stalled.exit_code == EXIT_STALLED
 
 
 def test_distance_limit_stops_the_run():

@@ -23,6 +23,11 @@ with the summary JSON (em-sim's schema) and the final map PNG written, when:
 
 - the team explored ratio reaches ``run.until_explored``, the team distance reaches
   ``run.max_distance_m``, or every robot reports ``finished``: exit code 0;
+- every robot that is not lost reports ``finished`` while others were lost before they
+  finished (a robot that rejoined is not lost): the run ended below ``run.until_explored``
+  with part of the team gone; stop reason "every live robot finished; robots [...] lost",
+  exit code 5 (``EXIT_ROBOTS_LOST``); the summary's per-robot ``status``, ``status_changes``
+  and ``downtime_s`` show the losses;
 - the run's final step (``run.max_steps`` or ``max_sim_time_s``, as the world) completed:
   exit code 0, the stop reason says so;
 - no ground truth arrived for ``silence_timeout_s`` wall seconds (world or robots
@@ -76,8 +81,9 @@ from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, fir
 from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness, UnseenLiveliness
-from em_exploration_ros.core.evaluation.run_monitor import (EXIT_STALLED, DecisionEntry,
-                                                            RobotProgressRecord, RunMonitor)
+from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RobotProgressRecord,
+                                                            RunMonitor, TeamFinished,
+                                                            every_live_robot_finished)
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, RunSummary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.output_paths import output_path_problem
@@ -108,7 +114,7 @@ from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.nodes.team_topics import LINK_COUNTS_TOPIC
 
-EXIT_OK, EXIT_SILENCE, EXIT_INTERRUPTED = 0, 3, 130
+EXIT_SILENCE, EXIT_INTERRUPTED = 3, 130
 #: Wall period of the silence check [s].
 _WATCH_PERIOD_S = 1.0
 #: Relay mode: the link counts of this many evaluation steps before the newest are kept.
@@ -195,7 +201,8 @@ class EvaluatorNode(LeanNode):
         self._pending: tuple[int, float] | None = None
         self._overdue: set[int] = set()
         self._last_command: list[MotionCommand | None] = [None] * self.num_robots
-        self._all_finished_step: int | None = None
+        #: Set once every robot that is not lost has finished (``_check_all_finished``).
+        self._team_finished: TeamFinished | None = None
         self._stream_wait_deadline_s = math.inf
         self._evaluated: tuple[dict, dict] = ({}, {})
         self._next_progress_s = self.progress_interval_s
@@ -532,14 +539,15 @@ class EvaluatorNode(LeanNode):
         self._check_all_finished()
 
     def _check_all_finished(self) -> None:
-        """Every robot that is not lost has reported ``finished`` (at least one has): the
-        run ends at the latest step they answered, as soon as its ground truth is in."""
-        if self._all_finished_step is not None:
+        """Every robot that is not lost has reported ``finished`` (at least one is not
+        lost): the run ends at the latest step they answered, as soon as its ground truth is
+        in; the robots lost then without having finished are kept for the stop reason."""
+        if self._team_finished is not None:
             return
-        present = [c for r, c in enumerate(self._last_command)
-                   if self.liveness.status(r) != LOST]
-        if present and all(c is not None and c.finished for c in present):
-            self._all_finished_step = max(int(c.step) for c in present)
+        self._team_finished = every_live_robot_finished(
+            [int(c.step) if c is not None and c.finished else None for c in self._last_command],
+            [self.liveness.status(r) == LOST for r in range(self.num_robots)])
+        if self._team_finished is not None:
             self._process()
 
     def _watch(self) -> None:
@@ -631,7 +639,8 @@ class EvaluatorNode(LeanNode):
                     f"until they publish)")
             self._pending = None
             metrics = self.evaluate(step)
-            if self.monitor.observe(step, metrics, self._finished_by(step)):
+            if self.monitor.observe(step, metrics, self._finished_by(step),
+                                    self._lost_unfinished()):
                 self._stopping()
 
     def _stopping(self) -> None:
@@ -658,8 +667,7 @@ class EvaluatorNode(LeanNode):
                 "summary written without the motion commands of the step before the stop "
                 "step (their blocked time and targets given up) of robots "
                 + ", ".join(str(robot) for robot in silent))
-        self.finish(self.monitor.stop_reason,
-                    EXIT_STALLED if self.monitor.stalled else EXIT_OK)
+        self.finish(self.monitor.stop_reason, self.monitor.exit_code)
 
     def _missing_commands(self) -> list[int]:
         """Robots waited for (``_waited_for``) whose motion command answering the step
@@ -672,7 +680,11 @@ class EvaluatorNode(LeanNode):
                 if self._waited_for(robot) and (last is None or int(last.step) < step - 1)]
 
     def _finished_by(self, step: int) -> bool:
-        return self._all_finished_step is not None and step >= self._all_finished_step
+        return self._team_finished is not None and step >= self._team_finished.step
+
+    def _lost_unfinished(self) -> tuple[int, ...]:
+        """The robots lost without having finished when all the others had finished."""
+        return () if self._team_finished is None else self._team_finished.lost
 
     def _finished_after_evaluation(self) -> bool:
         """Every robot finished at the last recorded step, which was evaluated before their
@@ -681,7 +693,7 @@ class EvaluatorNode(LeanNode):
         ground truth that never came (exit 3 after ``silence_timeout_s``)."""
         if not (self._finished_by(self.recorded_step) and self._recorded_step_evaluated()):
             return False
-        if not self.monitor.observe_finished(self.recorded_step):
+        if not self.monitor.observe_finished(self.recorded_step, self._lost_unfinished()):
             return False
         self._stopping()
         return True

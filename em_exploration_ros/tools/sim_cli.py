@@ -22,7 +22,6 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
-from em_exploration_ros.core.evaluation.run_monitor import EXIT_STALLED, STALLED_PREFIX
 from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
 from em_exploration_ros.core.params import (ExplorationParams, PlannerParams,
                                             current_planner_name)
@@ -167,7 +166,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             say(f"{label}: {path}")
     if unwritten:
         return EXIT_WRITE_FAILED
-    return EXIT_STALLED if summary.stop_reason.startswith(STALLED_PREFIX) else 0
+    return runner.monitor.exit_code  # as em-evaluator's (em-sim loses no robot)
 
 
 def _output_problem(args: argparse.Namespace) -> str | None:

@@ -6,7 +6,11 @@ evaluation to ``RunMonitor.observe``, which keeps the history and applies the st
 
 - the team explored ratio reached ``run.until_explored``;
 - the team's true distance reached ``run.max_distance_m``;
-- every robot reported that it finished;
+- every robot reported that it finished: in em-evaluator, every robot that is not lost
+  (``every_live_robot_finished``; em-sim loses no robot). When robots were lost without
+  having finished, the stop reason starts with ``ROBOTS_LOST_PREFIX`` and names them, and the
+  programs exit with ``EXIT_ROBOTS_LOST``: the run ended below ``run.until_explored`` (that
+  rule comes first) with part of the team gone, which must not pass for success;
 - the run's final step (``final_step``: ``run.max_steps`` or an earlier simulation-time
   limit) was evaluated;
 - the run stalled: for ``run.stall_timeout_s`` of simulation time the team neither
@@ -44,6 +48,11 @@ METRICS_INTERVAL_STEPS = 10
 EXIT_STALLED = 4
 #: Stop reasons of stalled runs start with this.
 STALLED_PREFIX = "stalled: "
+#: Exit status of em-evaluator and run_team.sh for a run that ended below its explored goal
+#: because every live robot finished while other robots were lost (never in em-sim).
+EXIT_ROBOTS_LOST = 5
+#: Stop reasons of runs whose live robots all finished while others were lost start with this.
+ROBOTS_LOST_PREFIX = "every live robot finished; "
 #: The team distance must grow by more than this to count as travel [m] (far below the
 #: 0.2 m of one step, far above round-off).
 _MIN_TRAVEL_M = 0.01
@@ -96,6 +105,33 @@ class RobotProgressRecord:
     slam_recoveries: int | None = None
 
 
+@dataclass(frozen=True)
+class TeamFinished:
+    """Every robot that is not lost reported ``finished``: the latest ``step`` at which they
+    answered, and the robots that were ``lost`` without having finished (by id)."""
+
+    step: int
+    lost: tuple[int, ...]
+
+
+def every_live_robot_finished(finished_steps: Sequence[int | None],
+                              lost: Sequence[bool]) -> TeamFinished | None:
+    """Whether the "every robot finished" rule applies to a team some of whose robots may be
+    lost: every robot that is not lost reported ``finished`` (at least one is not lost).
+
+    Args: per robot (by id) the step of its latest answer if that answer reported
+    ``finished``, else None; per robot whether the watcher counts it lost. A lost robot that
+    had finished before it was lost did its part and is not listed as lost. Returns None
+    while the rule does not apply.
+    """
+    robots = list(zip(finished_steps, lost, strict=True))
+    live = [step for step, gone in robots if not gone]
+    if not live or None in live:
+        return None
+    return TeamFinished(max(live), tuple(robot for robot, (step, gone) in enumerate(robots)
+                                         if gone and step is None))
+
+
 class StallWatch:
     """The stall rule: no team travel and no newly explored area for ``timeout_s``."""
 
@@ -144,35 +180,50 @@ class RunMonitor:
         return self.stop_reason.startswith(STALLED_PREFIX)
 
     @property
+    def exit_code(self) -> int:
+        """Exit status of a run a stop rule ended: ``EXIT_STALLED`` when it stalled,
+        ``EXIT_ROBOTS_LOST`` when every live robot finished while others were lost, else 0.
+        (A run ended without a rule, interrupted or silent, has its watcher's own code.)"""
+        if self.stalled:
+            return EXIT_STALLED
+        if self.stop_reason.startswith(ROBOTS_LOST_PREFIX):
+            return EXIT_ROBOTS_LOST
+        return 0
+
+    @property
     def final_metrics(self) -> TeamMetrics | None:
         """Metrics at the step where the stop rule fired, else the last evaluation."""
         if self._stop_metrics is not None:
             return self._stop_metrics
         return self.history[-1] if self.history else None
 
-    def observe(self, step: int, metrics: TeamMetrics, all_finished: bool = False) -> str:
+    def observe(self, step: int, metrics: TeamMetrics, all_finished: bool = False,
+                lost: Sequence[int] = ()) -> str:
         """Record the metrics evaluated at ``step``; returns the stop reason ("" to go on).
 
-        ``all_finished`` tells whether every robot had reported ``finished`` by that step.
-        After a rule fired, further evaluations are ignored and the reason is returned again.
+        ``all_finished`` tells whether every robot had reported ``finished`` by that step,
+        but for the robots ``lost`` (by id; ``every_live_robot_finished``), which the stop
+        reason then names. After a rule fired, further evaluations are ignored and the
+        reason is returned again.
         """
         if self.stopped:
             return self.stop_reason
         self.history.append(metrics)
-        reason = self._stop_rule(step, metrics, all_finished)
+        reason = self._stop_rule(step, metrics, all_finished, lost)
         if reason:
             self.stop_reason = reason
             self._stop_metrics = metrics
         return reason
 
-    def observe_finished(self, step: int) -> str:
-        """Every robot had reported ``finished`` by ``step``, the step of the last evaluation,
-        but that was learned only after the evaluation was observed (the robots' answers
-        can arrive after the step's ground truth): the stop rule is applied to it again as
-        ``observe`` would have, and its reason returned ("" if none fired)."""
+    def observe_finished(self, step: int, lost: Sequence[int] = ()) -> str:
+        """Every robot (but those ``lost``, as in ``observe``) had reported ``finished`` by
+        ``step``, the step of the last evaluation, but that was learned only after the
+        evaluation was observed (the robots' answers can arrive after the step's ground
+        truth): the stop rule is applied to it again as ``observe`` would have, and its
+        reason returned ("" if none fired)."""
         if self.stopped or not self.history:
             return self.stop_reason
-        reason = self._stop_rule(step, self.history[-1], True)
+        reason = self._stop_rule(step, self.history[-1], True, lost)
         if reason:
             self.stop_reason = reason
             self._stop_metrics = self.history[-1]
@@ -189,14 +240,16 @@ class RunMonitor:
         if not self.stop_reason:
             self.stop_reason = reason
 
-    def _stop_rule(self, step: int, metrics: TeamMetrics, all_finished: bool) -> str:
+    def _stop_rule(self, step: int, metrics: TeamMetrics, all_finished: bool,
+                   lost: Sequence[int]) -> str:
         run = self.params.run
         if metrics.explored_ratio >= run.until_explored:
             return f"explored ratio {metrics.explored_ratio:.3f} >= {run.until_explored}"
         if metrics.distance_m >= run.max_distance_m:
             return f"distance {metrics.distance_m:.0f} m >= {run.max_distance_m:.0f} m"
         if all_finished:
-            return "every robot finished"
+            return (f"{ROBOTS_LOST_PREFIX}robots {sorted(lost)} lost" if lost
+                    else "every robot finished")
         if step >= self.final_step:
             return f"final step {self.final_step} (t = {metrics.stamp_s:g} s) reached"
         return self._stall.update(metrics)
