@@ -31,9 +31,11 @@ setup(
         (f"share/{PACKAGE_NAME}/config", sorted(glob("config/*"))),
     ],
     # foxglove-sdk: the WebSocket server of em-foxglove (tools/foxglove_bridge.py), the live view;
-    # no node imports it.
+    # no node imports it. google-re2 (module re2): the topic expressions of em-record,
+    # em-replay and em-foxglove, matched in time linear in the topic name
+    # (bag_format/topic_selection.py).
     install_requires=["numpy", "gtsam", "mcap", "mcap-ros2-support", "PyYAML", "matplotlib",
-                      "foxglove-sdk"],
+                      "foxglove-sdk", "google-re2"],
     python_requires=">=3.11",
     zip_safe=False,
     maintainer="em_exploration_ros maintainers",

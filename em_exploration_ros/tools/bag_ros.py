@@ -9,6 +9,7 @@ import sys
 from collections.abc import Container, Iterator, Mapping
 from typing import Any, Callable
 
+import re2
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import (
@@ -19,7 +20,8 @@ from em_exploration_ros.bag_format.interface_index import find_interface_file, s
 from em_exploration_ros.bag_format.mcap_ros2_schema import (
     DefinitionNotFoundError, MessageDefinition, build_message_definition)
 from em_exploration_ros.bag_format.qos_yaml import DURATION_INFINITE_NS, QosProfile
-from em_exploration_ros.bag_format.topic_selection import TopicSelection
+from em_exploration_ros.bag_format.topic_selection import (
+    TopicPatternError, TopicSelection, compile_topic_pattern)
 
 _POLICY_ENUMS: dict[str, Any] = {
     "history": HistoryPolicy, "reliability": ReliabilityPolicy,
@@ -166,3 +168,12 @@ def number_type(kind: type, *, allow_zero: bool = False, low: float | None = Non
             raise argparse.ArgumentTypeError(f"must be at most {high:g}, got {text}")
         return value
     return parse
+
+
+def topic_pattern(text: str) -> re2._Regexp | None:
+    """The argparse ``type`` of ``--regex`` and ``--exclude``: the expression compiled with
+    RE2 (None for an empty one); one refused names itself and RE2's reason."""
+    try:
+        return compile_topic_pattern(text)
+    except TopicPatternError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None

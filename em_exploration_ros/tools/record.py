@@ -33,7 +33,6 @@ Exit codes: 0 the recording was closed; 2 bad arguments, or the output cannot be
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import time
 from dataclasses import dataclass
@@ -60,7 +59,7 @@ from em_exploration_ros.nodes.recorder_presence import RECORDER_NODE_NAME
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
-    other_types_of_taken_topics, qos_from_rclpy, qos_to_rclpy)
+    other_types_of_taken_topics, qos_from_rclpy, qos_to_rclpy, topic_pattern)
 
 EXIT_USAGE = 2
 #: Exit code of a recording the OS refused to write (e.g. a full disk).
@@ -92,10 +91,12 @@ def parse_options(args: list[str]) -> RecordOptions:
                         "exist")
     parser.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
                         help="record these topics (default: all)")
-    parser.add_argument("--regex", default=None, metavar="RE",
-                        help="also record topics matching this regular expression")
-    parser.add_argument("--exclude", default=None, metavar="RE",
-                        help="never record topics matching this regular expression")
+    parser.add_argument("--regex", type=topic_pattern, default=None, metavar="RE",
+                        help="also record topics matching this regular expression (RE2 "
+                        "syntax)")
+    parser.add_argument("--exclude", type=topic_pattern, default=None, metavar="RE",
+                        help="never record topics matching this regular expression (RE2 "
+                        "syntax)")
     parser.add_argument("--compression", choices=sorted(COMPRESSIONS), default="zstd",
                         help="chunk compression (default: zstd)")
     parser.add_argument("--chunk-size", type=number_type(int), default=DEFAULT_CHUNK_SIZE,
@@ -108,20 +109,13 @@ def parse_options(args: list[str]) -> RecordOptions:
     parser.add_argument("--queue-depth", type=number_type(int), default=1000, metavar="N",
                         help="keep-last depth of each subscription (default: 1000)")
     options = parser.parse_args(args)
-    for name in ("regex", "exclude"):
-        pattern = getattr(options, name)
-        if pattern is not None:
-            try:
-                re.compile(pattern)
-            except re.error as error:
-                parser.error(f"--{name}: invalid regular expression {pattern!r}: {error}")
     for topic in options.topics:
         if not topic.startswith("/"):
             parser.error(f"--topics: {topic!r} is not an absolute topic name (starts with /)")
     output = options.output or time.strftime("em_run_%Y%m%d_%H%M%S")
     return RecordOptions(
         output=output,
-        selection=TopicSelection.from_strings(options.topics, options.regex, options.exclude),
+        selection=TopicSelection(frozenset(options.topics), options.regex, options.exclude),
         compression=options.compression, chunk_size=options.chunk_size,
         chunk_interval_s=options.chunk_interval, poll_interval_s=options.poll_interval,
         queue_depth=options.queue_depth)

@@ -18,7 +18,6 @@ from the start offset on) and remaps that would put two types on one topic are r
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import time
 from dataclasses import dataclass
@@ -47,7 +46,7 @@ from em_exploration_ros.bag_format.qos_yaml import QosFormatError, QosProfile, o
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.nodes.node_main import interrupt_shuts_down
 from em_exploration_ros.tools.bag_ros import (
-    MessageTypeError, cli_args, import_message_class, number_type, qos_to_rclpy)
+    MessageTypeError, cli_args, import_message_class, number_type, qos_to_rclpy, topic_pattern)
 
 EXIT_BAD_INPUT = 2
 CLOCK_TOPIC = "/clock"
@@ -119,10 +118,10 @@ def parse_options(args: list[str]) -> ReplayOptions:
     parser.add_argument("--loop", action="store_true", help="play again and again")
     parser.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
                         help="play only these topics (default: all)")
-    parser.add_argument("--regex", default=None, metavar="RE",
-                        help="also play topics matching this regular expression")
-    parser.add_argument("--exclude", default=None, metavar="RE",
-                        help="never play topics matching this regular expression")
+    parser.add_argument("--regex", type=topic_pattern, default=None, metavar="RE",
+                        help="also play topics matching this regular expression (RE2 syntax)")
+    parser.add_argument("--exclude", type=topic_pattern, default=None, metavar="RE",
+                        help="never play topics matching this regular expression (RE2 syntax)")
     parser.add_argument("--remap", nargs="+", type=_remap, default=[], metavar="OLD:=NEW",
                         help="publish topic OLD under the name NEW")
     parser.add_argument("--delay", type=number_type(float, allow_zero=True), default=0.5,
@@ -141,10 +140,7 @@ def parse_options(args: list[str]) -> ReplayOptions:
                         default=1000, metavar="N",
                         help="keep-last depth of each publisher (default: 1000)")
     options = parser.parse_args(args)
-    try:
-        selection = TopicSelection.from_strings(options.topics, options.regex, options.exclude)
-    except re.error as error:
-        parser.error(f"invalid regular expression: {error}")
+    selection = TopicSelection(frozenset(options.topics), options.regex, options.exclude)
     remaps = dict(options.remap)
     if len(set(remaps.values())) != len(remaps):
         parser.error("--remap: two topics remapped to the same name")
