@@ -8,6 +8,8 @@
   after world_lost_timeout_s; one that sees the world come back goes on.
 - A robot the evaluator never saw alive (stopped before its liveliness reached the
   evaluator) is reported lost after the liveliness grace, not silently left out.
+- A robot stopped until the world went on without it (and the sensor data of the steps it
+  missed is gone) resumes at the world's step when it runs again.
 - Ctrl-C raises nothing inside a node's callbacks (where it once broke a message being
   taken and ended the world with exit code 1): it shuts ROS down and the node wraps up.
 """
@@ -154,6 +156,35 @@ def test_a_robot_never_seen_alive_is_reported_lost(tmp_path):
     assert [change["status"] for change in robot_1["status_changes"]] == ["lost"]
     assert robot_1["downtime_wall_s"] > 0.0 and robot_1["distance_m"] == 0.0
     assert robot_0["status_changes"] == [] and robot_0["distance_m"] > 1.0
+
+
+def test_a_robot_the_world_went_on_without_resumes_at_the_worlds_step(tmp_path):
+    """Robot 1 is stopped (SIGSTOP: wedged, or starved of CPU) until the world gives it up
+    and runs on with robot 0 for hundreds of steps; its sensor topics keep only the last 50
+    messages, so the data of the steps it missed is gone. Continued, it used to wait for
+    the next of those steps for good (or drop the newest as too far ahead); it now resumes
+    at the world's step, which takes it back into the lockstep."""
+    team = {"world.num_robots": 2, "world.width_m": 100.0, "world.height_m": 100.0,
+            "world.num_landmarks": 4, "planner.name": "NEAREST"}
+    world = NodeProcess.start_module(WORLD, ros_args(params=dict(
+        team, robot_timeout_s=3.0, liveliness_grace_s=1.0, max_sim_time_s=400.0)),
+        log_path=tmp_path / "world.log")
+    robots = [NodeProcess.start_module(ROBOT, ros_args(params=dict(team, robot_id=robot),
+                                                       namespace=f"/robot_{robot}"),
+                                       log_path=tmp_path / f"robot_{robot}.log")
+              for robot in range(2)]
+    with world, robots[0], robots[1]:
+        world.wait_for_output("robot 1: liveliness asserted", START_S)
+        world.wait_for_output("stepping", START_S)
+        robots[1].signal_group(signal.SIGSTOP)
+        world.wait_for_output("robot 1 lost", START_S)
+        world.wait_for_output("step 1000 (t = 200 s)", START_S)  # far past 50 steps on
+        assert "robot 1 rejoined" not in world.output()
+        robots[1].signal_group(signal.SIGCONT)
+        world.wait_for_output("robot 1 rejoined at step", START_S)
+    log = robots[1].output()
+    assert "the world went on without this robot: resuming at step" in log, log[-3000:]
+    assert "more than 1000 steps ahead" not in log
 
 
 def test_a_forged_world_status_does_not_end_a_paused_run(tmp_path):

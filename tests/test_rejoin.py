@@ -1,12 +1,14 @@
 """Rejoining after a restart: teammates keep a robot's stream, the restarted robot takes it
-back and continues it (core: StreamArchive, OwnHistoryRecovery, RobotAgent.resume)."""
+back and continues it (core: StreamArchive, OwnHistoryRecovery, RobotAgent.resume); and a
+robot the world went on without skips to the world's step (step_to_resume_at,
+RobotAgent.skip_steps)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
-                                                  keyframe_ranges)
+                                                  keyframe_ranges, step_to_resume_at)
 from em_exploration_ros.core.agent.robot_agent import RobotAgent
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, TeamUpdate,
                                                      TeamUpdateInbox, TeamUpdateOutbox)
@@ -133,6 +135,35 @@ def step_to_next_keyframe(agent: RobotAgent, runner: TeamRunner) -> TeamUpdate:
         sim.advance()
     agent.step(step_input(sim.sense(robot), PARAMS.motion.time_step_s))
     return agent.take_outgoing()
+
+
+def test_a_robot_resumes_at_the_newest_complete_step_the_worlds_clock_reached():
+    assert step_to_resume_at(10, [], 500) is None             # nothing later held: wait
+    assert step_to_resume_at(10, [10], 500) is None           # the awaited step itself
+    assert step_to_resume_at(10, [300, 450, 451], 500) == 451
+    assert step_to_resume_at(10, [300, 450, 900], 500) == 450  # 900: not the world's yet
+    assert step_to_resume_at(10, [900], 500) is None
+
+
+def test_a_robot_that_skipped_steps_links_them_with_one_moving_steps_covariance():
+    """Robot 1 stopped answering after a moving step and the world held its vehicle still:
+    the next keyframe's odometry gets that one step's covariance on top of what the still
+    steps' readings (exact) carry, and the estimate stays with the vehicle."""
+    interval = PARAMS.slam.keyframe_interval_steps
+    skipped_runner, skipped = crashed_team()
+    plain_runner, plain = crashed_team()
+    skipped.skip_steps()
+    with_skip = step_to_next_keyframe(skipped, skipped_runner).keyframes[0]
+    without = step_to_next_keyframe(plain, plain_runner).keyframes[0]
+    assert with_skip.index == without.index == skipped_runner.simulation.step // interval
+    assert with_skip.previous_index == with_skip.index - 3
+    motion = PARAMS.motion
+    per_step = odometry_covariance_per_step(motion.speed_mps * motion.time_step_s, True,
+                                            PARAMS.sensors)
+    np.testing.assert_allclose(np.diag(with_skip.odom_covariance - without.odom_covariance),
+                               np.diag(per_step), rtol=1e-6)
+    sim = skipped_runner.simulation
+    assert np.linalg.norm(skipped.current_pose()[:2] - sim.true_pose(1)[:2]) < 1.0
 
 
 def test_restarted_agent_resumes_its_stream_graph_and_odometry():

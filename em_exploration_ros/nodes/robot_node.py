@@ -60,7 +60,7 @@ from visualization_msgs.msg import MarkerArray
 from em_exploration_ros.core.planning.frontiers import Frontier
 from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariances_from_poses
 from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
-                                                  keyframe_ranges)
+                                                  keyframe_ranges, step_to_resume_at)
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, RejectionLog,
                                                         barrier_problem, first_problem,
@@ -235,10 +235,18 @@ class RobotNode(LeanNode):
 
     def _sensor_step_problem(self, step: int, pending: dict) -> str | None:
         """Reason to drop sensor data of ``step``: outside the run, stale, too far ahead
-        (``core.agent.input_checks.step_problem``) or no room left in ``pending``."""
-        return (step_problem(step, self._next_step, self.params.run.max_steps)
+        (``core.agent.input_checks.step_problem``: more than ``MAX_STEP_LEAD`` steps, unless
+        the world's clock is there already) or no room left in ``pending``."""
+        lead = MAX_STEP_LEAD
+        if self._next_step is not None:
+            lead = max(lead, self._world_step() - self._next_step)
+        return (step_problem(step, self._next_step, self.params.run.max_steps, lead)
                 or (size_problem(len(pending) + 1, MAX_STEP_LEAD, "pending steps")
                     if step not in pending else None))
+
+    def _world_step(self) -> int:
+        """The step of the world's clock (/clock, validated), as far as it reached here."""
+        return int(self.get_clock().now().nanoseconds // round(self.time_step_s * 1e9))
 
     def scan_problem(self, message: SonarScan) -> str | None:
         """Reason to drop a sonar scan: addressed to another robot, wrong frame or stamp,
@@ -601,8 +609,12 @@ class RobotNode(LeanNode):
                     return
                 self._resume()
             step = self._next_step
-            if step is None or step not in self._scans or step not in self._odometry:
+            if step is None:
                 return
+            if step not in self._scans or step not in self._odometry:
+                if not self._skip_to_the_worlds_step():
+                    return
+                step = self._next_step
             if not self._recorder_listens and not self._recorder_listening():
                 return
             scan = self._scans[step]
@@ -617,6 +629,28 @@ class RobotNode(LeanNode):
             self._step(scan, self._odometry.pop(step), limits or None)
             del self._scans[step]
             self._next_step = step + 1
+
+    def _skip_to_the_worlds_step(self) -> bool:
+        """While the sensor data of the awaited step is missing: if a later step is complete
+        and the world's clock reached it, the world went on without this robot (it was wedged,
+        stopped or starved; ``core.agent.rejoin.step_to_resume_at``): drop the older data and
+        resume at that step, with one moving step's odometry covariance for the motion since
+        (``RobotAgent.skip_steps``). Returns True if it skipped."""
+        awaited = self._next_step
+        resume_at = step_to_resume_at(awaited, self._scans.keys() & self._odometry.keys(),
+                                      self._world_step())
+        if resume_at is None:
+            return False
+        for pending in (self._scans, self._odometry):
+            for old in [k for k in pending if k < resume_at]:
+                del pending[old]
+        self._next_step, self._waiting_since = resume_at, None
+        self.agent.skip_steps()
+        self.get_logger().warn(
+            f"the world went on without this robot: resuming at step {resume_at}, "
+            f"{resume_at - awaited} steps after step {awaited}, whose sensor data is lost "
+            f"(the world held the vehicle still meanwhile)")
+        return True
 
     def _team_data_held(self, scan: SonarScan, limits: dict[int, int]) -> bool:
         """True when this robot holds the team data it must apply before the scan's step:

@@ -10,10 +10,17 @@ number the world's barrier names for it, and for ``settle_s`` more so that recor
 teammate holds beyond the barrier are not numbered twice. Then ``RobotAgent.resume``
 rebuilds its graph, targets and sequence numbering from them.
 
+A robot whose process lived on but stopped answering (wedged, stopped, starved) rejoins too:
+the world went on without it, and the sensor data of the steps it missed is lost (the
+sensor topics keep only the newest messages) or no longer answered. It resumes at the
+world's step (``step_to_resume_at``) instead of waiting for data that never comes.
+
 Memory: an archive holds what the team published, the same amount as each robot's own
 outbox holds of its own stream (about 200 bytes per robot and simulated second).
 """
 from __future__ import annotations
+
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -92,6 +99,21 @@ class OwnHistoryRecovery:
         since the start, or when ``give_up_s`` passed."""
         waited = now_s - self._started_s
         return waited >= self._give_up_s or (self.short_of == 0 and waited >= self._settle_s)
+
+
+def step_to_resume_at(next_step: int, complete_steps: Iterable[int],
+                      world_step: int) -> int | None:
+    """The step a robot skips ahead to, or None to keep waiting for ``next_step``.
+
+    ``complete_steps``: the steps whose sensor data (sonar and odometry) the robot holds;
+    ``world_step``: the step of the world's clock (/clock). In lockstep the world sends
+    step k + 1 only once every robot it waits for answered step k, so holding a later step
+    than the one awaited means the world went on without this robot: its newest complete
+    step is the world's open step, the one to answer. A step the world's clock has not
+    reached is not the world's (a forged message) and is never skipped to.
+    """
+    newest = max((step for step in complete_steps if step <= world_step), default=None)
+    return newest if newest is not None and newest > next_step else None
 
 
 def keyframe_ranges(indices: np.ndarray) -> str:

@@ -251,14 +251,28 @@ class RobotAgent:
         self.slam.update()
         self._keyframes.resume(last_keyframe.index)
         self._dead_reckoning.resume(odom_pose)
-        motion = self.params.motion
-        per_step = odometry_covariance_per_step(motion.speed_mps * motion.time_step_s, True,
-                                                self.params.sensors)
         interval = self.params.slam.keyframe_interval_steps
         complete = len(history) >= through_sequence and not rebuilt
         moving_steps = interval if complete else max(
             first_step - last_keyframe.index * interval, interval)
-        self._gap_covariance = per_step * moving_steps
+        self._gap_covariance = self._moving_step_covariance() * moving_steps
+
+    def skip_steps(self) -> None:
+        """The steps between the last one processed and the next are skipped: the world went
+        on without this robot (it stopped waiting for its answers), and their sensor data is
+        lost or stale. The world holds an unanswered robot's vehicle still, so the next
+        odometry reading (the dead reckoning is a running pose) measures at most one step of
+        motion, the last command's, while its own increment covariance is that of a still
+        vehicle (zero): that one moving step's covariance is added to it."""
+        step_covariance = self._moving_step_covariance()
+        self._gap_covariance = (step_covariance if self._gap_covariance is None
+                                else self._gap_covariance + step_covariance)
+
+    def _moving_step_covariance(self) -> np.ndarray:
+        """Odometry covariance of one step at full speed, turning ([m^2], [rad^2])."""
+        motion = self.params.motion
+        return odometry_covariance_per_step(motion.speed_mps * motion.time_step_s, True,
+                                            self.params.sensors)
 
     def _stream_start(self) -> TeamUpdate:
         """Record 1 of this robot's stream as far as it can be rebuilt (``resume``): its first
