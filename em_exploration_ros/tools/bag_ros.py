@@ -177,3 +177,15 @@ def topic_pattern(text: str) -> re2._Regexp | None:
         return compile_topic_pattern(text)
     except TopicPatternError as error:
         raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def add_topic_expression_arguments(parser: argparse.ArgumentParser, verb: str,
+                                   include_help: str, include_default: str | None = None
+                                   ) -> None:
+    """``--regex`` and ``--exclude`` of a tool that ``verb``s topics (record, play, serve),
+    parsed by ``topic_pattern``; ``include_help`` says what ``--regex`` does."""
+    parser.add_argument("--regex", type=topic_pattern, default=include_default, metavar="RE",
+                        help=f"{include_help} (RE2 syntax)")
+    parser.add_argument("--exclude", type=topic_pattern, default=None, metavar="RE",
+                        help=f"never {verb} topics matching this regular expression (RE2 "
+                        "syntax)")

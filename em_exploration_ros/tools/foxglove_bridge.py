@@ -42,8 +42,8 @@ from em_exploration_ros.nodes.input_guard import InputGuard
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.tools.bag_ros import (
-    MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
-    other_types_of_taken_topics, qos_from_rclpy, qos_to_rclpy, topic_pattern)
+    MessageTypeError, add_topic_expression_arguments, cli_args, message_type_support,
+    new_selected_topics, number_type, other_types_of_taken_topics, qos_from_rclpy, qos_to_rclpy)
 
 #: What a viewer of the team needs (the default selection).
 VIEW_TOPICS = (r"^/(tf|tf_static|mission/anchor_pose|evaluation/metrics|world/(markers|landmarks)|"
@@ -78,12 +78,9 @@ def parse_options(args: list[str]) -> BridgeOptions:
                         help=f"TCP port (default: {DEFAULT_PORT}; 0: any free port)")
     parser.add_argument("--host", default=DEFAULT_HOST,
                         help=f"address to listen on (default: {DEFAULT_HOST}, this machine only)")
-    parser.add_argument("--regex", type=topic_pattern, default=VIEW_TOPICS, metavar="RE",
-                        help="serve the topics matching this regular expression, RE2 syntax "
-                        "(default: the maps, paths, markers, TF and metrics of the team)")
-    parser.add_argument("--exclude", type=topic_pattern, default=None, metavar="RE",
-                        help="never serve topics matching this regular expression (RE2 "
-                        "syntax)")
+    add_topic_expression_arguments(
+        parser, "serve", "serve the topics matching this regular expression (default: the "
+        "maps, paths, markers, TF and metrics of the team)", VIEW_TOPICS)
     options = parser.parse_args(args)
     if options.port > 65535:
         parser.error(f"--port must be at most 65535, got {options.port}")

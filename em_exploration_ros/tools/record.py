@@ -58,8 +58,8 @@ from em_exploration_ros.nodes.node_main import interrupt_shuts_down
 from em_exploration_ros.nodes.recorder_presence import RECORDER_NODE_NAME
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.tools.bag_ros import (
-    MessageTypeError, cli_args, message_type_support, new_selected_topics, number_type,
-    other_types_of_taken_topics, qos_from_rclpy, qos_to_rclpy, topic_pattern)
+    MessageTypeError, add_topic_expression_arguments, cli_args, message_type_support,
+    new_selected_topics, number_type, other_types_of_taken_topics, qos_from_rclpy, qos_to_rclpy)
 
 EXIT_USAGE = 2
 #: Exit code of a recording the OS refused to write (e.g. a full disk).
@@ -91,12 +91,8 @@ def parse_options(args: list[str]) -> RecordOptions:
                         "exist")
     parser.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
                         help="record these topics (default: all)")
-    parser.add_argument("--regex", type=topic_pattern, default=None, metavar="RE",
-                        help="also record topics matching this regular expression (RE2 "
-                        "syntax)")
-    parser.add_argument("--exclude", type=topic_pattern, default=None, metavar="RE",
-                        help="never record topics matching this regular expression (RE2 "
-                        "syntax)")
+    add_topic_expression_arguments(parser, "record",
+                                   "also record topics matching this regular expression")
     parser.add_argument("--compression", choices=sorted(COMPRESSIONS), default="zstd",
                         help="chunk compression (default: zstd)")
     parser.add_argument("--chunk-size", type=number_type(int), default=DEFAULT_CHUNK_SIZE,

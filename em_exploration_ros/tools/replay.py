@@ -46,7 +46,8 @@ from em_exploration_ros.bag_format.qos_yaml import QosFormatError, QosProfile, o
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.nodes.node_main import interrupt_shuts_down
 from em_exploration_ros.tools.bag_ros import (
-    MessageTypeError, cli_args, import_message_class, number_type, qos_to_rclpy, topic_pattern)
+    MessageTypeError, add_topic_expression_arguments, cli_args, import_message_class,
+    number_type, qos_to_rclpy)
 
 EXIT_BAD_INPUT = 2
 CLOCK_TOPIC = "/clock"
@@ -118,10 +119,8 @@ def parse_options(args: list[str]) -> ReplayOptions:
     parser.add_argument("--loop", action="store_true", help="play again and again")
     parser.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
                         help="play only these topics (default: all)")
-    parser.add_argument("--regex", type=topic_pattern, default=None, metavar="RE",
-                        help="also play topics matching this regular expression (RE2 syntax)")
-    parser.add_argument("--exclude", type=topic_pattern, default=None, metavar="RE",
-                        help="never play topics matching this regular expression (RE2 syntax)")
+    add_topic_expression_arguments(parser, "play",
+                                   "also play topics matching this regular expression")
     parser.add_argument("--remap", nargs="+", type=_remap, default=[], metavar="OLD:=NEW",
                         help="publish topic OLD under the name NEW")
     parser.add_argument("--delay", type=number_type(float, allow_zero=True), default=0.5,
