@@ -1,17 +1,27 @@
-"""The message checks every node applies before it touches state (nodes/input_guard.py)."""
+"""The message checks every node applies before it touches state, and ``publish_or_log``
+(nodes/input_guard.py)."""
 from __future__ import annotations
 
 import math
+import sys
+import textwrap
 import types
 
 import numpy as np
+import pytest
+import rclpy
 import rclpy.logging
 from nav_msgs.msg import Odometry, Path
+from rclpy.node import Node
 from rclpy.serialization import serialize_message
+from std_msgs.msg import String
 
 from em_exploration_ros.nodes.conversions import path_to_msg
-from em_exploration_ros.nodes.input_guard import (InputGuard, content_problem,
+from em_exploration_ros.nodes.input_guard import (InputGuard, content_problem, publish_or_log,
                                                   serialized_size, size_limited)
+from em_exploration_ros.nodes.node_main import RCLError
+
+from ros_process import NodeProcess, REPO_ROOT
 
 
 def long_path(poses: int) -> Path:
@@ -62,3 +72,91 @@ def test_size_limited_drops_bytes_that_are_not_the_type():
     on_bytes(b"\x00\x01\x00\x00" + b"\xff" * 40)  # a count of 2^32 - 1 poses
     on_bytes(b"\x00\x01")
     assert received == [] and inputs.dropped == 2
+
+
+class RecordingLogger:
+    """Stands for a node's logger: keeps the ERROR lines."""
+
+    def __init__(self) -> None:
+        self.errors: list[str] = []
+
+    def error(self, message: str, **_throttle) -> None:
+        self.errors.append(message)
+
+
+@pytest.fixture
+def node(monkeypatch):
+    """A node on its own context, logging ERRORs to ``node.get_logger().errors``."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = Node("publish_or_log_test", context=context)
+    logger = RecordingLogger()
+    monkeypatch.setattr(node, "get_logger", lambda: logger)
+    try:
+        yield node
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def test_a_publish_after_the_context_was_shut_down_is_the_stop_not_an_error(node):
+    """Ctrl-C shuts the context down while a callback may still publish: rcl refuses with
+    "publisher's context is invalid"; that is the process stopping, not an ERROR."""
+    publisher = node.create_publisher(String, "late", 10)
+    assert publish_or_log(publisher, String(data="before"), node, "a message")
+    node.context.shutdown()
+    with pytest.raises(RCLError, match="context is invalid"):
+        publisher.publish(String(data="after"))
+    assert not publish_or_log(publisher, String(data="after"), node, "a late message")
+    assert node.get_logger().errors == []
+
+
+def test_a_publish_refused_while_the_context_is_valid_is_still_an_error(node):
+    def refuse(_message: String) -> None:
+        raise RCLError("Failed to publish: the middleware refused")
+
+    publisher = types.SimpleNamespace(topic_name="/refused", publish=refuse)
+    assert not publish_or_log(publisher, String(data="x"), node, "a refused message")
+    assert node.get_logger().errors == [
+        "could not publish a refused message on /refused: Failed to publish: the middleware "
+        "refused"]
+
+
+# A node whose timer callback sends itself SIGINT, waits until rclpy's signal thread shut its
+# context down (as a callback still running at a Ctrl-C, or one a stopped process runs when
+# SIGCONT delivers the pending SIGINT), then publishes through publish_or_log.
+LATE_PUBLISHING_NODE = textwrap.dedent("""
+    import os, signal, sys, time
+    from rclpy.node import Node
+    from std_msgs.msg import String
+    from em_exploration_ros.nodes.input_guard import publish_or_log
+    from em_exploration_ros.nodes.node_main import run_node
+
+    class LatePublisher(Node):
+        def __init__(self):
+            super().__init__("late_publisher")
+            self.publisher = self.create_publisher(String, "late", 10)
+            self.timer = self.create_timer(0.01, self.tick)
+
+        def tick(self):
+            self.timer.cancel()
+            os.kill(os.getpid(), signal.SIGINT)
+            deadline = time.monotonic() + 5.0
+            while self.context.ok() and time.monotonic() < deadline:
+                time.sleep(0.001)
+            sent = publish_or_log(self.publisher, String(data="late"), self, "a late message")
+            print(f"context ok: {self.context.ok()}; sent: {sent}", flush=True)
+
+    sys.exit(run_node(LatePublisher, "late_publisher"))
+""")
+
+
+def test_ctrl_c_during_a_callback_that_publishes_logs_no_error(tmp_path):
+    process = NodeProcess([sys.executable, "-c", LATE_PUBLISHING_NODE], tmp_path / "node.log",
+                          env={"PYTHONPATH": str(REPO_ROOT)})
+    with process:
+        code = process.wait(30.0)
+    output = process.output()
+    assert code == 0, output
+    assert "context ok: False; sent: False" in output, output
+    assert "[ERROR]" not in output and "context is invalid" not in output, output

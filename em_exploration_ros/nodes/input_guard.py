@@ -7,7 +7,7 @@ message: the header's stamp and frame; every floating-point number and every tim
 carries; ``checked_team_update`` adds a team update's array sizes.
 ``size_limited`` drops a serialized message longer than the topic's largest valid one
 before it is deserialized. ``publish_or_log`` publishes and logs, never raises, when the
-middleware refuses.
+middleware refuses (silently once the node's context is shut down: the process is stopping).
 """
 from __future__ import annotations
 
@@ -257,10 +257,20 @@ def listened(publisher: Publisher) -> bool:
 
 
 def publish_or_log(publisher: Publisher, message: Any, node: Node, what: str) -> bool:
-    """Publish ``message``; if the middleware refuses, log an ERROR and return False."""
+    """Publish ``message``; if the middleware refuses, log an ERROR and return False.
+
+    A refusal once ``node``'s context is shut down is the process stopping, not an error:
+    False, without a line. Ctrl-C / SIGTERM shut the context down from rclpy's signal
+    thread while a callback may be running (as in a stopped process continued with a
+    pending SIGINT, the way run_team.sh stops one); its publish then fails with "publisher's
+    context is invalid", which was logged as an ERROR. A refusal while the context is
+    valid is still one.
+    """
     try:
         publisher.publish(message)
     except RCLError as error:
+        if not node.context.ok():
+            return False
         node.get_logger().error(f"could not publish {what} on {publisher.topic_name}: {error}",
                                 throttle_duration_sec=LOG_PERIOD_S)
         return False
