@@ -238,7 +238,7 @@ class RobotNode(LeanNode):
         (``core.agent.input_checks.step_problem``: more than ``MAX_STEP_LEAD`` steps, unless
         the world's clock is there already) or no room left in ``pending``."""
         lead = MAX_STEP_LEAD
-        if self._next_step is not None:
+        if self._next_step is not None and step > self._next_step + lead:
             lead = max(lead, self._world_step() - self._next_step)
         return (step_problem(step, self._next_step, self.params.run.max_steps, lead)
                 or (size_problem(len(pending) + 1, MAX_STEP_LEAD, "pending steps")
@@ -637,6 +637,8 @@ class RobotNode(LeanNode):
         resume at that step, with one moving step's odometry covariance for the motion since
         (``RobotAgent.skip_steps``). Returns True if it skipped."""
         awaited = self._next_step
+        if all(step <= awaited for step in self._scans):  # the usual case: nothing later
+            return False
         resume_at = step_to_resume_at(awaited, self._scans.keys() & self._odometry.keys(),
                                       self._world_step())
         if resume_at is None:
