@@ -255,6 +255,9 @@ def test_silent_robot_gets_the_step_again_is_lost_and_rejoins(tmp_path, team):
         assert time.monotonic() - asked >= timeout_s * 0.9
         assert "robot 1 lost: no answer to step 1 in time" in world.output()
         assert team.scan_arrivals[1][1] >= 3   # sent, then re-sent every 0.4 s
+        # ... each time after the step's /clock: a robot that was stopped missed the ticks
+        # (best effort) and resumes only at a step the world's clock reached.
+        assert team.clock_stamps.count(sim_time_s(1, 0.2)) >= 2
         sim.apply_command(0, *scripted_command(0, 1))
         sim.apply_command(1, 0.0, 0.0)
         sim.advance()

@@ -474,6 +474,8 @@ class RobotNode(LeanNode):
         self._watch_world()
         if self._recorder_wait_since is not None and not self._recorder_listens:
             self._process_ready_steps()
+        elif self._next_step is not None and any(step > self._next_step for step in self._scans):
+            self._process_ready_steps()  # the world's clock may have reached a later step
         now = time.monotonic()
         if self._recovery is not None:
             if self._recovery.complete(now):

@@ -18,7 +18,7 @@ step k publishes /clock, every robot's sonar (with the barrier ``team_sequences`
 odometry, and the ground truth; it then waits until every live robot has answered step k
 with a MotionCommand (``core.sim.lockstep.LockstepBarrier``). A robot whose answer is
 missing gets the step's sensor messages again every ``step_resend_s`` (the same messages,
-so a missed start or a lost packet changes nothing); a robot still silent after
+so a missed start or a lost packet changes nothing), after the step's /clock again; a robot still silent after
 ``robot_timeout_s`` wall seconds (``liveliness_grace_s`` once its liveliness lease expired,
 ``nodes/liveliness.py``) is *lost*: the world logs ``robot <i> lost: <why>`` and stops waiting for it (zero motion).
 A lost robot that answers again (recovered, or restarted with the same id) rejoins at the
@@ -281,7 +281,12 @@ class WorldNode(LeanNode):
             return
         now = time.monotonic()
         self._suspect_the_unseen(now)
-        for robot in self.barrier.due_for_resend(now):
+        due = self.barrier.due_for_resend(now)
+        if due:
+            # /clock is best effort: a robot stopped while the world went on without it
+            # missed every tick, and resumes only at a step the world's clock reached.
+            self.clock_pub.publish(Clock(clock=seconds_to_time(self.sim.stamp_s)))
+        for robot in due:
             self._send_step_messages(robot)
         for robot in self.barrier.expire(now):
             self._log_lost(robot, f"no answer to step {self.barrier.step} in time"
