@@ -517,7 +517,7 @@ TAIL_PID=$!
 FAILED=""
 # The world's log line when it steps over for good, and when this script saw it [s].
 STEPPED_OVER_LINE="stepping over at step" STEPPED_OVER_AT=""
-declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=() SEEN_BEFORE=()
+declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=() SEEN_BEFORE=() REJOINED_BEFORE=()
 
 # respawn_robot INDEX WHY: SIGKILL robot INDEX's process group (if alive) and start the same
 # command line again; it rejoins the team (the world takes it back, its teammates re-send
@@ -541,12 +541,15 @@ respawn_robot() {
     unset 'PIDS[-1]' 'NAMES[-1]'
     STARTED_AT[$robot]=$SECONDS
     SEEN_BEFORE[$robot]=$(seen_count "$robot")
+    REJOINED_BEFORE[$robot]=$(rejoined_count "$robot")
 }
 
 # lost_count ROBOT: how many times the world has reported robot ROBOT lost so far.
 lost_count() { grep -c "robot $1 lost:" "$LOG_DIR/world.log" 2>/dev/null; }
 # seen_count ROBOT: how many times the world has seen robot ROBOT's liveliness asserted.
 seen_count() { grep -c "robot $1: liveliness asserted" "$LOG_DIR/world.log" 2>/dev/null; }
+# rejoined_count ROBOT: how many times the world has taken robot ROBOT back after it was lost.
+rejoined_count() { grep -c "robot $1 rejoined at step" "$LOG_DIR/world.log" 2>/dev/null; }
 
 while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
     for index in "${!PIDS[@]}"; do
@@ -578,9 +581,11 @@ while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
             robot=${name#robot_}
             lost=$(lost_count "$robot")
             # (A first start has no earlier process: a fast team can lose a robot to a wedge
-            # within RESPAWN_GRACE_S of the run's start, and it must be restarted.)
+            # within RESPAWN_GRACE_S of the run's start, and it must be restarted. Once the
+            # world took the new process back, a "lost" line is about the new one.)
             if [[ -n ${STARTED_AT[$robot]:-} ]] \
-                    && (( SECONDS - STARTED_AT[$robot] < RESPAWN_GRACE_S )); then
+                    && (( SECONDS - STARTED_AT[$robot] < RESPAWN_GRACE_S )) \
+                    && (( $(rejoined_count "$robot") == REJOINED_BEFORE[$robot] )); then
                 LOST_SEEN[$robot]=$lost
             elif (( lost > ${LOST_SEEN[$robot]:-0} )); then
                 LOST_SEEN[$robot]=$lost
