@@ -286,3 +286,24 @@ def test_a_robot_restarted_before_the_world_counted_any_record_continues_from_ke
     bridged = keyframe.index * interval
     assert np.all(np.diag(keyframe.odom_covariance) >= np.diag(per_step) * (bridged - interval))
     assert np.linalg.norm(new.current_pose()[:2] - sim.true_pose(2)[:2]) < 2.0
+
+
+def test_a_robot_whose_graph_ties_nothing_to_the_map_counts_its_steps_without_a_pose():
+    """Restarted with none of its records while no teammate's records had come back yet
+    (as when the whole team was restarted): nothing ties robot 2's stream to the map, so it
+    has no pose and stands still; ``steps_unanchored`` counts those steps (the node warns
+    on it), and a teammate's reading of it ends the count."""
+    runner, _ = crashed_team(robot=2)
+    sim = runner.simulation
+    new = RobotAgent(2, PARAMS, sim.world.start_poses[0])
+    new.resume([], 0, sim.step)
+    for _ in range(3):
+        command = new.step(step_input(sim.sense(2), PARAMS.motion.time_step_s))
+        sim.apply_command(2, 0.0, 0.0)
+        sim.advance()
+    assert new.current_pose() is None and new.steps_unanchored == 3
+    assert (command.turn_rad, command.forward_m) == (0.0, 0.0)
+    new.apply_team_updates([update for robot in (0, 1)
+                            for update in runner.agents[robot].outbox.resend(1, 0)])
+    step_to_next_keyframe(new, runner)
+    assert new.current_pose() is not None and new.steps_unanchored == 0

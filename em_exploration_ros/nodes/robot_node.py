@@ -107,6 +107,9 @@ from em_exploration_ros.nodes.team_topics import (delivered_requests_topic,
                                                   delivered_updates_topic, history_copies_topic)
 
 EXIT_OK, EXIT_WORLD_GONE = 0, 4
+#: Steps without an estimate of its own pose (10 s simulated) before a robot says so; again
+#: after twice, four times, ... as many.
+UNANCHORED_WARN_STEPS = 50
 
 
 def requester_name(requester_id: int) -> str:
@@ -701,6 +704,7 @@ class RobotNode(LeanNode):
             twist_to_increment_covariance(odometry.twist_covariance, self.time_step_s),
             tuple(landmark_reading_from_msg(r) for r in scan.landmarks),
             tuple(teammate_reading_from_msg(r) for r in scan.teammates)))
+        self._warn_if_unanchored(agent.steps_unanchored)
         update = agent.take_outgoing()
         if self.relay_mode:
             self._send_frames(step, update)
@@ -727,6 +731,18 @@ class RobotNode(LeanNode):
         if len(agent.decisions) != decisions_before:
             self._publish_decision(stamp_s)
         self._log_slam_recoveries()
+
+    def _warn_if_unanchored(self, steps: int) -> None:
+        """A robot without an estimate of its own pose stands still: say so after
+        ``UNANCHORED_WARN_STEPS`` such steps, and again after 2x, 4x, ... as many."""
+        intervals, rest = divmod(steps, UNANCHORED_WARN_STEPS)
+        if steps == 0 or rest or intervals & (intervals - 1):
+            return
+        self.get_logger().warn(
+            f"no estimate of this robot's own pose for {steps} steps "
+            f"({steps * self.time_step_s:g} s): nothing the team holds ties its trajectory "
+            f"to the map (for a robot other than 0, a teammate's reading of it); it stands "
+            f"still until a teammate's reading of it arrives")
 
     def _log_slam_recoveries(self) -> None:
         """A warning for every SLAM update re-solved in batch since the last call."""

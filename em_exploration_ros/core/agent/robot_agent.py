@@ -171,6 +171,10 @@ class RobotAgent:
         self.meeting_effects: list[MeetingEffect] = []
         self._watched_meeting: Meeting | None = None
         self._gap_covariance: np.ndarray | None = None
+        #: Consecutive steps without an estimate of its own pose (``current_pose`` None):
+        #: a robot's stream is tied to the map by robot 0's start pose, or for another robot
+        #: by a teammate's reading of it, which the graph may not (or no longer) hold.
+        self.steps_unanchored = 0
         self.given_up: list[GivenUpTarget] = []
         self.blocked_s = 0.0
         self.blacklist = TargetBlacklist(params.progress)
@@ -304,6 +308,7 @@ class RobotAgent:
             self._update_slam()
             self._pending.keyframes.append(keyframe)
         pose = self.current_pose()
+        self.steps_unanchored = self.steps_unanchored + 1 if pose is None else 0
         if pose is None or self.finished:
             return self._command(0.0, 0.0)
         self._handle_rendezvous(pose)
