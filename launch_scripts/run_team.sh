@@ -31,7 +31,8 @@ FOXGLOVE_MODULE=em_exploration_ros.tools.foxglove_bridge
 STOP_GRACE_S=10
 KILL_GRACE_S=3
 # --respawn: the world's "robot <i> lost" lines within this many seconds after a robot's
-# (re)start are about its previous process (its liveliness lease expiring), not the new one.
+# (re)start, until the world takes the new process back, are about its previous process (its
+# liveliness lease expiring), not the new one.
 RESPAWN_GRACE_S=15
 # --respawn: at most this many restarts per robot (a robot that keeps crashing stays down).
 MAX_RESPAWNS=10

@@ -342,6 +342,10 @@ class RobotNode(LeanNode):
         replaying stale steps it could never catch up with."""
         if self._recovery is None or self._next_step is None or step <= self._next_step:
             return
+        self._resume_at(step)
+
+    def _resume_at(self, step: int) -> None:
+        """Make ``step`` the next one to process: the sensor data of earlier steps goes."""
         for pending in (self._scans, self._odometry):
             for old in [k for k in pending if k < step]:
                 del pending[old]
@@ -405,8 +409,9 @@ class RobotNode(LeanNode):
         """Re-send what this robot holds of a restarted teammate's stream (the records it
         applied, then those the barrier still holds back), the teammate's request checked
         first (``history_request_problem``), at most once per ``request_period_s`` per
-        teammate, logged at most once per ``LOG_PERIOD_S`` per teammate. Nothing tells a forged request from a real one (DDS carries no identity
-        without security), so that bound is what a forger gets."""
+        teammate, logged at most once per ``LOG_PERIOD_S`` per teammate. Nothing tells a
+        forged request from a real one (DDS carries no identity without security), so that
+        bound is what a forger gets."""
         requester = int(request.requester_id)
         if not self.inputs.check(topic, history_request_problem(
                 requester, int(request.first_sequence), int(request.last_sequence),
@@ -648,10 +653,8 @@ class RobotNode(LeanNode):
                                       self._world_step())
         if resume_at is None:
             return False
-        for pending in (self._scans, self._odometry):
-            for old in [k for k in pending if k < resume_at]:
-                del pending[old]
-        self._next_step, self._waiting_since = resume_at, None
+        self._resume_at(resume_at)
+        self._waiting_since = None
         self.agent.skip_steps()
         self.get_logger().warn(
             f"the world went on without this robot: resuming at step {resume_at}, "

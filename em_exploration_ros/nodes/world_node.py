@@ -18,13 +18,14 @@ step k publishes /clock, every robot's sonar (with the barrier ``team_sequences`
 odometry, and the ground truth; it then waits until every live robot has answered step k
 with a MotionCommand (``core.sim.lockstep.LockstepBarrier``). A robot whose answer is
 missing gets the step's sensor messages again every ``step_resend_s`` (the same messages,
-so a missed start or a lost packet changes nothing), after the step's /clock again; a robot still silent after
-``robot_timeout_s`` wall seconds (``liveliness_grace_s`` once its liveliness lease expired,
-``nodes/liveliness.py``) is *lost*: the world logs ``robot <i> lost: <why>`` and stops waiting for it (zero motion).
-A lost robot that answers again (recovered, or restarted with the same id) rejoins at the
-pose where its vehicle stopped. The commands are applied in robot id order and the world
-advances: the same order as ``core.sim.team_runner.TeamRunner.step_once``, so em-sim and the
-ROS system draw the same noise.
+so a missed start or a lost packet changes nothing), after the step's /clock again; a robot
+still silent after ``robot_timeout_s`` wall seconds (``liveliness_grace_s`` once its
+liveliness lease expired, ``nodes/liveliness.py``) is *lost*: the world logs ``robot <i>
+lost: <why>`` and stops waiting for it (zero motion). A lost robot that answers again
+(recovered, or restarted with the same id) rejoins at the pose where its vehicle stopped.
+The commands are applied in robot id order and the world advances: the same order as
+``core.sim.team_runner.TeamRunner.step_once``, so em-sim and the ROS system draw the same
+noise.
 
 Relay mode (``links.*`` not perfect): the world is also the link relay between the robots
 (``nodes/team_relay.py``): it hears their team data, closes step k only once it heard
