@@ -505,3 +505,29 @@ def test_progress_reports_each_trial_and_estimates_time_left(tmp_path):
     assert lines[0].startswith("[1/4] s/NEAREST/seed 0: done in 10.0 s (explored 0.850, 120 m)")
     assert lines[1].startswith("[2/4] s/CE/seed 0: FAILED after 30.0 s: KeyError: 1")
     assert "left ~0:00:20" in lines[1]
+
+
+class _FakeWorker:
+    """A worker process whose start fails as over a fork server that has just died."""
+
+    def __init__(self, failures: list[BaseException]) -> None:
+        self.name, self.started, self._failures = "trial", False, failures
+
+    def start(self) -> None:
+        if self._failures:
+            raise self._failures.pop(0)
+        self.started = True
+
+
+def test_a_worker_whose_fork_server_just_died_is_started_again(monkeypatch):
+    """SIGKILL of the fork server just before a start: multiprocessing still takes the server
+    for alive and the start fails reading the pid (a CI run ended em-bench with an EOFError
+    traceback); the next try starts a new server."""
+    monkeypatch.setattr(bench, "START_RETRY_S", 0.0)
+    failures: list[BaseException] = [EOFError("unexpected EOF"), ConnectionResetError()]
+    made: list[_FakeWorker] = []
+    started = bench.start_worker(lambda: made.append(_FakeWorker(failures)) or made[-1])
+    assert started.started and len(made) == 3
+    always = [EOFError("unexpected EOF")] * bench.START_ATTEMPTS
+    with pytest.raises(EOFError):
+        bench.start_worker(lambda: _FakeWorker(always))

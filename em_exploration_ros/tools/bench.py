@@ -73,6 +73,9 @@ ERROR_CHARS = 200
 FORK_SERVER_LOST_EXIT_CODE = 255
 #: How long a worker killed after its fork server died is waited for [s].
 ORPHAN_EXIT_WAIT_S = 5.0
+#: Tries to start a worker, START_RETRY_S apart [s], when its fork server has just died.
+START_ATTEMPTS = 5
+START_RETRY_S = 0.1
 #: A trial record larger than this is not read [bytes]: the largest of the paper's
 #: experiment (200 m, 600 decisions) is about 240 kB.
 MAX_RECORD_BYTES = 16 * 1024 * 1024
@@ -468,8 +471,9 @@ def run_trials(specs: Sequence[TrialSpec], jobs: int, progress: ProgressBar) -> 
             while pending and len(running) < jobs:
                 spec = pending.popleft()
                 spec.path.unlink(missing_ok=True)
-                process = context.Process(target=run_trial, args=(spec,), name=spec.label)
-                process.start()
+                process = start_worker(
+                    lambda spec=spec: context.Process(target=run_trial, args=(spec,),
+                                                      name=spec.label))
                 running[process.sentinel] = _RunningTrial(process, _pidfd(process.pid), spec,
                                                            time.perf_counter())
                 progress.started(spec)
@@ -490,6 +494,26 @@ def run_trials(specs: Sequence[TrialSpec], jobs: int, progress: ProgressBar) -> 
             trial.stop_if_orphaned()
             trial.close()
         progress.close()
+
+
+def start_worker(make_process: Callable[[], multiprocessing.process.BaseProcess]
+                 ) -> multiprocessing.process.BaseProcess:
+    """A started process from ``make_process()``. A fork server killed a moment before
+    still looks alive to multiprocessing, and the start then fails reading the new pid
+    (EOFError, or a broken connection); multiprocessing starts a new server at the next
+    try, so a new process is tried up to ``START_ATTEMPTS`` times."""
+    for _ in range(START_ATTEMPTS - 1):
+        process = make_process()
+        try:
+            process.start()
+            return process
+        except (EOFError, ConnectionError) as error:
+            _LOG.warning("%s: could not start its worker (%s: the fork server died?); "
+                         "trying again", process.name, type(error).__name__)
+            time.sleep(START_RETRY_S)
+    process = make_process()
+    process.start()
+    return process
 
 
 def _pidfd(pid: int) -> int | None:
