@@ -6,8 +6,8 @@ callback in a ``Task`` coroutine, and triggers its own guard condition twice per
 which ends its next wait at once, rebuild included, even when nothing else is ready. The
 lockstep team wakes its five processes three to five times per simulated step; on this
 executor (with two smaller changes of the same day) the default 3-robot run needed 17 % less
-CPU (team CPU 36.9 s against 44.6 s, medians of six interleaved pairs, README "A leaner
-executor"), with the same targets.
+CPU (team CPU 36.9 s against 44.6 s, medians of six interleaved pairs; "A leaner executor"
+in benchmarks/MEASUREMENTS.md), with the same targets.
 
 ``LeanExecutor`` keeps the same contract for the team's nodes and does less:
 
