@@ -296,6 +296,7 @@ SUMMARY="$(cd "$(dirname "$SUMMARY")" && pwd)/$(basename "$SUMMARY")"
 SUMMARY_STEM=$(basename "$SUMMARY")
 MAP_PNG="$(dirname "$SUMMARY")/${SUMMARY_STEM%.*}_map.png"
 LOG_DIR="$(dirname "$SUMMARY")/logs"
+STATE_DIR="$(dirname "$SUMMARY")/state"  # the robots' stream journals, read after a restart
 if [[ -n $RECORD ]]; then
     RECORD_PATH=${RECORD_PATH:-"$EM_REPO_ROOT/bags/$RUN_NAME"}
     mkdir -p "$(dirname "$RECORD_PATH")" 2>/dev/null \
@@ -304,7 +305,7 @@ fi
 # The folders the run writes into exist before the outputs are checked: a recording must not
 # go where one of them is (it would fail only once the team has started). A log folder that
 # cannot be made is refused after the check, which says better why for an unwritable folder.
-mkdir -p "$LOG_DIR/ros" 2>/dev/null
+mkdir -p "$LOG_DIR/ros" "$STATE_DIR" 2>/dev/null
 if [[ -n $TRACE_DIR ]]; then
     mkdir -p "$TRACE_DIR" 2>/dev/null || usage_error "--trace-steps: cannot create '$TRACE_DIR'"
     compgen -G "$TRACE_DIR/*.trace" >/dev/null \
@@ -330,7 +331,9 @@ PY
     usage_error "$PROBLEM"
 fi
 [[ -d $LOG_DIR/ros ]] || usage_error "--summary: cannot create the log folder '$LOG_DIR'"
+[[ -d $STATE_DIR ]] || usage_error "--summary: cannot create the state folder '$STATE_DIR'"
 rm -f "$SUMMARY" "$MAP_PNG" "$LOG_DIR"/*.log  # logs are appended to (a respawned robot's too)
+rm -f "$STATE_DIR"/robot_*.journal "$STATE_DIR"/robot_*.journal.new  # another run's streams
 
 if [[ -n $DOMAIN_ID ]]; then
     export ROS_DOMAIN_ID=$DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -501,8 +504,8 @@ start world -m "$NODES.world_node" "${COMMON[@]}" "${CLOCK[@]}" "${WAIT_FOR[@]}"
 # start_robot ID: robot ID's process; a restart (--respawn) uses the same command line.
 start_robot() {
     start "robot_$1" -m "$NODES.robot_node" --ros-args -r "__ns:=/robot_$1" \
-        -p "robot_id:=$1" -p use_sim_time:=true --params-file "$PARAMS_FILE" "${OVERRIDES[@]}" \
-        "${ROBOT_WAIT_FOR[@]}"
+        -p "robot_id:=$1" -p use_sim_time:=true -p "state_dir:=$(as_string "$STATE_DIR")" \
+        --params-file "$PARAMS_FILE" "${OVERRIDES[@]}" "${ROBOT_WAIT_FOR[@]}"
 }
 for (( robot = 0; robot < NUM_ROBOTS; robot++ )); do
     start_robot "$robot"

@@ -300,9 +300,11 @@ def test_a_robot_restarted_under_poor_links_resumes_at_the_worlds_open_step(tmp_
     params = tmp_path / "params.yaml"
     # The recovery must outlast the world's wait before it goes on without the killed robot
     # (liveliness_grace_s, 4 s): with 4 s each, the two raced and the world went only 15
-    # steps ahead (failed once in CI).
+    # steps ahead (failed once in CI). No stream journal (state_dir empty): with its own
+    # journal the robot takes its stream back within a second and the world never goes on.
     params.write_text((REPO_ROOT / "config" / "exploration.yaml").read_text()
-                      + "/**/em_robot:\n  ros__parameters:\n    rejoin_timeout_s: 8.0\n")
+                      + "/**/em_robot:\n  ros__parameters:\n    rejoin_timeout_s: 8.0\n"
+                      + '    state_dir: ""\n')
     summary_path = tmp_path / "run" / "summary.json"
     run, domain = start_team_run(
         tmp_path, "--robots", "3", "--map-size", "60", "--landmarks", "6", "--seed", "2",

@@ -313,3 +313,43 @@ def test_a_robot_wedged_early_in_the_run_is_restarted(tmp_path):
     assert code == 0, output[-3000:]
     assert "robot_2 is alive but lost to the world (wedged or silent); restarting it" in output
     assert "robot 2 rejoined" in (summary_path.parent / "logs" / "evaluator.log").read_text()
+
+
+def test_a_team_restarted_whole_takes_its_streams_back_from_the_robots_journals(tmp_path):
+    """--respawn: every robot SIGKILLed at once (a power cycle of the whole team). No
+    teammate holds a robot's earlier stream then; each restarted robot reads it back from its
+    own journal (run_team.sh gives them <run>/state), rejoins with all of it, and the team
+    explores on. Without the journals they resumed with none of it after 20 s, and robots 1
+    and 2 stood still for the rest of the run (nothing tied them to the map)."""
+    summary_path = tmp_path / "summary.json"
+    run, domain = start_team_run(tmp_path, *SMALL_TEAM, "--respawn",
+                                 "--summary", str(summary_path))
+    with run:
+        run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+        for robot in range(3):
+            os.kill(robot_pid(domain, robot), signal.SIGKILL)
+        code = run.wait(RUN_TIMEOUT_S)
+    output = run.output()
+    assert code == 0, output[-3000:]
+    logs = summary_path.parent / "logs"
+    for robot in range(3):
+        assert f"robot_{robot} exited with code 137; restarting it" in output
+        log = (logs / f"robot_{robot}.log").read_text()
+        read = re.search(r"read (\d+) records of this robot's stream from its journal .*"
+                         r"the team holds it up to sequence (\d+)", log)
+        assert read and int(read.group(1)) >= int(read.group(2)) > 0, log[-2000:]
+        assert "resuming without" not in log and "no estimate of this robot's own pose" \
+            not in log, robot
+    summary = json.loads(summary_path.read_text())
+    assert summary["explored_ratio"] >= 0.85, summary["stop_reason"]
+    final = (logs / "robot_0.log").read_text()
+    for robot in range(3):
+        changes = [change["status"] for change in summary["robots"][robot]["status_changes"]]
+        assert "rejoined" in changes, (robot, changes)
+        rejoined = re.search(r"rejoined: recovered \d+ records of this robot's stream "
+                             r"\(keyframes \d+ \[0-(\d+)\]",
+                             (logs / f"robot_{robot}.log").read_text())
+        assert rejoined, robot
+        # It explored on: robot 0's final graph holds many keyframes it made after it.
+        assert max(keyframes_in_graph(final, robot)) > int(rejoined.group(1)) + 10, robot
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []

@@ -79,6 +79,11 @@ class RobotNodeSettings:
     rejoin_timeout_s: float = param_field(
         20.0, "After a restart: wall seconds after which the robot resumes with what it "
         "recovered of its stream, even if records are missing.", 0.1, 1e6)
+    state_dir: str = param_field(
+        "", "Folder of this robot's stream journal (robot_<id>.journal): every record of its "
+        "team-update stream is appended there, and a restarted process reads its stream "
+        "back from it when no teammate holds it (empty: no journal; run_team.sh gives "
+        "<run folder>/state).")
     wait_for_recorder: bool = param_field(
         False, "Before its first step, wait until the recorder (em-record) subscribes to "
         "every topic this robot publishes (run_team.sh --record sets it), so that the "

@@ -44,16 +44,21 @@ Run: ``python -m em_exploration_ros.nodes.robot_node --ros-args -r __ns:=/robot_
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import time
+from collections.abc import Sequence
+import pathlib
 
 import numpy as np
 from em_exploration_msgs.msg import (LandmarkArray, MotionCommand, SonarScan, TeamUpdate,
                                      TeamUpdateRequest)
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import OccupancyGrid, Odometry, Path
+from rclpy._rclpy_pybind11 import RMWError
 from rclpy.clock import Clock, ClockType
+from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.task import Future
 from visualization_msgs.msg import MarkerArray
 
@@ -71,9 +76,12 @@ from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, Rejection
 from em_exploration_ros.core.agent.delivery_tally import RECORDS, REQUESTS, DeliveryTally
 from em_exploration_ros.core.agent.link_sender import LinkSender
 from em_exploration_ros.core.agent.resend import ResendScheduler
+from em_exploration_ros.core.agent.stream_journal import (JournalIdentity, StreamJournal,
+                                                          mission_fingerprint, read_journal)
 from em_exploration_ros.core.agent.team_data import (MAX_READINGS_PER_KEYFRAME,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
                                                      LandmarkEstimate, TeamUpdateInbox)
+from em_exploration_ros.core.agent.team_data import TeamUpdate as TeamRecord
 from em_exploration_ros.core.agent.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.node_settings import RobotNodeSettings
@@ -149,6 +157,7 @@ class RobotNode(LeanNode):
         self.team_messages = self.team_requests = 0
         self.deliveries = DeliveryTally()  # relay mode
         self.archive = StreamArchive(self.robot_id, self.num_robots)
+        self.journal = self._make_journal()
         self._recovery: OwnHistoryRecovery | None = None
         self._served_history: dict[int, float] = {}
         self._served_history_log = RejectionLog(LOG_PERIOD_S)
@@ -566,11 +575,70 @@ class RobotNode(LeanNode):
         if publish_or_log(self.request_pub, request, self, "a request for team updates"):
             self.team_requests += 1
 
-    def _publish_update(self, update: TeamUpdate, what: str) -> bool:
+    def _publish_update(self, update: TeamRecord, what: str) -> bool:
         """Publish a record of this robot's stream on its update topic (counted)."""
         sent = publish_or_log(self.update_pub, team_update_to_msg(update, self.wire), self, what)
         self.team_messages += sent
         return sent
+
+    def _make_journal(self) -> StreamJournal | None:
+        """This robot's stream journal in ``state_dir``, None without one."""
+        if not self.settings.state_dir:
+            return None
+        identity = JournalIdentity(self.robot_id, self.num_robots,
+                                   mission_fingerprint(self.params))
+        folder = pathlib.Path(self.settings.state_dir)
+        return StreamJournal(folder / f"robot_{self.robot_id}.journal", identity)
+
+    def _journal_bytes(self, update: TeamRecord) -> bytes:
+        """A record as journaled: the serialized TeamUpdate its teammates would send back."""
+        return serialize_message(team_update_to_msg(update, self.wire))
+
+    def _start_journal(self, records: Sequence[TeamRecord]) -> None:
+        """Begin the journal with the stream so far (none at the mission's start)."""
+        if self.journal is not None:
+            try:
+                self.journal.start(self._journal_bytes(update) for update in records)
+            except (OSError, ValueError) as error:
+                self._go_on_without_journal(error)
+
+    def _journal(self, update: TeamRecord) -> None:
+        """Append a new record of this robot's stream to its journal."""
+        if self.journal is not None:
+            try:
+                self.journal.append(self._journal_bytes(update))
+            except (OSError, ValueError) as error:
+                self._go_on_without_journal(error)
+
+    def _go_on_without_journal(self, error: Exception) -> None:
+        self.get_logger().error(
+            f"cannot write the stream journal {self.journal.path}: {error}; going on without "
+            f"it (after a restart only the teammates' copies of this robot's stream are left)")
+        with contextlib.suppress(OSError):
+            self.journal.close()
+        self.journal = None
+
+    def _take_journaled_stream(self) -> None:
+        """After a restart: this robot's earlier records from its own journal, checked as a
+        teammate's copy is; the teammates' copies fill what it lacks."""
+        if self.journal is None:
+            return
+        contents = read_journal(self.journal.path, self.journal.identity)
+        taken = 0
+        for payload in contents.records:
+            try:
+                message = deserialize_message(payload, TeamUpdate)
+                taken += self._recovery.receive(checked_team_update(message, self.wire))
+            except (RMWError, InvalidTeamUpdate, ValueError) as error:
+                self.get_logger().warn(f"the journal's record {taken + 1} is unusable "
+                                       f"({str(error).splitlines()[0][:120]}); not read on")
+                break
+        if contents.problem is not None:
+            self.get_logger().warn(f"stream journal: {contents.problem}")
+        self.get_logger().info(
+            f"read {taken} records of this robot's stream from its journal "
+            f"{self.journal.path} (the team holds it up to sequence "
+            f"{self._recovery.needed_sequence})")
 
     def _start_recovery(self, scan: SonarScan) -> None:
         """This process starts in the middle of a run: it was restarted after a crash."""
@@ -583,6 +651,7 @@ class RobotNode(LeanNode):
         self.get_logger().warn(
             f"first step is {scan.step}, not 0: restarted in a running team; asking the "
             f"teammates for this robot's stream (the team holds it up to sequence {needed})")
+        self._take_journaled_stream()
         self._last_request = now
         self._request_own_history()
 
@@ -596,6 +665,7 @@ class RobotNode(LeanNode):
                 f"re-sent empty, and the motion since the last keyframe recovered is linked "
                 f"with the odometry covariance of every step since")
         self.agent.resume(history, recovery.needed_sequence, self._next_step)
+        self._start_journal(self.agent.outbox.resend(1, 0))
         self._log_slam_recoveries()
         keyframes = np.array([keyframe.index for update in history
                               for keyframe in update.keyframes], dtype=int)
@@ -614,6 +684,8 @@ class RobotNode(LeanNode):
                     # Restarted: the deliveries before this process subscribed are not its own.
                     self.deliveries.start_at(delivered_counts(first))
                     self._start_recovery(first)
+                else:
+                    self._start_journal(())
             if self._recovery is not None:
                 if not self._recovery.complete(time.monotonic()):
                     return
@@ -709,6 +781,8 @@ class RobotNode(LeanNode):
             tuple(teammate_reading_from_msg(r) for r in scan.teammates)))
         self._warn_if_unanchored(agent.steps_unanchored)
         update = agent.take_outgoing()
+        if update is not None:
+            self._journal(update)
         if self.relay_mode:
             self._send_frames(step, update)
         elif update is not None:
@@ -754,7 +828,7 @@ class RobotNode(LeanNode):
             self.get_logger().warning(recovery.describe())
         self._slam_recoveries_logged = len(recoveries)
 
-    def _send_frames(self, step: int, update: TeamUpdate | None) -> None:
+    def _send_frames(self, step: int, update: TeamRecord | None) -> None:
         """Relay mode: publish what this robot sends at ``step`` (``LinkSender``, as em-sim):
         a gap request, the due re-sends, its new update."""
         for frame in self.link_sender.frames(step, self.inbox, self.agent.outbox, update):
