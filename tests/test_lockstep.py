@@ -94,6 +94,23 @@ def test_suspect_robot_gets_the_short_timeout_until_trusted():
     assert barrier.expire(49.9) == [] and barrier.expire(50.0) == [0, 1]
 
 
+def test_a_suspect_silent_since_its_loss_report_gets_no_new_short_timeout_at_the_next_step():
+    """Two robots wedged at once, robot 1 just after answering the open step: the step waits
+    for robot 2 until 4 s after its loss report, and the next step gave robot 1 another 4 s
+    from its opening, so the team stood still 8 s instead of 4."""
+    barrier = LockstepBarrier(3, robot_timeout_s=30.0, suspect_timeout_s=4.0)
+    barrier.open(0, now_s=0.0)
+    barrier.answer(0, 0, GO, 0.1)
+    barrier.answer(1, 0, GO, 0.1)              # then robots 1 and 2 wedge
+    barrier.suspect(2, now_s=2.0)
+    barrier.suspect(1, now_s=2.1)
+    assert barrier.expire(5.9) == [] and barrier.expire(6.0) == [2]
+    barrier.close()
+    barrier.open(1, now_s=6.0)
+    barrier.answer(0, 1, GO, 6.05)
+    assert barrier.expire(6.09) == [] and barrier.expire(6.1) == [1]
+
+
 def test_a_robot_whose_liveliness_comes_back_gets_the_long_timeout_on_the_open_step_too():
     """Under packet loss a live robot's liveliness assertions get lost and come back: it
     kept the 4 s of the loss report on the open step, was stopped when that step took

@@ -10,8 +10,9 @@ for step k). The barrier repairs itself before it gives up on anyone:
 - a robot still silent ``robot_timeout_s`` after the step opened for it is *stopped*: it
   stands still and is not waited for, and keeps its last barrier entry. A robot whose
   liveliness the middleware reports lost is *suspect* (``suspect``) until it is reported
-  alive again (``trust``): it gets only ``suspect_timeout_s`` to answer. A live robot
-  answers within a second, so a liveliness report lost on a lossy network changes nothing,
+  alive again (``trust``): it gets only ``suspect_timeout_s`` to answer, counted from the
+  loss report for as long as it has not answered since (not again from each new step), else
+  from the step's opening. A live robot answers within a second, so a liveliness report lost on a lossy network changes nothing,
   while a dead or wedged robot is given up after the lease plus ``suspect_timeout_s``
   instead of ``robot_timeout_s``; so is a robot whose new process reports its liveliness
   (``restarted``) for the open step;
@@ -68,6 +69,7 @@ class LockstepBarrier:
         self.resend_period_s = resend_period_s
         self.suspect_timeout_s = suspect_timeout_s
         self.suspects: set[int] = set()
+        self._silent_since_report: dict[int, float] = {}  # suspect -> its loss report [s]
         self.step = -1
         self.stopped: set[int] = set()
         self.rejoining: dict[int, float] = {}  # robot -> wall deadline [s]
@@ -86,6 +88,13 @@ class LockstepBarrier:
 
     def _arm(self, robot: int, now_s: float) -> None:
         self._deadline_s[robot] = now_s + self._timeout_s(robot)
+        reported_s = self._silent_since_report.get(robot)
+        if robot in self.suspects and reported_s is not None:
+            # Silent since its loss was reported: a new step does not restart its short
+            # timeout (two robots wedged at once, one of them after answering the open step,
+            # held the team twice as long).
+            self._deadline_s[robot] = min(self._deadline_s[robot],
+                                          reported_s + self.suspect_timeout_s)
         self._next_resend_s[robot] = now_s + self.resend_period_s
 
     def _timeout_s(self, robot: int) -> float:
@@ -98,6 +107,7 @@ class LockstepBarrier:
         ``suspect_timeout_s`` from now to answer the open step (and each later one) until
         ``trust``."""
         self.suspects.add(robot)
+        self._silent_since_report.setdefault(robot, now_s)
         self._deadline_s[robot] = min(self._deadline_s[robot], now_s + self._timeout_s(robot))
 
     def trust(self, robot: int, now_s: float) -> None:
@@ -106,6 +116,7 @@ class LockstepBarrier:
         ``robot_timeout_s`` again, on the open step from ``now_s``. (Healthy robots on lossy
         links kept the short deadline of their last loss report, were stopped when a step
         took longer, and were restarted by ``run_team.sh --respawn``.)"""
+        self._silent_since_report.pop(robot, None)
         if robot in self.suspects:
             self.suspects.discard(robot)
             self._deadline_s[robot] = max(self._deadline_s[robot], now_s + self.robot_timeout_s)
@@ -119,6 +130,7 @@ class LockstepBarrier:
         answers, for at most ``robot_timeout_s``."""
         self.suspect(robot, now_s)
         self.suspects.discard(robot)
+        self._silent_since_report.pop(robot, None)
         self.rejoining[robot] = now_s + self.robot_timeout_s
 
     def answer(self, robot_id: int, step: int, answer: StepAnswer, now_s: float) -> str:
@@ -132,6 +144,7 @@ class LockstepBarrier:
         ahead, and the robot never rejoined.) CONFLICT: a second answer to the open step
         that differs from the first, which stands (two publishers on one robot's topic)."""
         rejoined = robot_id in self.stopped and step <= self.step
+        self._silent_since_report.pop(robot_id, None)  # any answer shows the process alive
         if step <= self.step:
             self.rejoining.pop(robot_id, None)
         if rejoined:
