@@ -60,6 +60,30 @@ def test_a_restart_within_the_old_process_lease_counts_as_lost_from_its_report()
     assert not team.liveliness_back(0, False, 30.0, 12.0) and team.status(0) == ACTIVE
 
 
+def test_a_new_process_heard_before_its_liveliness_is_reported_is_not_lost_again():
+    """On separate hosts (--netns) the restarted process's first answer can come a second
+    before discovery reports its liveliness: that report made the rejoined robot lost again
+    (a spurious lost/rejoined pair in the summary's status changes)."""
+    team = TeamLiveness(2, grace_s=4.0)
+    team.liveliness_lost(1, 20.0, 8.0)
+    assert team.confirm(12.0) == [1]
+    assert team.heard(1, 22.0, 14.0, "answers again")             # the new process ...
+    assert not team.liveliness_back(1, True, 22.0, 15.0)          # ... then its liveliness
+    assert team.status(1) == REJOINED
+    assert [c.status for c in team.changes(1)] == [LOST, REJOINED]
+    # A later restart within the lease of that process is a restart again.
+    assert team.liveliness_back(1, True, 40.0, 30.0) and team.status(1) == LOST
+
+
+def test_a_lost_process_that_comes_back_itself_leaves_the_next_restart_counted():
+    team = TeamLiveness(2, grace_s=4.0)
+    team.liveliness_lost(1, 20.0, 8.0)
+    assert team.confirm(12.0) == [1]
+    assert not team.liveliness_back(1, False, 21.0, 13.0)  # SIGCONT: the same process
+    assert team.heard(1, 21.0, 13.0, "answers again")
+    assert team.liveliness_back(1, True, 40.0, 30.0) and team.status(1) == LOST
+
+
 def test_robots_never_seen_alive_are_due_once_a_lease_after_the_first_step():
     unseen = UnseenLiveliness(3, lease_s=3.0)
     assert unseen.due(100.0) == []                  # no first step yet

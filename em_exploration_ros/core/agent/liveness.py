@@ -33,6 +33,8 @@ class TeamLiveness:
         self.grace_s = grace_s
         self._changes: list[list[StatusChange]] = [[] for _ in range(num_robots)]
         self._unconfirmed: dict[int, tuple[float, float]] = {}
+        # Robots lost to a liveliness loss whose next process has not reported its own yet.
+        self._next_process_due: set[int] = set()
 
     def status(self, robot: int) -> str:
         """The robot's current status."""
@@ -54,9 +56,14 @@ class TeamLiveness:
         unconfirmed loss is void, unless the liveliness comes from a new process
         (``restarted``): then the robot was lost from the time of the loss, or from now if
         the new process came up within the old one's lease, before that loss was reported
-        (returns True). A lost robot rejoins only when ``heard``."""
+        (returns True). A lost robot rejoins only when ``heard``. The first new process
+        after a confirmed loss is the one that rejoins, even when it was heard before its
+        liveliness was reported (on separate hosts, discovery can take a second longer than
+        its first answer): its report is no new restart."""
         unconfirmed = self._unconfirmed.pop(robot, None)
-        if not restarted:
+        replacing_the_lost_one = robot in self._next_process_due
+        self._next_process_due.discard(robot)
+        if not restarted or replacing_the_lost_one:
             return False
         if unconfirmed is not None:
             return self._change(robot, LOST, *unconfirmed, "process restarted")
@@ -72,6 +79,7 @@ class TeamLiveness:
                      if wall_s - since >= self.grace_s]
         for robot in confirmed:
             sim_time_s, since = self._unconfirmed.pop(robot)
+            self._next_process_due.add(robot)
             self._change(robot, LOST, sim_time_s, since,
                          f"liveliness lost for {wall_s - since:.1f} s")
         return confirmed
