@@ -30,7 +30,10 @@ crash. It asks its teammates for its own earlier stream (``/team/update_requests
 itself as requester; each teammate re-sends what it holds on ``/robot_<i>/team/history``),
 waits until it holds it up to the sequence number the world's barrier names for it, then
 resumes (``RobotAgent.resume``): its graph, targets and numbering continue where its stream
-left off and its published path holds its whole history.
+left off and its published path holds its whole history. With ``state_dir`` set, the robot
+also journals every record it makes there (``core.agent.stream_journal``) and a restarted
+process reads its stream back from its journal first, so it rejoins even when no teammate
+holds it (the whole team restarted, or every teammate out of range).
 
 Every message is checked before it touches any state (``scan_problem``, the dead
 reckoning's frames, stamp and numbers, ``core.agent.input_checks``); unusable ones are dropped with a
@@ -46,10 +49,10 @@ from __future__ import annotations
 
 import contextlib
 import math
+import pathlib
 import sys
 import time
 from collections.abc import Sequence
-import pathlib
 
 import numpy as np
 from em_exploration_msgs.msg import (LandmarkArray, MotionCommand, SonarScan, TeamUpdate,

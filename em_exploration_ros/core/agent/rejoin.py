@@ -8,7 +8,8 @@ whose requester is the robot itself); each teammate re-sends what it holds, and 
 collects the records (``OwnHistoryRecovery``) until it holds its stream up to the sequence
 number the world's barrier names for it, and for ``settle_s`` more so that records a
 teammate holds beyond the barrier are not numbered twice. Then ``RobotAgent.resume``
-rebuilds its graph, targets and sequence numbering from them.
+rebuilds its graph, targets and sequence numbering from them. A robot that journals its
+own stream (``core.agent.stream_journal``) files its journal's records first.
 
 A robot whose process lived on but stopped answering (wedged, stopped, starved) rejoins too:
 the world went on without it, and the sensor data of the steps it missed is lost (the
