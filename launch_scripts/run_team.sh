@@ -100,9 +100,12 @@ options:
 EOF
 }
 
+# Folders this run made before a check refused it, deepest first: removed again if empty.
+MADE_FOR_THE_RUN=()
 usage_error() {
     echo "$PROG: error: $*" >&2
     echo "Try '$PROG --help'." >&2
+    (( ${#MADE_FOR_THE_RUN[@]} )) && rmdir "${MADE_FOR_THE_RUN[@]}" 2>/dev/null
     exit 2
 }
 
@@ -291,8 +294,10 @@ fi
 STAMP=$(date +%Y%m%d-%H%M%S)
 RUN_NAME="${STAMP}_seed${RUN_SEED}_${RUN_PLANNER}"
 SUMMARY=${SUMMARY:-"$EM_REPO_ROOT/runs/$RUN_NAME/summary.json"}
+[[ -d $(dirname "$SUMMARY") ]] || SUMMARY_DIR_MADE=1
 mkdir -p "$(dirname "$SUMMARY")" 2>/dev/null || usage_error "--summary: cannot create the folder of '$SUMMARY'"
 SUMMARY="$(cd "$(dirname "$SUMMARY")" && pwd)/$(basename "$SUMMARY")"
+[[ -n ${SUMMARY_DIR_MADE:-} ]] && MADE_FOR_THE_RUN=("$(dirname "$SUMMARY")")
 SUMMARY_STEM=$(basename "$SUMMARY")
 MAP_PNG="$(dirname "$SUMMARY")/${SUMMARY_STEM%.*}_map.png"
 LOG_DIR="$(dirname "$SUMMARY")/logs"
@@ -306,7 +311,9 @@ fi
 # go where one of them is (it would fail only once the team has started). A log folder that
 # cannot be made is refused after the check, which says better why for an unwritable folder.
 mkdir -p "$LOG_DIR/ros" "$STATE_DIR" 2>/dev/null
+MADE_FOR_THE_RUN=("$LOG_DIR/ros" "$LOG_DIR" "$STATE_DIR" "${MADE_FOR_THE_RUN[@]}")
 if [[ -n $TRACE_DIR ]]; then
+    [[ -d $TRACE_DIR ]] || MADE_FOR_THE_RUN=("$TRACE_DIR" "${MADE_FOR_THE_RUN[@]}")
     mkdir -p "$TRACE_DIR" 2>/dev/null || usage_error "--trace-steps: cannot create '$TRACE_DIR'"
     compgen -G "$TRACE_DIR/*.trace" >/dev/null \
         && usage_error "--trace-steps: '$TRACE_DIR' already holds traces of another run"

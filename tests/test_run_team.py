@@ -90,11 +90,15 @@ def test_refuses_a_respawn_confirmation_time_that_is_not_whole_seconds(monkeypat
 def test_refuses_bad_parameters_and_outputs_before_starting(tmp_path, text, extra, message):
     params = tmp_path / "params.yaml"
     params.write_text((REPO_ROOT / "config" / "exploration.yaml").read_text() + text)
+    runs = REPO_ROOT / "runs"
+    before = set(runs.iterdir()) if runs.is_dir() else set()
     result = run_team("--params", str(params), *extra, timeout_s=60.0)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr
     assert "Traceback" not in result.stderr
     assert "logs in" not in result.stdout  # no process was started
+    # A refused run leaves no folder of its own (it left runs/<stamp>/logs/ros behind).
+    assert (set(runs.iterdir()) if runs.is_dir() else set()) == before
 
 
 @pytest.mark.parametrize("where", ["logs", "trace"])
@@ -109,6 +113,7 @@ def test_refuses_a_recording_into_a_folder_the_run_makes_before_starting(tmp_pat
     assert result.returncode == 2, result.stderr
     assert f"--record {run_dir / where} is a directory" in result.stderr
     assert "logs in" not in result.stdout  # no process was started
+    assert not run_dir.exists()  # the folders it made for the run are gone again
 
 
 def test_help_lists_the_options():
