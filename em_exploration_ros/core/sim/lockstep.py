@@ -14,8 +14,8 @@ for step k). The barrier repairs itself before it gives up on anyone:
   loss report for as long as it has not answered since (not again from each new step), else
   from the step's opening. A live robot answers within a second, so a liveliness report
   lost on a lossy network changes nothing, while a dead or wedged robot is given up after
-  the lease plus ``suspect_timeout_s`` instead of ``robot_timeout_s``; so is a robot whose new process reports its liveliness
-  (``restarted``) for the open step;
+  the lease plus ``suspect_timeout_s`` instead of ``robot_timeout_s``; so is a robot whose
+  new process reports its liveliness (``restarted``) for the open step;
 - a stopped robot that answers again (a wedged process that recovered, or a process
   restarted with the same id) *rejoins*: an answer to the open step is used at once, an
   answer to an earlier step puts it back on the list of robots the open step waits for,
