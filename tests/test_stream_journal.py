@@ -8,13 +8,14 @@ from dataclasses import replace
 
 import pytest
 
-from em_exploration_ros.core.agent.stream_journal import (MAX_RECORD_BYTES, JournalIdentity,
-                                                          StreamJournal, mission_fingerprint,
+from em_exploration_ros.core.agent.stream_journal import (MAX_RECORD_BYTES, JournalContents,
+                                                          JournalIdentity, StreamJournal,
+                                                          journal_beyond, mission_fingerprint,
                                                           read_journal)
 from em_exploration_ros.core.params import ExplorationParams
 
 IDENTITY = JournalIdentity(1, 3, mission_fingerprint(ExplorationParams()))
-RECORDS = [b"record one", b"", bytes(range(256)) * 3]
+RECORDS = [b"record one", b"2", bytes(range(256)) * 3]
 
 
 def written(tmp_path, records=RECORDS):
@@ -83,8 +84,32 @@ def test_missing_foreign_and_special_files_give_their_reason_and_no_records(tmp_
     (tmp_path / "short").write_bytes(b"EMJ1" + struct.pack("<I", 4000) + b"{}")
     assert "cut short or too long" in read_journal(tmp_path / "short", IDENTITY).problem
     os.mkfifo(tmp_path / "fifo")  # opening a FIFO would wait for a writer for ever
-    assert "cannot read" in read_journal(tmp_path / "fifo", IDENTITY).problem
-    assert "cannot read" in read_journal(tmp_path, IDENTITY).problem  # a folder
+    assert "not a regular file" in read_journal(tmp_path / "fifo", IDENTITY).problem
+    descriptors = len(os.listdir("/proc/self/fd"))
+    for _ in range(20):  # a folder: named as such, and no descriptor left open
+        assert "not a regular file" in read_journal(tmp_path, IDENTITY).problem
+    assert len(os.listdir("/proc/self/fd")) == descriptors
+
+
+def test_a_zero_filled_tail_is_not_read_as_records(tmp_path):
+    """After a power loss a file can end in zeros, whose CRC-32 (of no bytes) is 0."""
+    path = written(tmp_path)
+    with open(path, "ab") as file:
+        file.write(bytes(4096))
+    contents = read_journal(path, IDENTITY)
+    assert contents.records == RECORDS and "is empty" in contents.problem
+    with pytest.raises(ValueError):
+        StreamJournal(tmp_path / "other.journal", IDENTITY).start([b""])
+
+
+def test_a_journal_longer_than_the_teams_copy_of_the_stream_is_another_runs():
+    """The same mission run again into the same folder leaves a journal of the same
+    identity; one that holds more records than the team knows (+1 the world has not yet
+    counted) cannot be this run's. (A full disk kept an earlier run's 42 records where a
+    restarted robot read them as its own, with the team at 27.)"""
+    contents = JournalContents([b"r"] * 42, None)
+    assert "42 records, more than the 27" in journal_beyond(contents, 27)
+    assert journal_beyond(contents, 41) is None and journal_beyond(contents, 42) is None
 
 
 def test_the_fingerprint_follows_the_mission_parameters():
@@ -92,6 +117,18 @@ def test_the_fingerprint_follows_the_mission_parameters():
     assert mission_fingerprint(params) == mission_fingerprint(ExplorationParams())
     other_seed = replace(params, run=replace(params.run, seed=params.run.seed + 1))
     assert mission_fingerprint(other_seed) != mission_fingerprint(params)
+
+
+def test_a_start_that_fails_leaves_no_staging_file_and_discard_removes_the_journal(tmp_path):
+    path = written(tmp_path)
+    journal = StreamJournal(path, IDENTITY)
+    with pytest.raises(ValueError):
+        journal.start([b"ok", bytes(MAX_RECORD_BYTES + 1)])
+    assert not path.with_name(path.name + ".new").exists()
+    assert read_journal(path, IDENTITY).records == RECORDS  # the old one is left as it was
+    journal.discard()
+    assert not path.exists()
+    journal.discard()  # nothing there: no error
 
 
 def test_a_journal_that_cannot_be_written_raises_for_the_node_to_go_on_without(tmp_path):

@@ -28,12 +28,18 @@ def read_regular_file(path: str | Path, max_bytes: int) -> bytes:
     NotRegularFile or FileTooLarge (ValueErrors), or the OSError of opening or reading it.
     Opening does not wait for a FIFO's writer (it is refused), and a file that grows while
     it is read is still refused once it passes the bound."""
-    with open(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as file:
-        info = os.fstat(file.fileno())
-        if not stat.S_ISREG(info.st_mode):
+    descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        info = os.fstat(descriptor)
+        if not stat.S_ISREG(info.st_mode):  # before open(): a folder's would raise there
             raise NotRegularFile(f"{path} is not a regular file")
         if info.st_size > max_bytes:
             raise FileTooLarge(info.st_size, max_bytes)
+        file = open(descriptor, "rb")  # noqa: SIM115 (owns the descriptor from here on)
+    except BaseException:
+        os.close(descriptor)
+        raise
+    with file:
         data = file.read(max_bytes + 1)
     if len(data) > max_bytes:
         raise FileTooLarge(len(data), max_bytes)

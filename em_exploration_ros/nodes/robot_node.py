@@ -80,7 +80,8 @@ from em_exploration_ros.core.agent.delivery_tally import RECORDS, REQUESTS, Deli
 from em_exploration_ros.core.agent.link_sender import LinkSender
 from em_exploration_ros.core.agent.resend import ResendScheduler
 from em_exploration_ros.core.agent.stream_journal import (JournalIdentity, StreamJournal,
-                                                          mission_fingerprint, read_journal)
+                                                          journal_beyond, mission_fingerprint,
+                                                          read_journal)
 from em_exploration_ros.core.agent.team_data import (MAX_READINGS_PER_KEYFRAME,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
                                                      LandmarkEstimate, TeamUpdateInbox)
@@ -598,11 +599,14 @@ class RobotNode(LeanNode):
         return serialize_message(team_update_to_msg(update, self.wire))
 
     def _start_journal(self, records: Sequence[TeamRecord]) -> None:
-        """Begin the journal with the stream so far (none at the mission's start)."""
+        """Begin the journal with the stream so far (none at the mission's start, when a
+        journal that cannot be begun anew is removed: it is another run's)."""
         if self.journal is not None:
             try:
                 self.journal.start(self._journal_bytes(update) for update in records)
             except (OSError, ValueError) as error:
+                if not records:
+                    self.journal.discard()
                 self._go_on_without_journal(error)
 
     def _journal(self, update: TeamRecord) -> None:
@@ -627,6 +631,10 @@ class RobotNode(LeanNode):
         if self.journal is None:
             return
         contents = read_journal(self.journal.path, self.journal.identity)
+        foreign = journal_beyond(contents, self._recovery.needed_sequence)
+        if foreign is not None:
+            self.get_logger().warn(f"stream journal {self.journal.path}: {foreign}")
+            return
         taken = 0
         for payload in contents.records:
             try:

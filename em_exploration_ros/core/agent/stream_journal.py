@@ -20,11 +20,15 @@ with one ``write`` and flushed to the operating system, so a killed process lose
 had journaled; a power loss can lose what the system had not yet put on the disk.
 
 Reading trusts nothing: a missing, foreign or corrupt file, a torn last record (the
-process died while writing it), a wrong checksum or an oversized length ends the reading
-with the reason, keeping the records read before it (``read_journal``).
+process died while writing it), a wrong checksum, an empty record (a zero-filled tail after
+a power loss passes a CRC-32) or an oversized length ends the reading with the reason,
+keeping the records read before it (``read_journal``). A journal that holds more records
+than the team knows of this robot's stream is another run's (the same mission run again
+into the same folder); the node refuses it whole (``journal_beyond``).
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -112,6 +116,8 @@ def _frame_problem(data: bytes, offset: int) -> str | None:
     if offset + _FRAME.size > len(data):
         return "is cut short (torn write)"
     length, checksum = _FRAME.unpack_from(data, offset)
+    if length == 0:
+        return "is empty (a zero-filled tail?)"
     if length > MAX_RECORD_BYTES:
         return f"claims {length} bytes, more than {MAX_RECORD_BYTES}"
     payload = data[offset + _FRAME.size:offset + _FRAME.size + length]
@@ -122,9 +128,19 @@ def _frame_problem(data: bytes, offset: int) -> str | None:
     return None
 
 
+def journal_beyond(contents: JournalContents, team_holds: int) -> str | None:
+    """Why a journal cannot be this run's, None if it can be: it holds more records than
+    ``team_holds`` (the last sequence number of this robot the team knows, from the world's
+    barrier) plus the one record a process can make before the world counts it."""
+    if len(contents.records) > team_holds + 1:
+        return (f"it holds {len(contents.records)} records, more than the {team_holds} the "
+                f"team holds (+1): the journal of another run; not read")
+    return None
+
+
 def _frame(payload: bytes) -> bytes:
-    if len(payload) > MAX_RECORD_BYTES:
-        raise ValueError(f"a record of {len(payload)} bytes, more than {MAX_RECORD_BYTES}")
+    if not payload or len(payload) > MAX_RECORD_BYTES:
+        raise ValueError(f"a record of {len(payload)} bytes (1 to {MAX_RECORD_BYTES})")
     return _FRAME.pack(len(payload), zlib.crc32(payload)) + payload
 
 
@@ -142,14 +158,27 @@ class StreamJournal:
         start, the recovered stream after a restart). The new file replaces the old one in
         one rename, so a crash meanwhile leaves one or the other whole."""
         self.close()
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         staging = self.path.with_name(self.path.name + ".new")
-        with open(staging, "wb") as file:
-            file.write(self.identity.header() + b"".join(_frame(r) for r in records))
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(staging, self.path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(staging, "wb") as file:
+                file.write(self.identity.header() + b"".join(_frame(r) for r in records))
+                file.flush()
+                os.fsync(file.fileno())
+            os.replace(staging, self.path)
+        except (OSError, ValueError):
+            with contextlib.suppress(OSError):
+                staging.unlink()  # a half-written file would only take disk space
+            raise
         self._file = open(self.path, "ab")  # noqa: SIM115 (held open for appending)
+
+    def discard(self) -> None:
+        """Remove the journal file if it can be: at a mission's start the file there is
+        another run's, and one that cannot be replaced must not be read after a restart
+        (a full disk left an earlier run's stream there)."""
+        self.close()
+        with contextlib.suppress(OSError):
+            self.path.unlink()
 
     def append(self, payload: bytes) -> None:
         """Journal one more record (after ``start``)."""
