@@ -561,6 +561,16 @@ lost_count() { grep -c "robot $1 lost:" "$LOG_DIR/world.log" 2>/dev/null; }
 seen_count() { grep -c "robot $1: liveliness asserted" "$LOG_DIR/world.log" 2>/dev/null; }
 # rejoined_count ROBOT: how many times the world has taken robot ROBOT back after it was lost.
 rejoined_count() { grep -c "robot $1 rejoined at step" "$LOG_DIR/world.log" 2>/dev/null; }
+# lost_before_rejoining ROBOT: whether the world's newest "lost" line about ROBOT comes before
+# it took the restarted process back, or it has not yet (in the log's order: a process that
+# rejoins within a second has both lines between two looks of this script).
+lost_before_rejoining() {
+    awk -v lost="robot $1 lost:" -v back="robot $1 rejoined at step" \
+        -v before="${REJOINED_BEFORE[$1]}" '
+        index($0, back) && ++rejoins == before + 1 { first_back = NR }
+        index($0, lost) { last_lost = NR }
+        END { exit !(first_back == 0 || last_lost < first_back) }' "$LOG_DIR/world.log"
+}
 
 while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
     for index in "${!PIDS[@]}"; do
@@ -592,11 +602,11 @@ while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
             robot=${name#robot_}
             lost=$(lost_count "$robot")
             # (A first start has no earlier process: a fast team can lose a robot to a wedge
-            # within RESPAWN_GRACE_S of the run's start, and it must be restarted. Once the
-            # world took the new process back, a "lost" line is about the new one.)
+            # within RESPAWN_GRACE_S of the run's start, and it must be restarted. A "lost"
+            # line after the world took the new process back is about the new one.)
             if [[ -n ${STARTED_AT[$robot]:-} ]] \
                     && (( SECONDS - STARTED_AT[$robot] < RESPAWN_GRACE_S )) \
-                    && (( $(rejoined_count "$robot") == REJOINED_BEFORE[$robot] )); then
+                    && lost_before_rejoining "$robot"; then
                 LOST_SEEN[$robot]=$lost
             elif (( lost > ${LOST_SEEN[$robot]:-0} )); then
                 LOST_SEEN[$robot]=$lost

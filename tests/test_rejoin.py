@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
-                                                  keyframe_ranges, step_to_resume_at)
+                                                  keyframe_ranges, records_beyond_the_team,
+                                                  step_to_resume_at)
 from em_exploration_ros.core.agent.robot_agent import RobotAgent
 from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, TeamUpdate,
                                                      TeamUpdateInbox, TeamUpdateOutbox)
@@ -29,10 +30,24 @@ def stream(robot: int, count: int):
 def test_archive_keeps_teammates_streams_in_order():
     archive = StreamArchive(own_robot_id=0, num_robots=3)
     one, two = stream(1, 3), stream(2, 2)
-    archive.keep([one[0], two[0], one[1]])
-    archive.keep([one[1], two[1], one[2]])     # a repeated record is not kept twice
+    assert archive.keep([one[0], two[0], one[1]]) == [one[0], two[0], one[1]]
+    # a repeated record is not kept twice; what was filed comes back (for the team journal)
+    assert archive.keep([one[1], two[1], one[2]]) == [two[1], one[2]]
     assert archive.held(1) == one and archive.held(2) == two
     assert archive.held(0) == [] and archive.held(7) == []
+
+
+def test_journaled_records_beyond_the_teams_copy_are_another_runs():
+    """The same mission run again into the same folder leaves journals of the same identity:
+    more of a robot's stream than the team holds (+1 the world has not counted yet) cannot
+    be this run's. (A full disk kept an earlier run's 42 records where a restarted robot
+    read them as its own, with the team at 27.)"""
+    records = stream(1, 42) + stream(2, 3)
+    assert "42 records of robot 1, more than the 27" in records_beyond_the_team(records,
+                                                                                [0, 27, 3])
+    assert records_beyond_the_team(records, [0, 41, 2]) is None      # one not counted yet
+    assert "3 records of robot 2, more than the 1" in records_beyond_the_team(records,
+                                                                               [0, 42, 1])
 
 
 def test_recovery_waits_for_the_needed_records_then_settles():

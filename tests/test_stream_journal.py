@@ -8,9 +8,8 @@ from dataclasses import replace
 
 import pytest
 
-from em_exploration_ros.core.agent.stream_journal import (MAX_RECORD_BYTES, JournalContents,
-                                                          JournalIdentity, StreamJournal,
-                                                          journal_beyond, mission_fingerprint,
+from em_exploration_ros.core.agent.stream_journal import (MAX_RECORD_BYTES, JournalIdentity,
+                                                          StreamJournal, mission_fingerprint,
                                                           read_journal)
 from em_exploration_ros.core.params import ExplorationParams
 
@@ -100,16 +99,6 @@ def test_a_zero_filled_tail_is_not_read_as_records(tmp_path):
     assert contents.records == RECORDS and "is empty" in contents.problem
     with pytest.raises(ValueError):
         StreamJournal(tmp_path / "other.journal", IDENTITY).start([b""])
-
-
-def test_a_journal_longer_than_the_teams_copy_of_the_stream_is_another_runs():
-    """The same mission run again into the same folder leaves a journal of the same
-    identity; one that holds more records than the team knows (+1 the world has not yet
-    counted) cannot be this run's. (A full disk kept an earlier run's 42 records where a
-    restarted robot read them as its own, with the team at 27.)"""
-    contents = JournalContents([b"r"] * 42, None)
-    assert "42 records, more than the 27" in journal_beyond(contents, 27)
-    assert journal_beyond(contents, 41) is None and journal_beyond(contents, 42) is None
 
 
 def test_the_fingerprint_follows_the_mission_parameters():

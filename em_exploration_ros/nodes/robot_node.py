@@ -47,28 +47,26 @@ Run: ``python -m em_exploration_ros.nodes.robot_node --ros-args -r __ns:=/robot_
 """
 from __future__ import annotations
 
-import contextlib
 import math
 import pathlib
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable
 
 import numpy as np
 from em_exploration_msgs.msg import (LandmarkArray, MotionCommand, SonarScan, TeamUpdate,
                                      TeamUpdateRequest)
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import OccupancyGrid, Odometry, Path
-from rclpy._rclpy_pybind11 import RMWError
 from rclpy.clock import Clock, ClockType
-from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.task import Future
 from visualization_msgs.msg import MarkerArray
 
 from em_exploration_ros.core.planning.frontiers import Frontier
 from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariances_from_poses
 from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
-                                                  keyframe_ranges, step_to_resume_at)
+                                                  keyframe_ranges, records_beyond_the_team,
+                                                  step_to_resume_at)
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, RejectionLog,
                                                         barrier_problem, first_problem,
@@ -79,9 +77,7 @@ from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, Rejection
 from em_exploration_ros.core.agent.delivery_tally import RECORDS, REQUESTS, DeliveryTally
 from em_exploration_ros.core.agent.link_sender import LinkSender
 from em_exploration_ros.core.agent.resend import ResendScheduler
-from em_exploration_ros.core.agent.stream_journal import (JournalIdentity, StreamJournal,
-                                                          journal_beyond, mission_fingerprint,
-                                                          read_journal)
+from em_exploration_ros.core.agent.stream_journal import JournalIdentity, mission_fingerprint
 from em_exploration_ros.core.agent.team_data import (MAX_READINGS_PER_KEYFRAME,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
                                                      LandmarkEstimate, TeamUpdateInbox)
@@ -106,6 +102,7 @@ from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveline
 from em_exploration_ros.nodes.message_info import MessageInfo, publication_sequence
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.odometry_cdr import PlanarOdometry
+from em_exploration_ros.nodes.record_journal import RecordJournal
 from em_exploration_ros.nodes.recorder_presence import topics_not_recorded
 from em_exploration_ros.nodes.qos import ESTIMATE_QOS, LATCHED_QOS, SENSOR_QOS, TEAM_QOS
 from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
@@ -161,7 +158,8 @@ class RobotNode(LeanNode):
         self.team_messages = self.team_requests = 0
         self.deliveries = DeliveryTally()  # relay mode
         self.archive = StreamArchive(self.robot_id, self.num_robots)
-        self.journal = self._make_journal()
+        self.journal, self.team_journal = self._make_journals()
+        self._team_journaled: dict[int, int] = {}  # teammate -> last sequence journaled
         self._recovery: OwnHistoryRecovery | None = None
         self._served_history: dict[int, float] = {}
         self._served_history_log = RejectionLog(LOG_PERIOD_S)
@@ -585,71 +583,75 @@ class RobotNode(LeanNode):
         self.team_messages += sent
         return sent
 
-    def _make_journal(self) -> StreamJournal | None:
-        """This robot's stream journal in ``state_dir``, None without one."""
+    def _make_journals(self) -> tuple[RecordJournal | None, RecordJournal | None]:
+        """This robot's journals in ``state_dir`` (its own stream, the teammates' records it
+        applied), None without a ``state_dir``."""
         if not self.settings.state_dir:
-            return None
+            return None, None
         identity = JournalIdentity(self.robot_id, self.num_robots,
                                    mission_fingerprint(self.params))
-        folder = pathlib.Path(self.settings.state_dir)
-        return StreamJournal(folder / f"robot_{self.robot_id}.journal", identity)
+        stem = pathlib.Path(self.settings.state_dir) / f"robot_{self.robot_id}"
+        logger = self.get_logger()
+        return (RecordJournal(stem.with_suffix(".journal"), identity, self.wire, logger,
+                              "stream journal"),
+                RecordJournal(stem.with_suffix(".team.journal"), identity, self.wire, logger,
+                              "team journal"))
 
-    def _journal_bytes(self, update: TeamRecord) -> bytes:
-        """A record as journaled: the serialized TeamUpdate its teammates would send back."""
-        return serialize_message(team_update_to_msg(update, self.wire))
+    def _journal_teammates_records(self, filed: list[TeamRecord]) -> None:
+        """Append the teammates' records just applied that the team journal lacks."""
+        for update in filed:
+            if update.sequence > self._team_journaled.get(update.robot_id, 0):
+                self.team_journal.append(update)
+                self._team_journaled[update.robot_id] = update.sequence
 
-    def _start_journal(self, records: Sequence[TeamRecord]) -> None:
-        """Begin the journal with the stream so far (none at the mission's start, when a
-        journal that cannot be begun anew is removed: it is another run's)."""
-        if self.journal is not None:
-            try:
-                self.journal.start(self._journal_bytes(update) for update in records)
-            except (OSError, ValueError) as error:
-                if not records:
-                    self.journal.discard()
-                self._go_on_without_journal(error)
-
-    def _journal(self, update: TeamRecord) -> None:
-        """Append a new record of this robot's stream to its journal."""
-        if self.journal is not None:
-            try:
-                self.journal.append(self._journal_bytes(update))
-            except (OSError, ValueError) as error:
-                self._go_on_without_journal(error)
-
-    def _go_on_without_journal(self, error: Exception) -> None:
-        self.get_logger().error(
-            f"cannot write the stream journal {self.journal.path}: {error}; going on without "
-            f"it (after a restart only the teammates' copies of this robot's stream are left)")
-        with contextlib.suppress(OSError):
-            self.journal.close()
-        self.journal = None
-
-    def _take_journaled_stream(self) -> None:
-        """After a restart: this robot's earlier records from its own journal, checked as a
-        teammate's copy is; the teammates' copies fill what it lacks."""
+    def _read_journals(self, team_holds: list[int]) -> None:
+        """After a restart: this robot's earlier records and the teammates' records it had
+        applied, from its own journals (``team_holds``: the world's barrier), checked as
+        received ones are; the teammates' copies fill what they lack."""
         if self.journal is None:
             return
-        contents = read_journal(self.journal.path, self.journal.identity)
-        foreign = journal_beyond(contents, self._recovery.needed_sequence)
-        if foreign is not None:
-            self.get_logger().warn(f"stream journal {self.journal.path}: {foreign}")
-            return
-        taken = 0
-        for payload in contents.records:
-            try:
-                message = deserialize_message(payload, TeamUpdate)
-                taken += self._recovery.receive(checked_team_update(message, self.wire))
-            except (RMWError, InvalidTeamUpdate, ValueError) as error:
-                self.get_logger().warn(f"the journal's record {taken + 1} is unusable "
-                                       f"({str(error).splitlines()[0][:120]}); not read on")
-                break
-        if contents.problem is not None:
-            self.get_logger().warn(f"stream journal: {contents.problem}")
+        own = self._journaled_records(self.journal, team_holds)
+        teammates = self._journaled_records(self.team_journal, team_holds)
+        taken = self._file_journaled(self.journal, own, self._recovery.receive)
+        self._file_journaled(self.team_journal, teammates, self.inbox.receive)
+        self.team_journal.start(teammates, fresh=False)
+        for update in teammates:
+            self._team_journaled[update.robot_id] = max(
+                update.sequence, self._team_journaled.get(update.robot_id, 0))
         self.get_logger().info(
             f"read {taken} records of this robot's stream from its journal "
             f"{self.journal.path} (the team holds it up to sequence "
-            f"{self._recovery.needed_sequence})")
+            f"{self._recovery.needed_sequence}) and {len(teammates)} of its teammates' "
+            f"from {self.team_journal.path}")
+
+    def _file_journaled(self, journal: RecordJournal, records: list[TeamRecord],
+                        file: Callable[[TeamRecord], bool]) -> int:
+        """File a journal's records with ``file`` up to the first one it refuses (WARN);
+        returns how many were new."""
+        taken = 0
+        for update in records:
+            try:
+                taken += file(update)
+            except InvalidTeamUpdate as error:
+                self.get_logger().warn(f"{journal.what} {journal.path}: record "
+                                       f"{update.robot_id}/{update.sequence} refused ({error}); "
+                                       f"not read on")
+                break
+        return taken
+
+    def _journaled_records(self, journal: RecordJournal, team_holds: list[int]
+                           ) -> list[TeamRecord]:
+        """A journal's usable records; none if they cannot be this run's (WARN)."""
+        contents = journal.read()
+        if contents.problem is not None:
+            self.get_logger().warn(f"{journal.what}: {contents.problem}")
+        updates = journal.decoded(contents)
+        # (Without a barrier, in real-time mode, there is nothing to check them against.)
+        foreign = records_beyond_the_team(updates, team_holds) if team_holds else None
+        if foreign is not None:
+            self.get_logger().warn(f"{journal.what} {journal.path}: {foreign}")
+            return []
+        return updates
 
     def _start_recovery(self, scan: SonarScan) -> None:
         """This process starts in the middle of a run: it was restarted after a crash."""
@@ -662,7 +664,7 @@ class RobotNode(LeanNode):
         self.get_logger().warn(
             f"first step is {scan.step}, not 0: restarted in a running team; asking the "
             f"teammates for this robot's stream (the team holds it up to sequence {needed})")
-        self._take_journaled_stream()
+        self._read_journals(barrier)
         self._last_request = now
         self._request_own_history()
 
@@ -676,7 +678,8 @@ class RobotNode(LeanNode):
                 f"re-sent empty, and the motion since the last keyframe recovered is linked "
                 f"with the odometry covariance of every step since")
         self.agent.resume(history, recovery.needed_sequence, self._next_step)
-        self._start_journal(self.agent.outbox.resend(1, 0))
+        if self.journal is not None:
+            self.journal.start(self.agent.outbox.resend(1, 0), fresh=False)
         self._log_slam_recoveries()
         keyframes = np.array([keyframe.index for update in history
                               for keyframe in update.keyframes], dtype=int)
@@ -695,8 +698,9 @@ class RobotNode(LeanNode):
                     # Restarted: the deliveries before this process subscribed are not its own.
                     self.deliveries.start_at(delivered_counts(first))
                     self._start_recovery(first)
-                else:
-                    self._start_journal(())
+                elif self.journal is not None:
+                    self.journal.start((), fresh=True)
+                    self.team_journal.start((), fresh=True)
             if self._recovery is not None:
                 if not self._recovery.complete(time.monotonic()):
                     return
@@ -783,7 +787,9 @@ class RobotNode(LeanNode):
         stamp_s = sim_time_s(step, self.time_step_s)
         released = self.inbox.pop_ready(limits)
         agent.apply_team_updates(released)
-        self.archive.keep(released)
+        filed = self.archive.keep(released)
+        if self.team_journal is not None:
+            self._journal_teammates_records(filed)
         decisions_before, given_up_before = len(agent.decisions), len(agent.given_up)
         command = agent.step(StepInput(
             step, stamp_s, odometry.pose,
@@ -792,8 +798,8 @@ class RobotNode(LeanNode):
             tuple(teammate_reading_from_msg(r) for r in scan.teammates)))
         self._warn_if_unanchored(agent.steps_unanchored)
         update = agent.take_outgoing()
-        if update is not None:
-            self._journal(update)
+        if update is not None and self.journal is not None:
+            self.journal.append(update)
         if self.relay_mode:
             self._send_frames(step, update)
         elif update is not None:

@@ -21,7 +21,8 @@ outbox holds of its own stream (about 200 bytes per robot and simulated second).
 """
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections import Counter
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -38,12 +39,16 @@ class StreamArchive:
         self._streams: dict[int, list[TeamUpdate]] = {
             robot: [] for robot in range(num_robots) if robot != own_robot_id}
 
-    def keep(self, updates: list[TeamUpdate]) -> None:
-        """File applied records (each stream's records arrive in sequence order, from 1)."""
+    def keep(self, updates: list[TeamUpdate]) -> list[TeamUpdate]:
+        """File applied records (each stream's records arrive in sequence order, from 1);
+        returns those filed."""
+        filed = []
         for update in updates:
             stream = self._streams.get(update.robot_id)
             if stream is not None and update.sequence == len(stream) + 1:
                 stream.append(update)
+                filed.append(update)
+        return filed
 
     def held(self, robot_id: int) -> list[TeamUpdate]:
         """Every record of ``robot_id``'s stream held, sequence 1 onwards (empty for this
@@ -100,6 +105,22 @@ class OwnHistoryRecovery:
         since the start, or when ``give_up_s`` passed."""
         waited = now_s - self._started_s
         return waited >= self._give_up_s or (self.short_of == 0 and waited >= self._settle_s)
+
+
+def records_beyond_the_team(updates: Sequence[TeamUpdate],
+                            team_holds: Sequence[int]) -> str | None:
+    """Why journaled records cannot be this run's, None if they can be: they hold more of a
+    robot's stream than ``team_holds[robot]`` (the last sequence number of it the team
+    knows, the world's barrier) plus the one record a process can make before the world
+    counts it. (The same mission run again into the same folder left a journal of the same
+    identity; a full disk kept an earlier run's 42 records where a restarted robot read
+    them as its own, with the team at 27.)"""
+    for robot, count in sorted(Counter(update.robot_id for update in updates).items()):
+        holds = team_holds[robot] if robot < len(team_holds) else 0
+        if count > holds + 1:
+            return (f"it holds {count} records of robot {robot}, more than the {holds} the "
+                    f"team holds (+1): the journal of another run; not read")
+    return None
 
 
 def step_to_resume_at(next_step: int, complete_steps: Iterable[int],

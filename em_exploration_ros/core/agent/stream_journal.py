@@ -22,9 +22,9 @@ had journaled; a power loss can lose what the system had not yet put on the disk
 Reading trusts nothing: a missing, foreign or corrupt file, a torn last record (the
 process died while writing it), a wrong checksum, an empty record (a zero-filled tail after
 a power loss passes a CRC-32) or an oversized length ends the reading with the reason,
-keeping the records read before it (``read_journal``). A journal that holds more records
-than the team knows of this robot's stream is another run's (the same mission run again
-into the same folder); the node refuses it whole (``journal_beyond``).
+keeping the records read before it (``read_journal``). The records themselves are
+checked by their reader (``core.agent.rejoin.records_beyond_the_team``: a journal that
+holds more of a stream than the team does is another run's).
 """
 from __future__ import annotations
 
@@ -125,16 +125,6 @@ def _frame_problem(data: bytes, offset: int) -> str | None:
         return "is cut short (torn write)"
     if zlib.crc32(payload) != checksum:
         return "fails its checksum"
-    return None
-
-
-def journal_beyond(contents: JournalContents, team_holds: int) -> str | None:
-    """Why a journal cannot be this run's, None if it can be: it holds more records than
-    ``team_holds`` (the last sequence number of this robot the team knows, from the world's
-    barrier) plus the one record a process can make before the world counts it."""
-    if len(contents.records) > team_holds + 1:
-        return (f"it holds {len(contents.records)} records, more than the {team_holds} the "
-                f"team holds (+1): the journal of another run; not read")
     return None
 
 
