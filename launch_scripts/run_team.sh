@@ -506,6 +506,8 @@ if [[ -n $RECORD ]]; then
     WAIT_FOR+=(-p wait_for_recorder:=true)
     ROBOT_WAIT_FOR=(-p wait_for_recorder:=true)
 fi
+# A team lost at once (every robot wedged) is restarted, not ended: the world waits for it.
+[[ -n $RESPAWN ]] && WAIT_FOR+=(-p lost_team_wait_s:=60.0)
 start world -m "$NODES.world_node" "${COMMON[@]}" "${CLOCK[@]}" "${WAIT_FOR[@]}" \
     "${SIM_LIMIT[@]}"
 # start_robot ID: robot ID's process; a restart (--respawn) uses the same command line.

@@ -111,6 +111,29 @@ def test_a_suspect_silent_since_its_loss_report_gets_no_new_short_timeout_at_the
     assert barrier.expire(6.09) == [] and barrier.expire(6.1) == [1]
 
 
+def test_a_team_lost_at_once_is_told_from_a_team_that_finished():
+    """The world waits for a team whose every unfinished robot is lost (run_team.sh
+    --respawn restarts them) instead of ending the mission; a finished team ends it."""
+    barrier = LockstepBarrier(2, robot_timeout_s=30.0, suspect_timeout_s=4.0)
+    done = StepAnswer(0.0, 0.0, 4, True)
+    barrier.open(0, now_s=0.0)
+    barrier.answer(0, 0, done, 0.1)                            # robot 0 finished
+    barrier.answer(1, 0, GO, 0.1)
+    barrier.close()
+    barrier.open(1, now_s=1.0)
+    barrier.answer(0, 1, done, 1.1)
+    assert not barrier.team_lost and not barrier.all_done
+    assert barrier.expire(31.0) == [1]                         # robot 1 wedged: lost
+    assert barrier.all_done and barrier.team_lost
+    barrier.restarted(1, now_s=32.0)                           # its new process is up
+    assert not barrier.all_done and not barrier.team_lost
+    finished = LockstepBarrier(1, robot_timeout_s=30.0)
+    finished.open(0, now_s=0.0)
+    finished.answer(0, 0, StepAnswer(0.0, 0.0, 4, True), 0.1)
+    finished.close()
+    assert finished.all_done and not finished.team_lost
+
+
 def test_a_robot_whose_liveliness_comes_back_gets_the_long_timeout_on_the_open_step_too():
     """Under packet loss a live robot's liveliness assertions get lost and come back: it
     kept the 4 s of the loss report on the open step, was stopped when that step took

@@ -316,28 +316,33 @@ def test_a_robot_wedged_early_in_the_run_is_restarted(tmp_path):
 
 
 def test_a_team_restarted_whole_takes_its_streams_back_from_the_robots_journals(tmp_path):
-    """--respawn: every robot SIGKILLed at once (a power cycle of the whole team). No
-    teammate holds a robot's earlier stream then; each restarted robot reads it back from its
-    own journal (run_team.sh gives them <run>/state), rejoins with all of it, and the team
-    explores on. Without the journals they resumed with none of it after 20 s, and robots 1
-    and 2 stood still for the rest of the run (nothing tied them to the map)."""
+    """--respawn: every robot wedged at once (SIGSTOP), so all are found lost, killed and
+    restarted. The world waits for the team instead of ending the mission (it stepped over
+    at once: every robot was stopped). No teammate holds a robot's earlier stream then; each
+    restarted robot reads it back from its own journals (run_team.sh gives them
+    <run>/state), with the teammates' records it had applied, rejoins with all of it, and
+    the team explores on. Without the journals they resumed with none of it after 20 s, and
+    robots 1 and 2 stood still for the rest of the run (nothing tied them to the map)."""
     summary_path = tmp_path / "summary.json"
     run, domain = start_team_run(tmp_path, *SMALL_TEAM, "--respawn",
                                  "--summary", str(summary_path))
     with run:
         run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
         for robot in range(3):
-            os.kill(robot_pid(domain, robot), signal.SIGKILL)
+            os.kill(robot_pid(domain, robot), signal.SIGSTOP)
         code = run.wait(RUN_TIMEOUT_S)
     output = run.output()
     assert code == 0, output[-3000:]
     logs = summary_path.parent / "logs"
+    assert "waiting up to 60 s for one to come back" in (summary_path.parent / "logs"
+                                                         / "world.log").read_text()
     # Each was restarted once: a process that rejoins within a second has the world's "lost"
     # (about its restart) and "rejoined" lines in one look of run_team.sh, which took the
     # lost line for one about the new process and restarted it again.
     assert "(respawn 2)" not in output, output[-3000:]
     for robot in range(3):
-        assert f"robot_{robot} exited with code 137; restarting it" in output
+        assert (f"robot_{robot} is alive but lost to the world (wedged or silent); "
+                f"restarting it") in output
         log = (logs / f"robot_{robot}.log").read_text()
         read = re.search(r"read (\d+) records of this robot's stream from its journal .*"
                          r"the team holds it up to sequence (\d+)\) and (\d+) of its "

@@ -46,6 +46,10 @@ class WorldNodeSettings:
         "reader before every writer delivers to it: when Fast DDS misses a participant's "
         "first announcements, a robot and the evaluator find each other only at the next, "
         "up to 3 s later).", 0.0, 60.0)
+    lost_team_wait_s: float = param_field(
+        0.0, "Lockstep: wall seconds to wait, when every robot that has not finished is lost, "
+        "for one to come back before ending the mission (0: end at once; run_team.sh "
+        "--respawn gives 60, the time to restart them).", 0.0, 1e6)
     max_sim_time_s: float = param_field(
         0.0, "Stop stepping after this simulation time [s] (0: no limit besides "
         "run.max_steps).", 0.0, 1e9)

@@ -155,6 +155,7 @@ class WorldNode(LeanNode):
         self._started_wall_s = time.monotonic()
         self._ready_since_s: float | None = None
         self._frames_wait_since_s: float | None = None
+        self._team_lost_since_s: float | None = None
         self.relay = (None if perfect_links(self.params.links) else
                       TeamRelay(self, self.params, self.inputs, lambda: self.sim.step,
                                 self._check_step_complete))
@@ -377,9 +378,26 @@ class WorldNode(LeanNode):
     def _check_step_complete(self) -> None:
         """Lockstep: advance as long as every live robot has answered the current step."""
         while (self.running and not self.stepping_over and self.barrier.complete
-               and self._relay_heard_step()):
+               and self._relay_heard_step() and self._lost_team_waited_for()):
             answers = self.barrier.close()
             self._advance(answers, self.barrier.all_done)
+
+    def _lost_team_waited_for(self) -> bool:
+        """False while the world still waits for a team whose every unfinished robot is lost
+        to come back (``lost_team_wait_s``; run_team.sh --respawn restarts them): without
+        the wait, a team wedged at once ended its mission before any restart."""
+        if not self.barrier.team_lost:
+            self._team_lost_since_s = None
+            return True
+        now = time.monotonic()
+        if self._team_lost_since_s is None:
+            self._team_lost_since_s = now
+            if self.settings.lost_team_wait_s > 0:
+                self.get_logger().warn(
+                    f"every robot that has not finished is lost; waiting up to "
+                    f"{self.settings.lost_team_wait_s:g} s for one to come back before "
+                    f"ending the mission")
+        return now - self._team_lost_since_s >= self.settings.lost_team_wait_s
 
     def _relay_heard_step(self) -> bool:
         """Relay mode: True once the relay heard every team message the step's answers count

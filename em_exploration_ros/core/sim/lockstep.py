@@ -221,6 +221,13 @@ class LockstepBarrier:
         return answers
 
     @property
+    def team_lost(self) -> bool:
+        """True when the run could end only because robots are lost: every robot has
+        finished or is stopped and not rejoining, and some stopped one had not finished."""
+        return self.all_done and any(r in self.stopped and not self.finished[r]
+                                     for r in range(self.num_robots))
+
+    @property
     def all_done(self) -> bool:
         """True when every robot has finished or is stopped and not rejoining."""
         return all(self.finished[r] or (r in self.stopped and r not in self.rejoining)
