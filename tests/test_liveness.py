@@ -75,6 +75,22 @@ def test_a_new_process_heard_before_its_liveliness_is_reported_is_not_lost_again
     assert team.liveliness_back(1, True, 40.0, 30.0) and team.status(1) == LOST
 
 
+def test_quick_restarts_each_heard_before_their_liveliness_count_as_one_loss():
+    """A robot killed again and again before it answers, the last new process answering
+    before its liveliness is reported: one loss and one rejoin, not a phantom restart of
+    the process that had just rejoined (a chaos pass's four kills of robot 1)."""
+    team = TeamLiveness(2, grace_s=4.0)
+    team.liveliness_lost(1, 20.0, 8.0)
+    assert team.liveliness_back(1, True, 20.0, 9.0)           # restarted within the grace
+    team.liveliness_lost(1, 20.0, 12.0)                      # killed again, silent so far
+    assert not team.liveliness_back(1, True, 20.0, 13.0)
+    team.liveliness_lost(1, 20.0, 16.0)                      # and again
+    assert team.heard(1, 21.0, 17.0, "answers again")         # the newest answers first
+    assert not team.liveliness_back(1, True, 21.0, 17.5)      # then its liveliness shows
+    assert [c.status for c in team.changes(1)] == [LOST, REJOINED]
+    assert team.status(1) == REJOINED
+
+
 def test_a_lost_process_that_comes_back_itself_leaves_the_next_restart_counted():
     team = TeamLiveness(2, grace_s=4.0)
     team.liveliness_lost(1, 20.0, 8.0)

@@ -33,8 +33,9 @@ class TeamLiveness:
         self.grace_s = grace_s
         self._changes: list[list[StatusChange]] = [[] for _ in range(num_robots)]
         self._unconfirmed: dict[int, tuple[float, float]] = {}
-        # Robots lost to a liveliness loss whose next process has not reported its own yet.
-        self._next_process_due: set[int] = set()
+        # Per robot: processes whose liveliness was lost and whose successor has not
+        # reported its own yet.
+        self._successors_due: dict[int, int] = {}
 
     def status(self, robot: int) -> str:
         """The robot's current status."""
@@ -47,6 +48,7 @@ class TeamLiveness:
 
     def liveliness_lost(self, robot: int, sim_time_s: float, wall_s: float) -> None:
         """The middleware reported the robot's liveliness lost at these times [s]."""
+        self._successors_due[robot] = self._successors_due.get(robot, 0) + 1
         if self.status(robot) != LOST and robot not in self._unconfirmed:
             self._unconfirmed[robot] = (sim_time_s, wall_s)
 
@@ -56,18 +58,19 @@ class TeamLiveness:
         unconfirmed loss is void, unless the liveliness comes from a new process
         (``restarted``): then the robot was lost from the time of the loss, or from now if
         the new process came up within the old one's lease, before that loss was reported
-        (returns True). A lost robot rejoins only when ``heard``. The first new process
-        after a confirmed loss is the one that rejoins, even when it was heard before its
-        liveliness was reported (on separate hosts, discovery can take a second longer than
-        its first answer): its report is no new restart."""
+        (returns True). A lost robot rejoins only when ``heard``. A new process that follows
+        a lost one whose loss is already counted is no new restart, even when it was heard
+        before its liveliness was reported (discovery can take a second longer than its
+        first answer, on separate hosts or after quick restarts)."""
         unconfirmed = self._unconfirmed.pop(robot, None)
-        replacing_the_lost_one = robot in self._next_process_due
-        self._next_process_due.discard(robot)
-        if not restarted or replacing_the_lost_one:
+        successor = self._successors_due.get(robot, 0) > 0
+        if successor:  # the lost process came back, or a successor took its place
+            self._successors_due[robot] -= 1
+        if not restarted:
             return False
         if unconfirmed is not None:
             return self._change(robot, LOST, *unconfirmed, "process restarted")
-        if self.status(robot) == LOST:
+        if successor or self.status(robot) == LOST:
             return False
         return self._change(robot, LOST, sim_time_s, wall_s,
                             "process restarted within its liveliness lease")
@@ -79,7 +82,6 @@ class TeamLiveness:
                      if wall_s - since >= self.grace_s]
         for robot in confirmed:
             sim_time_s, since = self._unconfirmed.pop(robot)
-            self._next_process_due.add(robot)
             self._change(robot, LOST, sim_time_s, since,
                          f"liveliness lost for {wall_s - since:.1f} s")
         return confirmed
