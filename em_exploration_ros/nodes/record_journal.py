@@ -16,6 +16,7 @@ from collections.abc import Iterable
 
 from em_exploration_msgs.msg import TeamUpdate as TeamUpdateMsg
 from rclpy._rclpy_pybind11 import RMWError
+from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.serialization import deserialize_message, serialize_message
 
 from em_exploration_ros.core.agent.stream_journal import (JournalContents, JournalIdentity,
@@ -31,7 +32,7 @@ class RecordJournal:
     ("stream journal", "team journal")."""
 
     def __init__(self, path: pathlib.Path, identity: JournalIdentity, wire: TeamWireFormat,
-                 logger, what: str) -> None:
+                 logger: RcutilsLogger, what: str) -> None:
         self._journal: StreamJournal | None = StreamJournal(path, identity)
         self.path = path
         self._identity = identity

@@ -159,7 +159,6 @@ class RobotNode(LeanNode):
         self.deliveries = DeliveryTally()  # relay mode
         self.archive = StreamArchive(self.robot_id, self.num_robots)
         self.journal, self.team_journal = self._make_journals()
-        self._team_journaled: dict[int, int] = {}  # teammate -> last sequence journaled
         self._recovery: OwnHistoryRecovery | None = None
         self._served_history: dict[int, float] = {}
         self._served_history_log = RejectionLog(LOG_PERIOD_S)
@@ -597,46 +596,38 @@ class RobotNode(LeanNode):
                 RecordJournal(stem.with_suffix(".team.journal"), identity, self.wire, logger,
                               "team journal"))
 
-    def _journal_teammates_records(self, filed: list[TeamRecord]) -> None:
-        """Append the teammates' records just applied that the team journal lacks."""
-        for update in filed:
-            if update.sequence > self._team_journaled.get(update.robot_id, 0):
-                self.team_journal.append(update)
-                self._team_journaled[update.robot_id] = update.sequence
-
     def _read_journals(self, team_holds: list[int]) -> None:
         """After a restart: this robot's earlier records and the teammates' records it had
         applied, from its own journals (``team_holds``: the world's barrier), checked as
         received ones are; the teammates' copies fill what they lack."""
         if self.journal is None:
             return
-        own = self._journaled_records(self.journal, team_holds)
-        teammates = self._journaled_records(self.team_journal, team_holds)
-        taken = self._file_journaled(self.journal, own, self._recovery.receive)
-        self._file_journaled(self.team_journal, teammates, self.inbox.receive)
+        own = self._file_journaled(self.journal, team_holds, self._recovery.receive)
+        teammates = self._file_journaled(self.team_journal, team_holds, self.inbox.receive)
+        # Applied by the earlier process: the archive holds them from now on, so they are
+        # served to a restarted teammate and not journaled again when applied.
+        self.archive.keep(teammates)
         self.team_journal.start(teammates, fresh=False)
-        for update in teammates:
-            self._team_journaled[update.robot_id] = max(
-                update.sequence, self._team_journaled.get(update.robot_id, 0))
         self.get_logger().info(
-            f"read {taken} records of this robot's stream from its journal "
+            f"read {len(own)} records of this robot's stream from its journal "
             f"{self.journal.path} (the team holds it up to sequence "
             f"{self._recovery.needed_sequence}) and {len(teammates)} of its teammates' "
             f"from {self.team_journal.path}")
 
-    def _file_journaled(self, journal: RecordJournal, records: list[TeamRecord],
-                        file: Callable[[TeamRecord], bool]) -> int:
-        """File a journal's records with ``file`` up to the first one it refuses (WARN);
-        returns how many were new."""
-        taken = 0
-        for update in records:
+    def _file_journaled(self, journal: RecordJournal, team_holds: list[int],
+                        file: Callable[[TeamRecord], object]) -> list[TeamRecord]:
+        """File a journal's usable records (``_journaled_records``) with ``file`` up to the
+        first one it refuses (WARN); returns those filed."""
+        taken = []
+        for update in self._journaled_records(journal, team_holds):
             try:
-                taken += file(update)
+                file(update)
             except InvalidTeamUpdate as error:
                 self.get_logger().warn(f"{journal.what} {journal.path}: record "
                                        f"{update.robot_id}/{update.sequence} refused ({error}); "
                                        f"not read on")
                 break
+            taken.append(update)
         return taken
 
     def _journaled_records(self, journal: RecordJournal, team_holds: list[int]
@@ -787,9 +778,9 @@ class RobotNode(LeanNode):
         stamp_s = sim_time_s(step, self.time_step_s)
         released = self.inbox.pop_ready(limits)
         agent.apply_team_updates(released)
-        filed = self.archive.keep(released)
-        if self.team_journal is not None:
-            self._journal_teammates_records(filed)
+        for update in self.archive.keep(released):
+            if self.team_journal is not None:
+                self.team_journal.append(update)
         decisions_before, given_up_before = len(agent.decisions), len(agent.given_up)
         command = agent.step(StepInput(
             step, stamp_s, odometry.pose,
