@@ -160,10 +160,10 @@ def test_a_robot_never_seen_alive_is_reported_lost(tmp_path):
 
 def test_a_robot_the_world_went_on_without_resumes_at_the_worlds_step(tmp_path):
     """Robot 1 is stopped (SIGSTOP: wedged, or starved of CPU) 500 steps into the run until
-    the world gives it up and runs on with robot 0 for hundreds of steps; its sensor topics keep only the last 50
-    messages, so the data of the steps it missed is gone. Continued, it used to wait for
-    the next of those steps for good (or drop the newest as too far ahead); it now resumes
-    at the world's step, which takes it back into the lockstep."""
+    the world gives it up and runs on with robot 0 for hundreds of steps; its sensor topics
+    keep only the last 50 messages, so the data of the steps it missed is gone. Continued,
+    it used to wait for the next of those steps for good (or drop the newest as too far
+    ahead); it now resumes at the world's step, which takes it back into the lockstep."""
     team = {"world.num_robots": 2, "world.width_m": 100.0, "world.height_m": 100.0,
             "world.num_landmarks": 4, "planner.name": "NEAREST"}
     world = NodeProcess.start_module(WORLD, ros_args(params=dict(
