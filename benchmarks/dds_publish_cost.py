@@ -64,7 +64,7 @@ def sample_messages() -> list[Any]:
     from rosgraph_msgs.msg import Clock
 
     from em_exploration_ros.core.params_yaml import load_params
-    from em_exploration_ros.core.sim.simulation import WorldSimulation
+    from em_exploration_ros.core.world.simulation import WorldSimulation
     from em_exploration_ros.nodes.conversions import (seconds_to_time, serialized_dead_reckoning,
                                                       sonar_scan_to_msg)
     params = load_params(PARAMS_FILE)

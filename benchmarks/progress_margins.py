@@ -26,7 +26,7 @@ from collections import defaultdict
 import numpy as np
 
 from em_exploration_ros.core.planning import progress
-from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.tools.sim_cli import add_run_arguments, params_from_args
 
 _BLOCKED_FRACTION = 0.1

@@ -23,9 +23,9 @@ from typing import Any, Sequence
 
 from rclpy.serialization import serialize_message
 
-from em_exploration_ros.core.agent.team_data import TeamUpdate
-from em_exploration_ros.core.agent.team_wire import TeamWireFormat
-from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.core.records.team_data import TeamUpdate
+from em_exploration_ros.core.records.team_wire import TeamWireFormat
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.nodes.conversions import team_update_to_msg
 from em_exploration_ros.tools.sim_cli import add_run_arguments, params_from_args
 

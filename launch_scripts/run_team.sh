@@ -263,7 +263,7 @@ if ! RESOLVED=$("$PYTHON" - "$PARAMS_FILE" "${OVERRIDES[@]}" <<'PY'
 import sys
 
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params, nest_dotted
-from em_exploration_ros.core.sim.world import generate_world, run_seed_sequences
+from em_exploration_ros.core.world.world import generate_world, run_seed_sequences
 
 path, args = sys.argv[1], sys.argv[2:]
 values = {}

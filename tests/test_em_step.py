@@ -7,7 +7,8 @@ import pytest
 
 from em_exploration_ros.core.geometry import range_bearing
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sim.sensors import OdometryReading, odometry_covariance_per_step
+from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
+from em_exploration_ros.core.records.readings import OdometryReading
 from em_exploration_ros.core.slam.team_slam import (OdometryAccumulator, TeamSlam,
                                                     is_landmark_key, pose_key)
 from em_exploration_ros.core.slam.synthetic_team import exact_team_slam

@@ -15,7 +15,7 @@ from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, ClockGuar
                                                         number_problem, request_problem,
                                                         size_problem, stamp_problem,
                                                         stamp_step_problem, step_problem)
-from em_exploration_ros.core.agent.resend import ResendRange, ResendScheduler
+from em_exploration_ros.core.links.resend import ResendRange, ResendScheduler
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 
 OBSERVER = 2**32 - 1

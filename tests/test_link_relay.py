@@ -1,5 +1,5 @@
-"""The links in the ROS system: what a robot sends at a step (core/agent/link_sender.py), the
-world's relay bookkeeping (core/sim/link_relay.py), and a whole ROS team under poor links
+"""The links in the ROS system: what a robot sends at a step (core/links/link_sender.py), the
+world's relay bookkeeping (core/links/link_relay.py), and a whole ROS team under poor links
 choosing em-sim's targets (launch_scripts/run_team.sh --comm-*)."""
 from __future__ import annotations
 
@@ -16,16 +16,16 @@ from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from em_exploration_ros.core.agent.delivery_tally import RECORDS, REQUESTS, DeliveryTally
-from em_exploration_ros.core.agent.link_sender import LinkSender
-from em_exploration_ros.core.agent.team_data import (MissingRange, TeamUpdate, TeamUpdateInbox,
+from em_exploration_ros.core.links.delivery_tally import RECORDS, REQUESTS, DeliveryTally
+from em_exploration_ros.core.links.link_sender import LinkSender
+from em_exploration_ros.core.records.team_data import (MissingRange, TeamUpdate, TeamUpdateInbox,
                                                      TeamUpdateOutbox)
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import load_params
-from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
-from em_exploration_ros.core.sim.links import FrameKind
-from em_exploration_ros.core.sim.lockstep import StepAnswer
-from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.core.links.link_relay import LinkRelay, SentCounts
+from em_exploration_ros.core.links.link_model import FrameKind
+from em_exploration_ros.core.sessions.lockstep import StepAnswer
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.nodes.conversions import time_to_seconds
 from em_exploration_ros.nodes.input_guard import InputGuard
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, TEAM_QOS

@@ -1,5 +1,5 @@
-"""The link model between robots (core/sim/links.py), the wire sizes of team data
-(core/agent/team_wire.py: a request's bytes) and em-sim under imperfect links."""
+"""The link model between robots (core/links/link_model.py), the wire sizes of team data
+(core/records/team_wire.py: a request's bytes) and em-sim under imperfect links."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.params import ExplorationParams, LinkParams
-from em_exploration_ros.core.sim.links import (DeliveryLedger, Frame, FrameKind, TeamLinks,
+from em_exploration_ros.core.links.link_model import (DeliveryLedger, Frame, FrameKind, TeamLinks,
                                                loss_draw, perfect_links)
-from em_exploration_ros.core.sim.team_runner import TeamRunner
-from em_exploration_ros.core.agent.team_wire import cdr_size, request_cdr_size
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
+from em_exploration_ros.core.records.team_wire import cdr_size, request_cdr_size
 
 DT = 0.2
 
@@ -140,7 +140,7 @@ def short_run_updates():
 
 def test_frames_carry_the_wire_size_of_what_they_carry(short_run_updates):
     serialization = pytest.importorskip("rclpy.serialization")
-    from em_exploration_ros.core.agent.team_wire import TeamWireFormat
+    from em_exploration_ros.core.records.team_wire import TeamWireFormat
     from em_exploration_ros.nodes.conversions import team_update_to_msg
     assert short_run_updates
     form = TeamWireFormat(ExplorationParams())
@@ -179,8 +179,8 @@ def test_team_copes_with_poor_links_and_is_deterministic(links):
 
 
 def test_gap_requests_one_gap_per_interval_teammates_in_turn():
-    from em_exploration_ros.core.agent.gap_requests import GapRequests
-    from em_exploration_ros.core.agent.team_data import TeamUpdate, TeamUpdateInbox
+    from em_exploration_ros.core.links.gap_requests import GapRequests
+    from em_exploration_ros.core.records.team_data import TeamUpdate, TeamUpdateInbox
     inbox = TeamUpdateInbox(0, 3)
     for robot in (1, 2):
         inbox.receive(TeamUpdate(robot, 1, 0.0))

@@ -1,7 +1,7 @@
 """The world's lockstep barrier: answers, re-sends, timeouts, liveliness stops, rejoins."""
 from __future__ import annotations
 
-from em_exploration_ros.core.sim.lockstep import STAND_STILL, LockstepBarrier, StepAnswer
+from em_exploration_ros.core.sessions.lockstep import STAND_STILL, LockstepBarrier, StepAnswer
 
 GO = StepAnswer(1.0, 0.1, 4, False)
 

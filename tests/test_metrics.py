@@ -7,7 +7,7 @@ import pytest
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, stamp_key, stamp_keys
 from em_exploration_ros.core.evaluation.metrics import landmark_rmse, localization_rmse
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sim.world import World
+from em_exploration_ros.core.world.world import World
 
 
 def _world() -> World:

@@ -4,7 +4,7 @@ import pytest
 
 from em_exploration_ros.core.planning.motion import ApfController
 from em_exploration_ros.core.params import MotionParams, SensorParams, WorldParams
-from em_exploration_ros.core.sim.world import collides, generate_world, step_pose
+from em_exploration_ros.core.world.world import collides, generate_world, step_pose
 
 MOTION = MotionParams()
 LANDMARK_RADIUS = 1.0

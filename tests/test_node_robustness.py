@@ -448,5 +448,5 @@ def test_a_robot_process_loads_neither_the_relay_nor_the_simulator_runner_nor_pl
     runner with its evaluation, or matplotlib (0.76 s of CPU at every (re)start, before)."""
     loaded = loaded_modules("em_exploration_ros.nodes.robot_node")
     assert not loaded & {"em_exploration_ros.nodes.team_relay",
-                         "em_exploration_ros.core.sim.team_runner",
+                         "em_exploration_ros.core.sessions.team_runner",
                          "em_exploration_ros.core.evaluation.evaluator", "matplotlib"}

@@ -7,7 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
+from em_exploration_ros.core.planning.frontiers import Frontier
+from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid, observation_counts
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.planners import (EmPlanner, PlanningContext, allocation_utility,

@@ -2,7 +2,7 @@
 report about frontier types, planner failures and rendezvous."""
 import numpy as np
 
-from em_exploration_ros.core.agent.team_data import RendezvousEvent, RendezvousState
+from em_exploration_ros.core.records.team_data import RendezvousEvent, RendezvousState
 from em_exploration_ros.core.evaluation.evaluator import TeamMetrics
 from em_exploration_ros.core.evaluation.rendezvous_stats import (RendezvousCounts,
                                                                  activity_totals,
@@ -11,7 +11,7 @@ from em_exploration_ros.core.evaluation.rendezvous_stats import (RendezvousCount
 from em_exploration_ros.core.evaluation.run_monitor import DecisionEntry, RunMonitor
 from em_exploration_ros.core.evaluation.summary import MeetingEntry, activity_line
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.frontiers import FrontierType
+from em_exploration_ros.core.records.team_data import FrontierType
 
 REQUEST, ARRIVED, RELEASE = RendezvousState.REQUEST, RendezvousState.ARRIVED, RendezvousState.RELEASE
 

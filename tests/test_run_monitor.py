@@ -10,7 +10,7 @@ from em_exploration_ros.core.evaluation.run_monitor import (EXIT_ROBOTS_LOST, EX
                                                             final_step)
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, check_summary
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.frontiers import FrontierType
+from em_exploration_ros.core.records.team_data import FrontierType
 
 STEP_S = ExplorationParams().motion.time_step_s
 

@@ -19,7 +19,7 @@ import pytest
 
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.evaluation.summary import check_summary
-from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, finish_team_run,
                          processes_in_domain, robot_pid, start_team_run, wait_for_liveliness)
 from rosbags.rosbag2 import Reader as RosbagsReader

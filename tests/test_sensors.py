@@ -6,8 +6,8 @@ import pytest
 
 from em_exploration_ros.core.geometry import between, range_bearing, wrap_angle
 from em_exploration_ros.core.params import BOUND_95_TO_SIGMA, MotionParams, SensorParams
-from em_exploration_ros.core.sim.sensors import SensorSimulator, odometry_covariance_per_step
-from em_exploration_ros.core.sim.world import World
+from em_exploration_ros.core.world.sensors import SensorSimulator, odometry_covariance_per_step
+from em_exploration_ros.core.world.world import World
 
 MOTION = MotionParams()
 NOISY = SensorParams()

@@ -4,10 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.planning.frontiers import FrontierType
-from em_exploration_ros.core.sim.sensors import LandmarkReading, TeammateReading
-from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
-from em_exploration_ros.core.agent.team_data import (MAX_TARGETS_PER_UPDATE,
+from em_exploration_ros.core.records.team_data import FrontierType
+from em_exploration_ros.core.records.readings import LandmarkReading, TeammateReading
+from em_exploration_ros.core.records.readings import KeyframeMeasurements
+from em_exploration_ros.core.records.team_data import (MAX_TARGETS_PER_UPDATE,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
                                                      MissingRange,
                                                      TargetRecord, TeamUpdateInbox,

@@ -9,7 +9,7 @@ import pytest
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.agent.robot_agent import RobotAgent
 from em_exploration_ros.core.evaluation.summary import check_summary
-from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
 
 SMALL = dict(world={"width_m": 50.0, "height_m": 50.0, "num_landmarks": 5},
              run={"seed": 3, "max_steps": 1500})
@@ -112,7 +112,7 @@ def test_stall_rule_ends_a_run_whose_robots_cannot_move(monkeypatch):
 
 
 def test_em_sim_exits_with_status_4_when_the_run_stalls(monkeypatch, tmp_path):
-    from em_exploration_ros.core.sim.simulation import WorldSimulation
+    from em_exploration_ros.core.world.simulation import WorldSimulation
     from em_exploration_ros.tools import sim_cli
     monkeypatch.setattr(WorldSimulation, "apply_command",
                         lambda self, robot_id, linear_x, angular_z: None)

@@ -2,7 +2,7 @@
 import numpy as np
 
 from em_exploration_ros.core.geometry import compose
-from em_exploration_ros.core.sim.wire_model import (DeadReckoningDifferencer, DeadReckoningIntegrator,
+from em_exploration_ros.core.records.wire_model import (DeadReckoningDifferencer, DeadReckoningIntegrator,
                                                 command_to_twist,
                                                 increment_covariance_to_twist,
                                                 twist_to_command,

@@ -23,8 +23,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rosgraph_msgs.msg import Clock
 
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sim.simulation import WorldSimulation
-from em_exploration_ros.core.sim.wire_model import pose_through_wire, sim_time_s
+from em_exploration_ros.core.world.simulation import WorldSimulation
+from em_exploration_ros.core.records.wire_model import pose_through_wire, sim_time_s
 from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg,
                                                   landmark_reading_from_msg, odometry_pose,
                                                   odometry_twist_covariance, quaternion_to_yaw,

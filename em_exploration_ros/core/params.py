@@ -310,7 +310,7 @@ class PlannerParams:
 
 @dataclass(frozen=True)
 class LinkParams:
-    """The links between robots (``core/sim/links.py``): range, loss, latency, bandwidth.
+    """The links between robots (``core/links/link_model.py``): range, loss, latency, bandwidth.
     The defaults are perfect links: every update reaches every teammate at the next step."""
 
     range_m: float = param_field(

@@ -16,19 +16,19 @@ from geometry_msgs.msg import PoseStamped, Quaternion
 from nav_msgs.msg import Odometry, Path
 
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry
-from em_exploration_ros.core.planning.frontiers import FrontierType
+from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.planning.progress import GivenUpTarget, GiveUpReason
-from em_exploration_ros.core.sim.sensors import LandmarkReading, TeammateReading
-from em_exploration_ros.core.sim.simulation import SensorFrame
-from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
-from em_exploration_ros.core.sim.wire_model import (NANOSECONDS_PER_SECOND,
+from em_exploration_ros.core.records.readings import LandmarkReading, TeammateReading
+from em_exploration_ros.core.world.simulation import SensorFrame
+from em_exploration_ros.core.records.readings import KeyframeMeasurements
+from em_exploration_ros.core.records.wire_model import (NANOSECONDS_PER_SECOND,
                                                 nanoseconds_to_seconds,
                                                 planar_covariance_to_6x6, planar_quaternion,
                                                 planar_yaw, seconds_to_nanoseconds)
-from em_exploration_ros.core.agent.team_data import (InvalidTeamUpdate, LandmarkEstimate,
+from em_exploration_ros.core.records.team_data import (InvalidTeamUpdate, LandmarkEstimate,
                                                      RendezvousEvent, RendezvousState,
                                                      TargetRecord, TeamUpdate, check_record_sizes)
-from em_exploration_ros.core.agent.team_wire import (TeamWireFormat, covariance_from_upper,
+from em_exploration_ros.core.records.team_wire import (TeamWireFormat, covariance_from_upper,
                                                      covariance_upper)
 from em_exploration_ros.nodes.odometry_cdr import OdometryCodec, PlanarOdometry
 from em_exploration_ros.nodes.path_cdr import DecodedPath, encode_path
@@ -58,7 +58,7 @@ def seconds_to_time(seconds: float) -> Time:
 
 
 def time_to_seconds(stamp: Time) -> float:
-    """builtin_interfaces/Time as seconds (wire-exact, see core.sim.wire_model)."""
+    """builtin_interfaces/Time as seconds (wire-exact, see core.records.wire_model)."""
     return nanoseconds_to_seconds(stamp.sec * NANOSECONDS_PER_SECOND + stamp.nanosec)
 
 
@@ -167,7 +167,7 @@ def planar_odometry_from_msg(message: Odometry) -> PlanarOdometry:
 # -- team data (robot <-> robot) ----------------------------------------------------------
 # The wire form is compact (msg_schemas/msg/TeamUpdate.msg); ``TeamWireFormat`` holds the
 # shared parameters a receiver rebuilds the rest from. A record the core made goes through
-# ``to_msg`` and back unchanged: the sender already rounded it (core/agent/team_wire.py).
+# ``to_msg`` and back unchanged: the sender already rounded it (core/records/team_wire.py).
 
 def _keyframe_to_msg(kf: KeyframeMeasurements) -> em_msg.Keyframe:
     previous = em_msg.Keyframe.NO_PREVIOUS if kf.is_first else kf.previous_index

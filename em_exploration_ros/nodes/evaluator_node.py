@@ -65,7 +65,7 @@ from builtin_interfaces.msg import Time
 from rclpy.clock import Clock, ClockType
 from rclpy.task import Future
 
-from em_exploration_ros.core.agent.team_data import (MAX_LANDMARKS_PER_UPDATE,
+from em_exploration_ros.core.records.team_data import (MAX_LANDMARKS_PER_UPDATE,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
                                                      LandmarkEstimate, MissingRange, RendezvousEvent, TargetRecord,
                                                      TeamUpdateInbox)
@@ -78,7 +78,7 @@ from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD, fir
                                                         frame_problem, id_problem,
                                                         command_sequence_problem, size_problem,
                                                         stamp_step_problem, step_problem)
-from em_exploration_ros.core.agent.team_wire import TeamWireFormat
+from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness, UnseenLiveliness
 from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, RobotProgressRecord,
@@ -87,8 +87,8 @@ from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry, Robot
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, RunSummary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.output_paths import output_path_problem
-from em_exploration_ros.core.sim.links import perfect_links
-from em_exploration_ros.core.sim.wire_model import sim_time_s
+from em_exploration_ros.core.links.link_model import perfect_links
+from em_exploration_ros.core.records.wire_model import sim_time_s
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_NODE_NAME,
                                                   WORLD_STATUS_TOPIC, given_up_from_msg,
                                                   landmark_array_to_msg,

@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from em_exploration_ros.core.agent.input_checks import array_problem, stamp_problem
-from em_exploration_ros.core.sim.wire_model import planar_quaternion, planar_yaw
+from em_exploration_ros.core.records.wire_model import planar_quaternion, planar_yaw
 from em_exploration_ros.nodes.path_cdr import CDR_LE_HEADER
 
 #: float64s of the message body: pose (7), its covariance (36), twist (6), its covariance.

@@ -21,8 +21,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 
 from em_exploration_ros.core.agent.stream_journal import (JournalContents, JournalIdentity,
                                                           StreamJournal, read_journal)
-from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate, TeamUpdate
-from em_exploration_ros.core.agent.team_wire import TeamWireFormat
+from em_exploration_ros.core.records.team_data import InvalidTeamUpdate, TeamUpdate
+from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.nodes.conversions import team_update_to_msg
 from em_exploration_ros.nodes.input_guard import checked_team_update
 

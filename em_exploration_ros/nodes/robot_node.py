@@ -19,9 +19,9 @@ link relay (``nodes/team_relay.py``) delivers teammates' records and requests on
 ``/robot_<i>/team/delivered_updates`` and ``/robot_<i>/team/delivered_requests``; each
 SonarScan says how many it has delivered in all, and the step waits for those instead of
 the barrier's sequence numbers (counted by the deliveries' publication sequence numbers,
-``core.agent.delivery_tally``; after ``barrier_timeout_s`` the missing ones are written
+``core.links.delivery_tally``; after ``barrier_timeout_s`` the missing ones are written
 off, not waited for again). The robot sends at steps only, as em-sim
-(``core.agent.link_sender.LinkSender``: gap request, broadcast re-sends, new update), and
+(``core.links.link_sender.LinkSender``: gap request, broadcast re-sends, new update), and
 its MotionCommand counts what it has published (``team_messages``, ``team_requests``).
 
 Liveliness (``nodes/liveliness.py``): the node offers its own and logs a warning when a
@@ -38,7 +38,7 @@ holds it (the whole team restarted, or every teammate out of range).
 Every message is checked before it touches any state (``scan_problem``, the dead
 reckoning's frames, stamp and numbers, ``core.agent.input_checks``); unusable ones are dropped with a
 throttled WARN, so the sensor data kept for coming steps stays bounded. Requests for
-re-sends are rate-limited per requester and merged (``core.agent.resend``). A world that
+re-sends are rate-limited per requester and merged (``core.links.resend``). A world that
 leaves the ROS graph is logged at once; after ``world_lost_timeout_s`` the robot exits
 with code 4.
 
@@ -74,19 +74,19 @@ from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, Rejection
                                                         landmark_reading_problem, request_problem,
                                                         size_problem, stamp_step_problem,
                                                         step_problem)
-from em_exploration_ros.core.agent.delivery_tally import RECORDS, REQUESTS, DeliveryTally
-from em_exploration_ros.core.agent.link_sender import LinkSender
-from em_exploration_ros.core.agent.resend import ResendScheduler
+from em_exploration_ros.core.links.delivery_tally import RECORDS, REQUESTS, DeliveryTally
+from em_exploration_ros.core.links.link_sender import LinkSender
+from em_exploration_ros.core.links.resend import ResendScheduler
 from em_exploration_ros.core.agent.stream_journal import JournalIdentity, mission_fingerprint
-from em_exploration_ros.core.agent.team_data import (MAX_READINGS_PER_KEYFRAME,
+from em_exploration_ros.core.records.team_data import (MAX_READINGS_PER_KEYFRAME,
                                                      MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
                                                      LandmarkEstimate, TeamUpdateInbox)
-from em_exploration_ros.core.agent.team_data import TeamUpdate as TeamRecord
-from em_exploration_ros.core.agent.team_wire import TeamWireFormat
+from em_exploration_ros.core.records.team_data import TeamUpdate as TeamRecord
+from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.node_settings import RobotNodeSettings
-from em_exploration_ros.core.sim.links import FrameKind, perfect_links
-from em_exploration_ros.core.sim.wire_model import (command_to_twist, nanoseconds_to_seconds,
+from em_exploration_ros.core.links.link_model import FrameKind, perfect_links
+from em_exploration_ros.core.records.wire_model import (command_to_twist, nanoseconds_to_seconds,
                                                 sim_time_s, twist_to_increment_covariance)
 from em_exploration_ros.nodes import tf_publishing, visualization
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, given_up_to_msg,

@@ -1,7 +1,7 @@
 """The world node's link relay: team data between robots through the link model (ROS shell).
 
 Created by em-world when the ``links.*`` parameters are not perfect. The bookkeeping is
-``core.sim.link_relay.LinkRelay``; this module hears the robots' team topics on the world
+``core.links.link_relay.LinkRelay``; this module hears the robots' team topics on the world
 node, checks every message, and publishes what the links deliver on each receiver's own
 topics. Topics (QoS ``TEAM_QOS``):
 
@@ -28,14 +28,14 @@ from em_exploration_msgs.msg import TeamLinkCounts, TeamUpdate, TeamUpdateReques
 from rclpy.node import Node
 
 from em_exploration_ros.core.agent.input_checks import request_problem
-from em_exploration_ros.core.agent import team_data
-from em_exploration_ros.core.agent.team_data import InvalidTeamUpdate
-from em_exploration_ros.core.agent.team_wire import TeamWireFormat, cdr_size, request_cdr_size
+from em_exploration_ros.core.records import team_data
+from em_exploration_ros.core.records.team_data import InvalidTeamUpdate
+from em_exploration_ros.core.records.team_wire import TeamWireFormat, cdr_size, request_cdr_size
 from em_exploration_ros.core.evaluation.run_monitor import METRICS_INTERVAL_STEPS
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sim.link_relay import LinkRelay, SentCounts
-from em_exploration_ros.core.sim.links import FrameKind
-from em_exploration_ros.core.sim.lockstep import StepAnswer
+from em_exploration_ros.core.links.link_relay import LinkRelay, SentCounts
+from em_exploration_ros.core.links.link_model import FrameKind
+from em_exploration_ros.core.sessions.lockstep import StepAnswer
 from em_exploration_ros.nodes.conversions import robot_namespace
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   publish_or_log)

@@ -13,7 +13,8 @@ from nav_msgs.msg import OccupancyGrid
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
+from em_exploration_ros.core.planning.frontiers import Frontier
+from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid as CoreGrid
 from em_exploration_ros.nodes.conversions import MAP_FRAME, seconds_to_time, yaw_to_quaternion
 

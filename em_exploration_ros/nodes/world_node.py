@@ -1,4 +1,4 @@
-"""em-world: the world simulator node, a thin shell around ``core.sim.simulation.WorldSimulation``.
+"""em-world: the world simulator node, a thin shell around ``core.world.simulation.WorldSimulation``.
 
 It is the system's clock and its only source of ground truth. Topics (QoS from nodes/qos.py):
 
@@ -16,7 +16,7 @@ Lockstep mode (default): once every robot is connected (and the evaluator and th
 listen, if required), for ``startup_settle_s`` (or ``startup_timeout_s`` passed),
 step k publishes /clock, every robot's sonar (with the barrier ``team_sequences``) and
 odometry, and the ground truth; it then waits until every live robot has answered step k
-with a MotionCommand (``core.sim.lockstep.LockstepBarrier``). A robot whose answer is
+with a MotionCommand (``core.sessions.lockstep.LockstepBarrier``). A robot whose answer is
 missing gets the step's sensor messages again every ``step_resend_s`` (the same messages,
 so a missed start or a lost packet changes nothing), after the step's /clock again; a robot
 still silent after ``robot_timeout_s`` wall seconds (``liveliness_grace_s`` once its
@@ -24,7 +24,7 @@ liveliness lease expired, ``nodes/liveliness.py``) is *lost*: the world logs ``r
 lost: <why>`` and stops waiting for it (zero motion). A lost robot that answers again
 (recovered, or restarted with the same id) rejoins at the pose where its vehicle stopped.
 The commands are applied in robot id order and the world advances: the same order as
-``core.sim.team_runner.TeamRunner.step_once``, so em-sim and the ROS system draw the same
+``core.sessions.team_runner.TeamRunner.step_once``, so em-sim and the ROS system draw the same
 noise.
 
 Relay mode (``links.*`` not perfect): the world is also the link relay between the robots
@@ -57,14 +57,14 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from em_exploration_ros.core.agent.liveness import UnseenLiveliness
 from em_exploration_ros.core.agent.input_checks import command_problem, command_sequence_problem
-from em_exploration_ros.core.agent.team_data import MAX_SEQUENCE_LEAD
+from em_exploration_ros.core.records.team_data import MAX_SEQUENCE_LEAD
 from em_exploration_ros.core.node_settings import LOCKSTEP, REALTIME, WorldNodeSettings
 from em_exploration_ros.core.evaluation.run_monitor import final_step
-from em_exploration_ros.core.sim.links import perfect_links
-from em_exploration_ros.core.sim.lockstep import STAND_STILL, LockstepBarrier, StepAnswer
-from em_exploration_ros.core.sim.simulation import WorldSimulation
-from em_exploration_ros.core.agent.team_data import LandmarkEstimate
-from em_exploration_ros.core.sim.world import World
+from em_exploration_ros.core.links.link_model import perfect_links
+from em_exploration_ros.core.sessions.lockstep import STAND_STILL, LockstepBarrier, StepAnswer
+from em_exploration_ros.core.world.simulation import WorldSimulation
+from em_exploration_ros.core.records.team_data import LandmarkEstimate
+from em_exploration_ros.core.world.world import World
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_NODE_NAME,
                                                   WORLD_STATUS_TOPIC,
                                                   landmark_array_to_msg, robot_namespace,

@@ -23,11 +23,13 @@ from typing import Sequence
 
 import numpy as np
 
-from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
+from em_exploration_ros.core.planning.frontiers import Frontier
+from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.planners import PlanningContext, make_planner
-from em_exploration_ros.core.sim.sensors import OdometryReading, odometry_covariance_per_step
+from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
+from em_exploration_ros.core.records.readings import OdometryReading
 from em_exploration_ros.core.slam.team_slam import OdometryAccumulator, TeamSlam
 from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
 from em_exploration_ros.core.planning.em_oracle import propagate_oracle

@@ -48,7 +48,7 @@ from typing import Sequence
 
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import dump_params
-from em_exploration_ros.core.sim.team_runner import TeamRunner
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.tools.sim_cli import add_run_arguments, params_from_args
 
 REPO_ROOT = Path(__file__).resolve().parents[2]

@@ -1,7 +1,7 @@
 """em-sim: one seeded N-robot exploration in one process, with progress and a JSON summary.
 
 Each robot's SLAM is fed only by its own measurements and by what its teammates would
-send it (see core/sim/team_runner.py). Examples::
+send it (see core/sessions/team_runner.py). Examples::
 
     em-sim --robots 3 --planner EM_3 --seed 7 --summary out/run.json
     em-sim --params config/exploration.yaml --map-size 200 --cell-size 4
@@ -27,7 +27,7 @@ from em_exploration_ros.core.params import (ExplorationParams, PlannerParams,
                                             current_planner_name)
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
 from em_exploration_ros.core.evaluation.summary import activity_line
-from em_exploration_ros.core.sim.team_runner import Progress, TeamRunner
+from em_exploration_ros.core.sessions.team_runner import Progress, TeamRunner
 
 #: A progress line every this many simulation steps.
 PROGRESS_EVERY_STEPS = 250

@@ -16,14 +16,9 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from em_exploration_ros.core.sim.wire_model import seconds_to_nanoseconds
+from em_exploration_ros.core.records.limits import MAX_ABS_VALUE, MAX_ID
+from em_exploration_ros.core.records.wire_model import seconds_to_nanoseconds
 
-#: Largest magnitude of any number in a message (coordinates [m], variances [m^2],
-#: velocities, times [s]); beyond it a value is treated as corrupt (1e9 m is 25 times
-#: the Earth's circumference).
-MAX_ABS_VALUE = 1e9
-#: Largest id of anything (landmark, decision, rendezvous): ids are small counters.
-MAX_ID = 2**31 - 1
 #: How far ahead of the step a robot expects next a sensor message may be [steps]. In
 #: lockstep the world is never ahead by more than one step; in real time a robot that
 #: lags keeps at most this many steps of sensor data (200 s at the paper's 0.2 s step).

@@ -38,9 +38,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from em_exploration_ros.core.planning.frontiers import (Frontier, FrontierType,
-                                                        candidate_targets,
+from em_exploration_ros.core.planning.frontiers import (Frontier, candidate_targets,
                                                         exploration_frontiers, frontier_cells)
+from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.geometry import compose
 from em_exploration_ros.core.planning.motion import ApfController
 from em_exploration_ros.core.planning.rendezvous import Meeting, RendezvousBook, meeting_timeout_s
@@ -50,13 +50,15 @@ from em_exploration_ros.core.planning.planners import Decision, PlanningContext,
 from em_exploration_ros.core.planning.progress import (GivenUpTarget, GiveUpReason,
                                                        ProgressMonitor, RecoveryTurn,
                                                        TargetBlacklist, blocked_step)
-from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReading, TeammateReading,
-                                                 odometry_covariance_per_step)
-from em_exploration_ros.core.slam.team_slam import KeyframeBuilder, KeyframeMeasurements, TeamSlam
-from em_exploration_ros.core.agent.team_data import (RendezvousEvent, RendezvousState,
+from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
+from em_exploration_ros.core.records.readings import (LandmarkReading, OdometryReading,
+                                                      TeammateReading)
+from em_exploration_ros.core.slam.team_slam import KeyframeBuilder, TeamSlam
+from em_exploration_ros.core.records.readings import KeyframeMeasurements
+from em_exploration_ros.core.records.team_data import (RendezvousEvent, RendezvousState,
                                                      TargetRecord, TeamUpdate, TeamUpdateOutbox)
-from em_exploration_ros.core.agent.team_wire import TeamWireFormat
-from em_exploration_ros.core.sim.wire_model import DeadReckoningDifferencer
+from em_exploration_ros.core.records.team_wire import TeamWireFormat
+from em_exploration_ros.core.records.wire_model import DeadReckoningDifferencer
 
 _LOG = logging.getLogger(__name__)
 

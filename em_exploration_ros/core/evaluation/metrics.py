@@ -12,7 +12,7 @@ from collections.abc import Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from em_exploration_ros.core.sim.world import World
+from em_exploration_ros.core.world.world import World
 
 FloatArray = NDArray[np.float64]
 

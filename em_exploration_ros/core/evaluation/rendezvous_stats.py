@@ -19,7 +19,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from em_exploration_ros.core.agent.team_data import RendezvousEvent, RendezvousState
+from em_exploration_ros.core.records.team_data import RendezvousEvent, RendezvousState
 from em_exploration_ros.core.evaluation.summary import RendezvousCounts
 
 

@@ -1,6 +1,6 @@
 """The run monitor: one stop rule and one run summary for em-sim, the benchmark and em-evaluator.
 
-Whoever watches a run (``core.sim.team_runner.TeamRunner`` in process, the
+Whoever watches a run (``core.sessions.team_runner.TeamRunner`` in process, the
 ``em-evaluator`` node over ROS) evaluates the team metrics at some steps and hands each
 evaluation to ``RunMonitor.observe``, which keeps the history and applies the stop rule:
 
@@ -32,13 +32,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from em_exploration_ros.core.agent.team_data import RendezvousEvent
+from em_exploration_ros.core.records.team_data import RendezvousEvent
 from em_exploration_ros.core.evaluation.evaluator import TeamMetrics, stamp_key
 from em_exploration_ros.core.evaluation.rendezvous_stats import count_rendezvous
 from em_exploration_ros.core.evaluation.summary import (GivenUpEntry, HistorySample, MeetingEntry,
                                                         RobotSummary, RunSummary, TargetEntry)
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.frontiers import FrontierType
+from em_exploration_ros.core.records.team_data import FrontierType
 
 #: Team metrics are evaluated every this many steps (and at the end) in em-sim; the link
 #: relay delivers before those steps so that they see what the links carried.

@@ -142,7 +142,7 @@ class RunSummary:
     rendezvous: RendezvousCounts = field(default_factory=RendezvousCounts)
     meetings: list[MeetingEntry] = field(default_factory=list)
     #: Over every (team update, teammate) pair: ``sent``, delivered ``on_time`` / ``late``,
-    #: ``never`` delivered (``core/sim/links.py``); None where the writer cannot know.
+    #: ``never`` delivered (``core/links/link_model.py``); None where the writer cannot know.
     team_updates: dict[str, int] | None = None
     robots: list[RobotSummary] = field(default_factory=list)
     history: list[HistorySample] = field(default_factory=list)

@@ -8,7 +8,7 @@ sequence (``pose_key(robot, latest + k)``), heading along the path. Virtual meas
 
 * odometry between successive waypoints, with the covariance the robot's dead reckoning
   accumulates over that distance (straight motion in steps of ``speed * time_step``,
-  the per-step model of :func:`~em_exploration_ros.core.sim.sensors.odometry_covariance_per_step`
+  the per-step model of :func:`~em_exploration_ros.core.world.sensors.odometry_covariance_per_step`
   accumulated like the SLAM keyframes), turned into a noise model by the SLAM's own
   :class:`~em_exploration_ros.core.slam.team_slam.SlamNoise` (so fixed reference sigmas apply too);
 * bearing-range readings of every known landmark within sonar range of a waypoint;
@@ -33,7 +33,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from em_exploration_ros.core.geometry import between, range_bearing
 from em_exploration_ros.core.params import MotionParams, SensorParams
-from em_exploration_ros.core.sim.sensors import LandmarkReading, odometry_covariance_per_step
+from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
+from em_exploration_ros.core.records.readings import LandmarkReading
 from em_exploration_ros.core.slam.team_slam import (SlamNoise, TeamSlam, landmark_key, pose_key,
                                                     pose_keys)
 

@@ -10,7 +10,6 @@ are in the team ``map`` frame [m]; distances are straight-line.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
 from typing import Mapping
 
 import numpy as np
@@ -18,17 +17,10 @@ import numpy as np
 from em_exploration_ros.core.geometry import read_only_point
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import FrontierParams
+from em_exploration_ros.core.records.team_data import FrontierType
 
 #: Positions closer than this are the same target when de-duplicating [m].
 _SAME_POSITION_M = 1e-6
-
-
-class FrontierType(IntEnum):
-    """Kind of a candidate target; same values as ``em_exploration_msgs/TargetRecord``."""
-
-    EXPLORATION = 0
-    REVISITING = 1
-    RENDEZVOUS = 2
 
 
 @dataclass(frozen=True, eq=False)

@@ -34,7 +34,7 @@ import numpy as np
 
 from em_exploration_ros.core.geometry import wrap_angle
 from em_exploration_ros.core.params import MotionParams
-from em_exploration_ros.core.sim.world import step_pose
+from em_exploration_ros.core.world.world import step_pose
 
 #: Smallest surface distance used in the repulsion formula [m] (keeps it finite).
 _MIN_RHO_M = 0.05

@@ -37,7 +37,8 @@ from typing import Mapping, Protocol, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from em_exploration_ros.core.planning.frontiers import Frontier, FrontierType
+from em_exploration_ros.core.planning.frontiers import Frontier
+from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.virtual_map.cell_uncertainty import (CellObservations,
                                                                  CovarianceIntersectionSums,
                                                                  observation_confidence)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterable, Literal
+from typing import Iterable, Literal
 
 import gtsam
 import numpy as np
@@ -35,10 +35,10 @@ from em_exploration_ros.core.geometry import (compose, compose_jacobians,
                                               coordinate_to_body_covariance, inverse,
                                               transform_points)
 from em_exploration_ros.core.params import SlamParams
+from em_exploration_ros.core.records.readings import (KeyframeId, KeyframeMeasurements,
+                                                      LandmarkReading, OdometryReading,
+                                                      TeammateReading)
 
-if TYPE_CHECKING:
-    from em_exploration_ros.core.sim.sensors import (LandmarkReading, OdometryReading,
-                                                 TeammateReading)
 
 #: Covariance frame of pose accessors: ``"map"`` (additive x, y, theta errors in the map
 #: frame) or ``"body"`` (GTSAM Pose2 tangent space, x and y in the pose's body frame).
@@ -50,10 +50,6 @@ CovarianceFrame = Literal["map", "body"]
 #: update with its trajectory up to 81 m off (the incremental estimate it had before: within
 #: 2 m); in slices of 1, 5 or 20 indices it got that estimate back to the centimetre.
 BACKLOG_SLICE_INDICES = 10
-
-#: (robot id, keyframe index) of one graph pose.
-KeyframeId = tuple[int, int]
-
 
 def pose_key(robot_id: int, index: int) -> int:
     """GTSAM key of robot ``robot_id``'s pose at keyframe ``index`` (``'a' + robot_id``)."""
@@ -89,35 +85,6 @@ def body_to_map_covariance(pose: np.ndarray, covariance: np.ndarray) -> np.ndarr
     map-frame ``(x, y, theta)`` errors: the position block rotated by ``+theta``."""
     mirrored = np.asarray(pose, dtype=float) * np.array([1.0, 1.0, -1.0])
     return coordinate_to_body_covariance(mirrored, covariance)
-
-
-@dataclass(frozen=True)
-class KeyframeMeasurements:
-    """Everything one robot measured at one keyframe, as shared with its teammates.
-
-    ``index = step // keyframe_interval_steps``; keyframes of different robots with the
-    same index are simultaneous. ``odom_delta`` is the motion from keyframe
-    ``previous_index`` to this one, expressed in the previous keyframe's body frame
-    (``x [m], y [m], theta [rad]``), and ``odom_covariance`` the covariance of its
-    additive coordinate errors. A robot's first keyframe has ``is_first=True``,
-    ``previous_index=-1`` and its odometry fields are ignored. Every teammate reading
-    refers to the observed teammate's keyframe with the same ``index``.
-    """
-
-    robot_id: int
-    index: int
-    stamp_s: float
-    is_first: bool
-    previous_index: int
-    odom_delta: np.ndarray
-    odom_covariance: np.ndarray
-    landmarks: tuple[LandmarkReading, ...]
-    teammates: tuple[TeammateReading, ...]
-
-    @property
-    def keyframe_id(self) -> KeyframeId:
-        """``(robot_id, index)``."""
-        return self.robot_id, self.index
 
 
 class OdometryAccumulator:

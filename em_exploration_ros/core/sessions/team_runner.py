@@ -2,14 +2,14 @@
 
 The runner plays the roles of the ROS system without ROS: ``WorldSimulation`` is the
 world node, one ``RobotAgent`` per robot is each robot process, and team updates travel
-through the link model (``core/sim/links.py``, the relay) into one ``TeamUpdateInbox`` per
+through the link model (``core/links/link_model.py``, the relay) into one ``TeamUpdateInbox`` per
 robot. Message timing follows the lockstep protocol of the ROS system: an update a robot
 publishes while processing step k is applied by a teammate before it processes the step
 at which the link delivers it (k+1 over perfect links: the world's barrier), and commands
 and odometry go through the same wire conversions. A seeded em-sim run therefore chooses
 the same targets as the ROS system in lockstep mode.
 
-Gap repair is driven by steps (``core/agent/link_sender.py``, shared with the ROS robot in
+Gap repair is driven by steps (``core/links/link_sender.py``, shared with the ROS robot in
 relay mode): a robot whose inbox has gaps sends a request for one of them (through the
 link, to the stream's owner) at most every ``links.repair_interval_s``; the owner
 re-sends the records, as broadcasts, through the link.
@@ -25,8 +25,8 @@ from typing import Callable
 import numpy as np
 
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.agent.link_sender import LinkSender
-from em_exploration_ros.core.agent.team_data import (MissingRange, RendezvousEvent,
+from em_exploration_ros.core.links.link_sender import LinkSender
+from em_exploration_ros.core.records.team_data import (MissingRange, RendezvousEvent,
                                                      TeamUpdate, TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, evaluation_layers
@@ -36,9 +36,9 @@ from em_exploration_ros.core.evaluation.run_monitor import (METRICS_INTERVAL_STE
                                                             RobotProgressRecord, RunMonitor)
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, RunSummary
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sim.links import DeliveryLedger, FrameKind, TeamLinks
-from em_exploration_ros.core.sim.simulation import SensorFrame, WorldSimulation
-from em_exploration_ros.core.sim.wire_model import (command_to_twist, pose_through_wire,
+from em_exploration_ros.core.links.link_model import DeliveryLedger, FrameKind, TeamLinks
+from em_exploration_ros.core.world.simulation import SensorFrame, WorldSimulation
+from em_exploration_ros.core.records.wire_model import (command_to_twist, pose_through_wire,
                                                     twist_to_increment_covariance)
 
 

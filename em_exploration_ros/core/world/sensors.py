@@ -14,14 +14,16 @@ the same way in both cases.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from em_exploration_ros.core.geometry import between, range_bearing, wrap_angle
 from em_exploration_ros.core.params import BOUND_95_TO_SIGMA, MotionParams, SensorParams
-from em_exploration_ros.core.sim.world import World, derive_seed_sequence
+from em_exploration_ros.core.records.readings import (LandmarkReading, OdometryReading,
+                                                      TeammateReading, sonar_variances,
+                                                      teammate_covariance)
+from em_exploration_ros.core.world.world import World, derive_seed_sequence
 
 FloatArray = NDArray[np.float64]
 
@@ -30,37 +32,6 @@ SONAR_STREAM, TEAMMATE_STREAM, ODOMETRY_STREAM = 0, 1, 2
 
 #: A step shorter than this [m] counts as no translation; a smaller turn [rad] as no turn.
 _STILL_TOLERANCE = 1e-12
-
-
-@dataclass(frozen=True)
-class LandmarkReading:
-    """One sonar return: range [m] and bearing [rad, observer body frame, wrapped] of a
-    landmark centre, with the variances of their noise [m^2], [rad^2]."""
-
-    landmark_id: int
-    range_m: float
-    bearing_rad: float
-    range_variance: float
-    bearing_variance: float
-
-
-@dataclass(frozen=True)
-class TeammateReading:
-    """Pose ``(x [m], y [m], theta [rad])`` of teammate ``robot_id`` in the observer's body
-    frame, with the ``(3, 3)`` covariance of its additive noise in those coordinates."""
-
-    robot_id: int
-    relative_pose: FloatArray
-    covariance: FloatArray
-
-
-@dataclass(frozen=True)
-class OdometryReading:
-    """Motion ``(dx [m], dy [m], dtheta [rad])`` over one step, in the previous body frame,
-    with the ``(3, 3)`` covariance of its additive noise in those coordinates."""
-
-    delta: FloatArray
-    covariance: FloatArray
 
 
 def odometry_covariance_per_step(step_length_m: float, turned: bool,
@@ -89,19 +60,6 @@ def odometry_covariance_per_step(step_length_m: float, turned: bool,
                     sensor_params.accel_bound_fraction * step_length_m * steps)
         covariance[0, 0] = covariance[1, 1] = (bound / BOUND_95_TO_SIGMA) ** 2 / steps
     return covariance
-
-
-def sonar_variances(sensor_params: SensorParams) -> tuple[float, float]:
-    """Variances of a sonar reading's noise: range [m^2] and bearing [rad^2]."""
-    return sensor_params.sonar_range_sigma_m ** 2, sensor_params.sonar_bearing_sigma_rad ** 2
-
-
-def teammate_covariance(sensor_params: SensorParams) -> FloatArray:
-    """Covariance ``(3, 3)`` of a teammate reading's additive noise, ``diag(sxy^2, sxy^2,
-    stheta^2)`` in the observer's body frame [m^2, m^2, rad^2]."""
-    xy_variance = (sensor_params.robot_obs_xy_bound_m / BOUND_95_TO_SIGMA) ** 2
-    theta_variance = (sensor_params.robot_obs_theta_bound_rad / BOUND_95_TO_SIGMA) ** 2
-    return np.diag([xy_variance, xy_variance, theta_variance])
 
 
 class SensorSimulator:

@@ -1,6 +1,6 @@
 """When a robot asks a teammate again for records its links lost: driven by steps.
 
-Over imperfect links (``core/sim/links.py``) records of a teammate's stream go missing;
+Over imperfect links (``core/links/link_model.py``) records of a teammate's stream go missing;
 the receiver sees a gap when a later record arrives (``TeamUpdateInbox.missing``). Every
 request crosses the same links as the data and costs bandwidth, so a robot asks for **one
 gap per repair interval**, taking the teammates with gaps in turn (round robin from the
@@ -9,7 +9,7 @@ wall time, so seeded lockstep runs repeat exactly.
 """
 from __future__ import annotations
 
-from em_exploration_ros.core.agent.team_data import MissingRange, TeamUpdateInbox
+from em_exploration_ros.core.records.team_data import MissingRange, TeamUpdateInbox
 
 
 class GapRequests:

@@ -1,6 +1,6 @@
 """The world's relay of team data through the link model in the ROS system (no ROS here).
 
-With links that are not perfect (``links.*``, ``core/sim/links.py``) no robot hears a
+With links that are not perfect (``links.*``, ``core/links/link_model.py``) no robot hears a
 teammate's topics directly: the world node, which alone knows the true positions, relays
 every piece of team data through ``TeamLinks`` and delivers it on the receiver's own
 topics. The node hands this class what it hears, with the step open at that moment:
@@ -39,9 +39,9 @@ from typing import Any
 
 import numpy as np
 
-from em_exploration_ros.core.agent.delivery_tally import published_so_far
+from em_exploration_ros.core.links.delivery_tally import published_so_far
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sim.links import (Delivery, DeliveryLedger, Frame, FrameKind,
+from em_exploration_ros.core.links.link_model import (Delivery, DeliveryLedger, Frame, FrameKind,
                                                TeamLinks)
 
 

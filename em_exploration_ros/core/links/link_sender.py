@@ -1,6 +1,6 @@
 """What one robot offers its links at a step: a gap request, re-sends, its new update.
 
-Over modelled links (``core/sim/links.py``) a robot sends its team data at steps only, so
+Over modelled links (``core/links/link_model.py``) a robot sends its team data at steps only, so
 that a seeded lockstep run repeats exactly: while processing step ``k`` it offers, in this
 order,
 
@@ -12,18 +12,18 @@ order,
    ``repair_interval_s`` per requester and at most half the queue at a time);
 3. its new update (broadcast), if it has one.
 
-em-sim (``core/sim/team_runner.py``) and the ROS robot node in relay mode both use this
+em-sim (``core/sessions/team_runner.py``) and the ROS robot node in relay mode both use this
 class, so they send the same frames at the same steps.
 """
 from __future__ import annotations
 
-from em_exploration_ros.core.agent.gap_requests import GapRequests
-from em_exploration_ros.core.agent.resend import MAX_RESEND_RECORDS, ResendScheduler
-from em_exploration_ros.core.agent.team_data import (TeamUpdate, TeamUpdateInbox,
+from em_exploration_ros.core.links.gap_requests import GapRequests
+from em_exploration_ros.core.links.resend import MAX_RESEND_RECORDS, ResendScheduler
+from em_exploration_ros.core.records.team_data import (TeamUpdate, TeamUpdateInbox,
                                                      TeamUpdateOutbox)
-from em_exploration_ros.core.agent.team_wire import cdr_size, request_cdr_size
+from em_exploration_ros.core.records.team_wire import cdr_size, request_cdr_size
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sim.links import Frame, FrameKind
+from em_exploration_ros.core.links.link_model import Frame, FrameKind
 
 
 class LinkSender:

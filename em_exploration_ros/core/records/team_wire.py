@@ -27,12 +27,12 @@ from dataclasses import replace
 
 import numpy as np
 
-from em_exploration_ros.core.agent.team_data import TargetRecord, TeamUpdate
+from em_exploration_ros.core.records.team_data import TargetRecord, TeamUpdate
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.sim.sensors import (LandmarkReading, TeammateReading,
-                                                 sonar_variances, teammate_covariance)
-from em_exploration_ros.core.sim.wire_model import sim_time_s
-from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
+from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
+                                                      TeammateReading, sonar_variances,
+                                                      teammate_covariance)
+from em_exploration_ros.core.records.wire_model import sim_time_s
 
 #: Row and column of each element of a symmetric 3x3 covariance sent as its upper triangle
 #: (xx, xy, xtheta, yy, ytheta, thetatheta).
@@ -175,7 +175,7 @@ def cdr_size(update: TeamUpdate) -> int:
 def request_cdr_size() -> int:
     """Bytes of a serialized em_exploration_msgs/TeamUpdateRequest as robots send it (empty
     ``header.frame_id``), encapsulation header included: what one gap request costs a
-    link's budget (``core/sim/links.py``)."""
+    link's budget (``core/links/link_model.py``)."""
     cdr = _CdrLayout()
     cdr.add(4, 2)  # header.stamp (sec, nanosec)
     cdr.add(4)  # header.frame_id length

@@ -17,9 +17,8 @@ from enum import IntEnum
 
 import numpy as np
 
-from em_exploration_ros.core.agent.input_checks import MAX_ABS_VALUE, MAX_ID
-from em_exploration_ros.core.planning.frontiers import FrontierType
-from em_exploration_ros.core.slam.team_slam import KeyframeMeasurements
+from em_exploration_ros.core.records.limits import MAX_ABS_VALUE, MAX_ID
+from em_exploration_ros.core.records.readings import KeyframeMeasurements
 
 #: Records further ahead of the expected sequence number than this are rejected as
 #: implausible (a hostile or corrupted sender), instead of opening a huge gap. It also
@@ -33,6 +32,14 @@ MAX_RENDEZVOUS_PER_UPDATE = 1000
 MAX_READINGS_PER_KEYFRAME = 1000
 #: Most landmark estimates in one robot's /robot_<i>/landmarks message.
 MAX_LANDMARKS_PER_UPDATE = 1000
+
+
+class FrontierType(IntEnum):
+    """Kind of a candidate target; same values as ``em_exploration_msgs/TargetRecord``."""
+
+    EXPLORATION = 0
+    REVISITING = 1
+    RENDEZVOUS = 2
 
 
 class RendezvousState(IntEnum):

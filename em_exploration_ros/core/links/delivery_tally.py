@@ -2,7 +2,7 @@
 
 In relay mode each SonarScan says how many records and requests the world's link relay has
 delivered to the robot in all (``delivered_updates``, ``delivered_requests``); the robot
-processes the step only once it holds as many (``core/sim/link_relay.py``). The relay
+processes the step only once it holds as many (``core/links/link_relay.py``). The relay
 publishes each kind to a robot on its own topic, from one writer that lives as long as the
 world, so a delivery's publication sequence number (counted by that writer from 1) is the
 number of deliveries of its kind made to the robot up to and with it. Counting by it, a

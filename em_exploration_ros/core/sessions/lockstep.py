@@ -38,7 +38,7 @@ from dataclasses import dataclass
 class StepAnswer:
     """A robot's MotionCommand for one step: velocity (m/s, rad/s), barrier entry, finished,
     and how many team messages (update-topic records, requests) it has published in all
-    (the link relay's hand-over, ``core/sim/link_relay.py``)."""
+    (the link relay's hand-over, ``core/links/link_relay.py``)."""
 
     linear_x: float
     angular_z: float
