@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.tools import bench, bench_plots, math_platform
+from em_exploration_ros.tools import bench, bench_plots, bench_trials, math_platform
 from process_tree import alive, children, command_line, interruptible
 from ros_process import wait_until
 
@@ -392,13 +392,13 @@ def test_trial_specs_follow_the_paper_defaults(tmp_path):
 
 def test_error_description_is_one_short_line():
     error = RuntimeError("\nIndeterminate linear system\n\nnear variable b62." + " x" * 200)
-    text = bench.describe_error(error)
+    text = bench_trials.describe_error(error)
     assert text.startswith("RuntimeError: Indeterminate linear system near variable b62. x")
-    assert "\n" not in text and len(text) == bench.ERROR_CHARS and text.endswith("...")
+    assert "\n" not in text and len(text) == bench_trials.ERROR_CHARS and text.endswith("...")
 
 
 def test_worker_that_dies_without_a_record_is_recorded_as_failed(tmp_path):
-    spec = bench.TrialSpec("s", "NEAREST", 3, ExplorationParams(), tmp_path / "seed_3.json")
+    spec = bench_trials.TrialSpec("s", "NEAREST", 3, ExplorationParams(), tmp_path / "seed_3.json")
     record = bench.record_after_exit(spec, -9, 12.5)
     assert record["status"] == "failed" and "code -9" in record["error"]
     assert bench.read_record(spec.path) == record
@@ -488,9 +488,9 @@ def test_ctrl_c_stops_every_trial_quietly_and_a_rerun_resumes(tmp_path):
 def test_progress_reports_each_trial_and_estimates_time_left(tmp_path):
     now = [0.0]
     stream = io.StringIO()
-    specs = [bench.TrialSpec("s", planner, seed, ExplorationParams(), tmp_path / f"{seed}.json")
+    specs = [bench_trials.TrialSpec("s", planner, seed, ExplorationParams(), tmp_path / f"{seed}.json")
              for seed in (0, 1) for planner in ("NEAREST", "CE")]
-    progress = bench.ProgressBar(4, 2, stream, clock=lambda: now[0])
+    progress = bench_trials.ProgressBar(4, 2, stream, clock=lambda: now[0])
     progress.queue(specs)
     assert progress.eta_s() is None
     progress.started(specs[0])

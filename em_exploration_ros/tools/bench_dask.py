@@ -23,7 +23,7 @@ from typing import Any, Iterator, Sequence
 
 from distributed import Client, LocalCluster, as_completed
 
-from em_exploration_ros.tools import bench
+from em_exploration_ros.tools import bench_trials
 
 _LOG = logging.getLogger("em-bench")
 
@@ -83,18 +83,18 @@ def worker_slots(client: Client) -> int:
     return max(1, sum(client.nthreads().values()))
 
 
-def checked_trial_record(spec: bench.TrialSpec) -> dict[str, Any]:
+def checked_trial_record(spec: bench_trials.TrialSpec) -> dict[str, Any]:
     """Task body: the trial's record, or a failed one if this worker runs other code than
     the submitting checkout (both versions known and different)."""
-    here = bench.code_version()
+    here = bench_trials.code_version()
     if "unknown" not in (here, spec.code_version) and here != spec.code_version:
-        return bench.failed_record(spec, f"worker runs code version {here}, not "
+        return bench_trials.failed_record(spec, f"worker runs code version {here}, not "
                                    f"{spec.code_version}", 0.0)
-    return bench.trial_record(spec)
+    return bench_trials.trial_record(spec)
 
 
-def run_on_cluster(client: Client, specs: Sequence[bench.TrialSpec],
-                   progress: bench.ProgressBar) -> None:
+def run_on_cluster(client: Client, specs: Sequence[bench_trials.TrialSpec],
+                   progress: bench_trials.ProgressBar) -> None:
     """Run every trial on the cluster and write each record as it arrives, where the
     local pool's worker would have written it; a task the cluster loses (e.g. its worker
     died: ``KilledWorker``) gets a failed record. Tasks not finished when this returns
@@ -125,10 +125,10 @@ def run_on_cluster(client: Client, specs: Sequence[bench.TrialSpec],
             try:
                 record = future.result()
             except Exception as error:  # noqa: BLE001 - a lost task is a failed trial
-                record = bench.failed_record(spec, "dask task lost: "
-                                             + bench.describe_error(error),
+                record = bench_trials.failed_record(spec, "dask task lost: "
+                                             + bench_trials.describe_error(error),
                                              time.perf_counter() - submitted)
-            bench.write_json(spec.path, record)
+            bench_trials.write_json(spec.path, record)
             progress.finished(spec, record)
             if waiting:
                 progress.started(waiting.pop(0))
