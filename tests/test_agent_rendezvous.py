@@ -6,13 +6,11 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.records.team_data import (RendezvousEvent, RendezvousState,
-                                                     TargetRecord, TeamUpdate)
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.planning.planners import CandidateUtility, Decision, PlanningContext
-from em_exploration_ros.core.records.readings import TeammateReading
-from em_exploration_ros.core.records.readings import KeyframeMeasurements
+from em_exploration_ros.core.records.readings import KeyframeMeasurements, TeammateReading
+from em_exploration_ros.core.records.team_data import (FrontierType, RendezvousEvent,
+                                                       RendezvousState, TargetRecord, TeamUpdate)
 
 PARAMS = ExplorationParams()
 ANCHOR = np.array([10.0, 50.0, 0.0])        # robot 0's launch pose (map frame)

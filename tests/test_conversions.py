@@ -5,15 +5,14 @@ from em_exploration_msgs.msg import TeamUpdate as TeamUpdateMsg
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 
-from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.records.team_data import (InvalidTeamUpdate, LandmarkEstimate,
-                                                     TargetRecord, TeamUpdate)
-from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry
-from em_exploration_ros.core.records.team_data import FrontierType
+from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.progress import GivenUpTarget, GiveUpReason
-from em_exploration_ros.core.sessions.team_runner import TeamRunner, step_input
+from em_exploration_ros.core.records.team_data import (FrontierType, InvalidTeamUpdate,
+                                                       LandmarkEstimate, TargetRecord, TeamUpdate)
+from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.records.wire_model import sim_time_s, twist_to_increment_covariance
+from em_exploration_ros.core.sessions.team_runner import TeamRunner, step_input
 from em_exploration_ros.nodes import conversions as conv
 
 PARAMS = ExplorationParams().replace(world={"width_m": 50.0, "height_m": 50.0,

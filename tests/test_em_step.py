@@ -2,24 +2,23 @@
 propagation against the direct re-solve oracle."""
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 import pytest
 
 from em_exploration_ros.core.geometry import range_bearing
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
-from em_exploration_ros.core.records.readings import OdometryReading
-from em_exploration_ros.core.slam.team_slam import (OdometryAccumulator, TeamSlam,
-                                                    is_landmark_key, pose_key)
-from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
 from em_exploration_ros.core.planning.em_oracle import propagate_oracle
-import gtsam
-
 from em_exploration_ros.core.planning.em_scenario import (ScenarioBuilder, TeamSnapshot,
                                                           VirtualNoise, graph_with_virtual,
                                                           virtual_waypoints)
 from em_exploration_ros.core.planning.em_step import (DENSE_HUB_MAX_DIM, DecisionFactorization,
-                                                     _backward_scan, _sparse_selected_inverse)
+                                                      _backward_scan, _sparse_selected_inverse)
+from em_exploration_ros.core.records.readings import OdometryReading
+from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
+from em_exploration_ros.core.slam.team_slam import (OdometryAccumulator, TeamSlam, is_landmark_key,
+                                                    pose_key)
+from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
 
 PARAMS = ExplorationParams()
 #: Block-relative agreement required between the fast path and the oracle. Both solve

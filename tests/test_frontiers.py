@@ -4,13 +4,13 @@ import dataclasses
 import numpy as np
 import pytest
 
+from em_exploration_ros.core.params import FrontierParams, MapParams
 from em_exploration_ros.core.planning.frontiers import (Frontier, candidate_targets,
                                                         exploration_frontiers, frontier_cells,
                                                         rendezvous_frontiers, revisiting_frontiers,
                                                         segment_point_distances)
 from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
-from em_exploration_ros.core.params import FrontierParams, MapParams
 
 NO_LANDMARKS = np.zeros((0, 2))
 

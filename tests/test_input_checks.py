@@ -4,19 +4,17 @@ import math
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, ClockGuard,
-                                                        RejectionLog, array_problem,
-                                                        barrier_problem,
-                                                        command_problem,
-                                                        command_sequence_problem, first_problem,
-                                                        frame_problem, history_request_problem,
-                                                        id_problem,
-                                                        landmark_reading_problem, reason_kind,
-                                                        number_problem, request_problem,
-                                                        size_problem, stamp_problem,
-                                                        stamp_step_problem, step_problem)
-from em_exploration_ros.core.links.resend import ResendRange, ResendScheduler
+from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, ClockGuard, RejectionLog,
+                                                        array_problem, barrier_problem,
+                                                        command_problem, command_sequence_problem,
+                                                        first_problem, frame_problem,
+                                                        history_request_problem, id_problem,
+                                                        landmark_reading_problem, number_problem,
+                                                        reason_kind, request_problem, size_problem,
+                                                        stamp_problem, stamp_step_problem,
+                                                        step_problem)
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
+from em_exploration_ros.core.links.resend import ResendRange, ResendScheduler
 
 OBSERVER = 2**32 - 1
 

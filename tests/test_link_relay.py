@@ -15,15 +15,17 @@ from em_exploration_msgs.msg import TeamUpdateRequest
 from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, finish_team_run, processes_in_domain,
+                         robot_pid, start_team_run, wait_for_liveliness, wait_until)
 
 from em_exploration_ros.core.links.delivery_tally import RECORDS, REQUESTS, DeliveryTally
+from em_exploration_ros.core.links.link_model import FrameKind
+from em_exploration_ros.core.links.link_relay import LinkRelay, SentCounts
 from em_exploration_ros.core.links.link_sender import LinkSender
-from em_exploration_ros.core.records.team_data import (MissingRange, TeamUpdate, TeamUpdateInbox,
-                                                     TeamUpdateOutbox)
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import load_params
-from em_exploration_ros.core.links.link_relay import LinkRelay, SentCounts
-from em_exploration_ros.core.links.link_model import FrameKind
+from em_exploration_ros.core.records.team_data import (MissingRange, TeamUpdate, TeamUpdateInbox,
+                                                       TeamUpdateOutbox)
 from em_exploration_ros.core.sessions.lockstep import StepAnswer
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.nodes.conversions import time_to_seconds
@@ -31,8 +33,6 @@ from em_exploration_ros.nodes.input_guard import InputGuard
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, TEAM_QOS
 from em_exploration_ros.nodes.team_relay import TeamRelay
 from em_exploration_ros.nodes.team_topics import REQUESTS_TOPIC
-from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, finish_team_run, processes_in_domain,
-                         robot_pid, start_team_run, wait_for_liveliness, wait_until)
 
 #: Steps between two gap requests at the default repair interval (5 s at 0.2 s).
 REPAIR_STEPS = 25

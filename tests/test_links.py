@@ -7,11 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.params import ExplorationParams, LinkParams
 from em_exploration_ros.core.links.link_model import (DeliveryLedger, Frame, FrameKind, TeamLinks,
-                                               loss_draw, perfect_links)
-from em_exploration_ros.core.sessions.team_runner import TeamRunner
+                                                      loss_draw, perfect_links)
+from em_exploration_ros.core.params import ExplorationParams, LinkParams
 from em_exploration_ros.core.records.team_wire import cdr_size, request_cdr_size
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
 
 DT = 0.2
 

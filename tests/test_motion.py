@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.planning.motion import ApfController
 from em_exploration_ros.core.params import MotionParams, SensorParams, WorldParams
+from em_exploration_ros.core.planning.motion import ApfController
 from em_exploration_ros.core.world.world import collides, generate_world, step_pose
 
 MOTION = MotionParams()

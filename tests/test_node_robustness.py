@@ -23,19 +23,18 @@ import time
 
 import pytest
 import rclpy
+from builtin_interfaces.msg import Time as TimeMsg
+from em_exploration_msgs.msg import MotionCommand, SonarScan, TeamUpdate, WorldStatus
+from nav_msgs.msg import Odometry
 from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
-from em_exploration_msgs.msg import MotionCommand, SonarScan, TeamUpdate, WorldStatus
-from builtin_interfaces.msg import Time as TimeMsg
-from nav_msgs.msg import Odometry
 from rclpy.parameter import Parameter
 from rclpy.serialization import serialize_message
+from ros_process import REPO_ROOT, NodeProcess, loaded_modules, ros_args
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, LATCHED_QOS, SENSOR_QOS, TEAM_QOS
-
-from ros_process import NodeProcess, REPO_ROOT, loaded_modules, ros_args
 
 WORLD = "em_exploration_ros.nodes.world_node"
 ROBOT = "em_exploration_ros.nodes.robot_node"

@@ -6,15 +6,16 @@ import dataclasses
 
 import numpy as np
 import pytest
-
-from em_exploration_ros.core.planning.frontiers import Frontier
-from em_exploration_ros.core.records.team_data import FrontierType
-from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid, observation_counts
-from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.planners import (EmPlanner, PlanningContext, allocation_utility,
-                                              distance_utility, make_planner, trace_sqrt_sum)
-from em_exploration_ros.core.slam.team_slam import TeamSlam
 from test_em_step import straight, team_slam
+
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.planning.frontiers import Frontier
+from em_exploration_ros.core.planning.planners import (EmPlanner, PlanningContext,
+                                                       allocation_utility, distance_utility,
+                                                       make_planner, trace_sqrt_sum)
+from em_exploration_ros.core.records.team_data import FrontierType
+from em_exploration_ros.core.slam.team_slam import TeamSlam
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid, observation_counts
 
 PARAMS = ExplorationParams()
 HIGH_NOISE = (0.1, 0.1, 0.02)      # per-keyframe odometry sigmas [m, m, rad]

@@ -4,15 +4,14 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
+from em_exploration_ros.core.geometry import between
 from em_exploration_ros.core.params import ExplorationParams, ProgressParams
 from em_exploration_ros.core.planning.frontiers import Frontier, frontier_cells
+from em_exploration_ros.core.planning.progress import (GivenUpTarget, GiveUpReason, ProgressMonitor,
+                                                       RecoveryTurn, TargetBlacklist)
 from em_exploration_ros.core.records.team_data import FrontierType
-from em_exploration_ros.core.planning.progress import (GivenUpTarget, GiveUpReason,
-                                                       ProgressMonitor, RecoveryTurn,
-                                                       TargetBlacklist)
 from em_exploration_ros.core.records.wire_model import DeadReckoningIntegrator
 from em_exploration_ros.core.world.world import step_pose
-from em_exploration_ros.core.geometry import between
 
 PARAMS = ProgressParams(window_s=10.0, min_progress_m=1.0, blacklist_radius_m=5.0,
                         blacklist_duration_s=100.0)

@@ -11,11 +11,11 @@ from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArch
                                                   keyframe_ranges, records_beyond_the_team,
                                                   step_to_resume_at)
 from em_exploration_ros.core.agent.robot_agent import RobotAgent
-from em_exploration_ros.core.records.team_data import (InvalidTeamUpdate, TeamUpdate,
-                                                     TeamUpdateInbox, TeamUpdateOutbox)
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
+from em_exploration_ros.core.records.team_data import (InvalidTeamUpdate, TeamUpdate,
+                                                       TeamUpdateInbox, TeamUpdateOutbox)
 from em_exploration_ros.core.sessions.team_runner import TeamRunner, step_input
+from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
 
 PARAMS = ExplorationParams().replace(
     planner={"name": "NEAREST"}, world={"width_m": 50.0, "height_m": 50.0, "num_landmarks": 5},

@@ -2,16 +2,14 @@
 report about frontier types, planner failures and rendezvous."""
 import numpy as np
 
-from em_exploration_ros.core.records.team_data import RendezvousEvent, RendezvousState
 from em_exploration_ros.core.evaluation.evaluator import TeamMetrics
-from em_exploration_ros.core.evaluation.rendezvous_stats import (RendezvousCounts,
-                                                                 activity_totals,
+from em_exploration_ros.core.evaluation.rendezvous_stats import (RendezvousCounts, activity_totals,
                                                                  count_rendezvous,
                                                                  rendezvous_outcomes)
 from em_exploration_ros.core.evaluation.run_monitor import DecisionEntry, RunMonitor
 from em_exploration_ros.core.evaluation.summary import MeetingEntry, activity_line
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.records.team_data import FrontierType
+from em_exploration_ros.core.records.team_data import FrontierType, RendezvousEvent, RendezvousState
 
 REQUEST, ARRIVED, RELEASE = RendezvousState.REQUEST, RendezvousState.ARRIVED, RendezvousState.RELEASE
 

@@ -6,8 +6,7 @@ from em_exploration_ros.core.evaluation.evaluator import TeamMetrics
 from em_exploration_ros.core.evaluation.run_monitor import (EXIT_ROBOTS_LOST, EXIT_STALLED,
                                                             DecisionEntry, RobotProgressRecord,
                                                             RunMonitor, StallWatch, TeamFinished,
-                                                            every_live_robot_finished,
-                                                            final_step)
+                                                            every_live_robot_finished, final_step)
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, check_summary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.records.team_data import FrontierType

@@ -16,18 +16,17 @@ import socket
 import subprocess
 
 import pytest
-
-from em_exploration_ros.core.params_yaml import load_params
-from em_exploration_ros.core.evaluation.summary import check_summary
-from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, finish_team_run,
                          processes_in_domain, robot_pid, start_team_run, wait_for_liveliness)
 from rosbags.rosbag2 import Reader as RosbagsReader
+from tf_chains import assert_frame_chains
 from websockets.sync.client import connect
 
 from em_exploration_ros.bag_format.bag_directory import read_metadata_yaml
 from em_exploration_ros.bag_format.bag_reader import scan_bag
-from tf_chains import assert_frame_chains
+from em_exploration_ros.core.evaluation.summary import check_summary
+from em_exploration_ros.core.params_yaml import load_params
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
 
 #: Bound of the end-to-end run (set-up check, start-up, exploration, shutdown) [s].
 RUN_TIMEOUT_S = 150.0

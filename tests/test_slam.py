@@ -12,16 +12,15 @@ import pytest
 
 from em_exploration_ros.core.geometry import between, compose, wrap_angle
 from em_exploration_ros.core.params import ExplorationParams, SlamParams
-from em_exploration_ros.core.world.sensors import SensorSimulator
-from em_exploration_ros.core.records.readings import (LandmarkReading, OdometryReading,
-                                                      TeammateReading)
+from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
+                                                      OdometryReading, TeammateReading)
 from em_exploration_ros.core.slam import team_slam
 from em_exploration_ros.core.slam.team_slam import (KeyframeBuilder, OdometryAccumulator, SlamNoise,
                                                     TeamSlam, body_to_map_covariance,
                                                     is_landmark_key, landmark_key,
                                                     landmark_key_mask, largest_component, pose_key,
                                                     pose_keys, step_against)
-from em_exploration_ros.core.records.readings import KeyframeMeasurements
+from em_exploration_ros.core.world.sensors import SensorSimulator
 from em_exploration_ros.core.world.world import advance_robot, generate_world, run_seed_sequences
 
 PARAMS = ExplorationParams()

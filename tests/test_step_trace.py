@@ -7,11 +7,11 @@ import subprocess
 import sys
 
 import numpy as np
+from ros_process import REPO_ROOT, RUN_TEAM, finish_team_run, start_team_run
 
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.tools.step_trace import read_traces, report, stages
-from ros_process import REPO_ROOT, RUN_TEAM, finish_team_run, start_team_run
 
 
 def write_trace(path, events):

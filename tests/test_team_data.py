@@ -4,14 +4,12 @@ import math
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.records.team_data import FrontierType
-from em_exploration_ros.core.records.readings import LandmarkReading, TeammateReading
-from em_exploration_ros.core.records.readings import KeyframeMeasurements
-from em_exploration_ros.core.records.team_data import (MAX_TARGETS_PER_UPDATE,
-                                                     MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
-                                                     MissingRange,
-                                                     TargetRecord, TeamUpdateInbox,
-                                                     TeamUpdateOutbox, validate_team_update)
+from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
+                                                      TeammateReading)
+from em_exploration_ros.core.records.team_data import (MAX_SEQUENCE_LEAD, MAX_TARGETS_PER_UPDATE,
+                                                       FrontierType, InvalidTeamUpdate,
+                                                       MissingRange, TargetRecord, TeamUpdateInbox,
+                                                       TeamUpdateOutbox, validate_team_update)
 
 NUM_ROBOTS = 3
 

@@ -6,9 +6,9 @@ import sys
 
 import pytest
 
-from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.agent.robot_agent import RobotAgent
 from em_exploration_ros.core.evaluation.summary import check_summary
+from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
 
 SMALL = dict(world={"width_m": 50.0, "height_m": 50.0, "num_landmarks": 5},

@@ -4,18 +4,17 @@ import pytest
 from em_exploration_msgs.msg import TeamUpdate as TeamUpdateMsg
 from rclpy.serialization import serialize_message
 
-from em_exploration_ros.core.records.team_data import (RendezvousEvent, RendezvousState,
-                                                     TargetRecord, TeamUpdate)
-from em_exploration_ros.core.records.team_wire import (TeamWireFormat, cdr_size,
-                                                     covariance_from_upper, covariance_upper,
-                                                     to_float32)
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.records.team_data import FrontierType
-from em_exploration_ros.core.world.sensors import SensorSimulator
-from em_exploration_ros.core.records.readings import LandmarkReading, TeammateReading
-from em_exploration_ros.core.sessions.team_runner import TeamRunner
+from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
+                                                      TeammateReading)
+from em_exploration_ros.core.records.team_data import (FrontierType, RendezvousEvent,
+                                                       RendezvousState, TargetRecord, TeamUpdate)
+from em_exploration_ros.core.records.team_wire import (TeamWireFormat, cdr_size,
+                                                       covariance_from_upper, covariance_upper,
+                                                       to_float32)
 from em_exploration_ros.core.records.wire_model import sim_time_s
-from em_exploration_ros.core.records.readings import KeyframeMeasurements
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
+from em_exploration_ros.core.world.sensors import SensorSimulator
 from em_exploration_ros.nodes.conversions import team_update_to_msg
 
 PARAMS = ExplorationParams()

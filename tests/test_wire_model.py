@@ -2,11 +2,11 @@
 import numpy as np
 
 from em_exploration_ros.core.geometry import compose
-from em_exploration_ros.core.records.wire_model import (DeadReckoningDifferencer, DeadReckoningIntegrator,
-                                                command_to_twist,
-                                                increment_covariance_to_twist,
-                                                twist_to_command,
-                                                twist_to_increment_covariance)
+from em_exploration_ros.core.records.wire_model import (DeadReckoningDifferencer,
+                                                        DeadReckoningIntegrator, command_to_twist,
+                                                        increment_covariance_to_twist,
+                                                        twist_to_command,
+                                                        twist_to_increment_covariance)
 
 
 def test_command_round_trip():

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.params import MotionParams, SensorParams, WorldParams
-from em_exploration_ros.core.world.world import (World, advance_robot, collides, derive_seed_sequence,
-                                           generate_world, run_seed_sequences, start_region,
-                                           step_pose)
+from em_exploration_ros.core.world.world import (World, advance_robot, collides,
+                                                 derive_seed_sequence, generate_world,
+                                                 run_seed_sequences, start_region, step_pose)
 
 MOTION = MotionParams()
 

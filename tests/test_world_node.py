@@ -20,19 +20,18 @@ from em_exploration_msgs.msg import LandmarkArray, MotionCommand, SonarScan, Tea
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
+from ros_process import NodeProcess, ros_args, wait_until
 from rosgraph_msgs.msg import Clock
 
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.world.simulation import WorldSimulation
 from em_exploration_ros.core.records.wire_model import pose_through_wire, sim_time_s
+from em_exploration_ros.core.world.simulation import WorldSimulation
 from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg,
                                                   landmark_reading_from_msg, odometry_pose,
                                                   odometry_twist_covariance, quaternion_to_yaw,
                                                   seconds_to_time, teammate_reading_from_msg,
                                                   time_to_seconds)
-from em_exploration_ros.nodes.qos import (CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS,
-                                          TEAM_QOS)
-from ros_process import NodeProcess, ros_args, wait_until
+from em_exploration_ros.nodes.qos import CLOCK_QOS, LATCHED_QOS, SENSOR_QOS, STREAM_QOS, TEAM_QOS
 
 WORLD_MODULE = "em_exploration_ros.nodes.world_node"
 NUM_ROBOTS = 2

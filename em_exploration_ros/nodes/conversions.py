@@ -16,20 +16,20 @@ from geometry_msgs.msg import PoseStamped, Quaternion
 from nav_msgs.msg import Odometry, Path
 
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry
-from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.planning.progress import GivenUpTarget, GiveUpReason
-from em_exploration_ros.core.records.readings import LandmarkReading, TeammateReading
-from em_exploration_ros.core.world.simulation import SensorFrame
-from em_exploration_ros.core.records.readings import KeyframeMeasurements
-from em_exploration_ros.core.records.wire_model import (NANOSECONDS_PER_SECOND,
-                                                nanoseconds_to_seconds,
-                                                planar_covariance_to_6x6, planar_quaternion,
-                                                planar_yaw, seconds_to_nanoseconds)
-from em_exploration_ros.core.records.team_data import (InvalidTeamUpdate, LandmarkEstimate,
-                                                     RendezvousEvent, RendezvousState,
-                                                     TargetRecord, TeamUpdate, check_record_sizes)
+from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
+                                                      TeammateReading)
+from em_exploration_ros.core.records.team_data import (FrontierType, InvalidTeamUpdate,
+                                                       LandmarkEstimate, RendezvousEvent,
+                                                       RendezvousState, TargetRecord, TeamUpdate,
+                                                       check_record_sizes)
 from em_exploration_ros.core.records.team_wire import (TeamWireFormat, covariance_from_upper,
-                                                     covariance_upper)
+                                                       covariance_upper)
+from em_exploration_ros.core.records.wire_model import (NANOSECONDS_PER_SECOND,
+                                                        nanoseconds_to_seconds,
+                                                        planar_covariance_to_6x6, planar_quaternion,
+                                                        planar_yaw, seconds_to_nanoseconds)
+from em_exploration_ros.core.world.simulation import SensorFrame
 from em_exploration_ros.nodes.odometry_cdr import OdometryCodec, PlanarOdometry
 from em_exploration_ros.nodes.path_cdr import DecodedPath, encode_path
 

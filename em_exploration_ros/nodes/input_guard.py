@@ -25,9 +25,8 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.serialization import deserialize_message, serialize_message
 
-from em_exploration_ros.core.agent.input_checks import (RejectionLog, array_problem,
-                                                        frame_problem, reason_kind,
-                                                        stamp_problem)
+from em_exploration_ros.core.agent.input_checks import (RejectionLog, array_problem, frame_problem,
+                                                        reason_kind, stamp_problem)
 from em_exploration_ros.core.records.team_data import InvalidTeamUpdate, TeamUpdate
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.records.wire_model import NANOSECONDS_PER_SECOND

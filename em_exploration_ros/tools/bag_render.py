@@ -38,19 +38,18 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from mcap.records import Schema
+from mcap_ros2.decoder import DecoderFactory
 from rclpy.serialization import deserialize_message
 from visualization_msgs.msg import Marker
 
-from mcap.records import Schema
-from mcap_ros2.decoder import DecoderFactory
-
 from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, ChannelInfo, SchemaInfo
 from em_exploration_ros.bag_format.mcap_ros2_schema import same_layout
-from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, UncertaintyEllipses
 from em_exploration_ros.core.evaluation.map_render import drawable_layers, render_team_map
-from em_exploration_ros.core.params import MapParams
 from em_exploration_ros.core.evaluation.summary import TARGET_TYPES, TargetEntry
+from em_exploration_ros.core.params import MapParams
+from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.records.wire_model import nanoseconds_to_seconds
 from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg, odometry_pose,
                                                   path_from_msg, quaternion_to_yaw)

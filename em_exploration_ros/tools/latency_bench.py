@@ -23,18 +23,18 @@ from typing import Sequence
 
 import numpy as np
 
-from em_exploration_ros.core.planning.frontiers import Frontier
-from em_exploration_ros.core.records.team_data import FrontierType
-from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.planners import PlanningContext, make_planner
-from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
-from em_exploration_ros.core.records.readings import OdometryReading
-from em_exploration_ros.core.slam.team_slam import OdometryAccumulator, TeamSlam
-from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
 from em_exploration_ros.core.planning.em_oracle import propagate_oracle
 from em_exploration_ros.core.planning.em_scenario import ScenarioBuilder, TeamSnapshot, VirtualNoise
 from em_exploration_ros.core.planning.em_step import DecisionFactorization
+from em_exploration_ros.core.planning.frontiers import Frontier
+from em_exploration_ros.core.planning.planners import PlanningContext, make_planner
+from em_exploration_ros.core.records.readings import OdometryReading
+from em_exploration_ros.core.records.team_data import FrontierType
+from em_exploration_ros.core.slam.synthetic_team import exact_team_slam
+from em_exploration_ros.core.slam.team_slam import OdometryAccumulator, TeamSlam
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
+from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
 from em_exploration_ros.tools.sim_cli import PLANNER_NAMES, PLANNER_TYPE
 
 PARAMS = ExplorationParams()

@@ -22,11 +22,10 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
-from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
-from em_exploration_ros.core.params import (ExplorationParams, PlannerParams,
-                                            current_planner_name)
-from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
 from em_exploration_ros.core.evaluation.summary import activity_line
+from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
+from em_exploration_ros.core.params import ExplorationParams, PlannerParams, current_planner_name
+from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
 from em_exploration_ros.core.sessions.team_runner import Progress, TeamRunner
 
 #: A progress line every this many simulation steps.

@@ -27,7 +27,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 
 from em_exploration_ros.core.records.team_data import (InvalidTeamUpdate, TeamUpdate,
-                                                     validate_team_update)
+                                                       validate_team_update)
 
 
 class StreamArchive:

@@ -24,8 +24,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from em_exploration_ros.core.evaluation.metrics import landmark_rmse, localization_rmse
-from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams, WorldParams
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.world.world import World
 
 #: Stamps are matched on this resolution [ns] (sim time is a multiple of the step).

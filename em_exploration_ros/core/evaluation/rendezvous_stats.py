@@ -19,8 +19,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from em_exploration_ros.core.records.team_data import RendezvousEvent, RendezvousState
 from em_exploration_ros.core.evaluation.summary import RendezvousCounts
+from em_exploration_ros.core.records.team_data import RendezvousEvent, RendezvousState
 
 
 @dataclass(frozen=True)

@@ -32,13 +32,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from em_exploration_ros.core.records.team_data import RendezvousEvent
 from em_exploration_ros.core.evaluation.evaluator import TeamMetrics, stamp_key
 from em_exploration_ros.core.evaluation.rendezvous_stats import count_rendezvous
 from em_exploration_ros.core.evaluation.summary import (GivenUpEntry, HistorySample, MeetingEntry,
                                                         RobotSummary, RunSummary, TargetEntry)
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.records.team_data import FrontierType
+from em_exploration_ros.core.records.team_data import FrontierType, RendezvousEvent
 
 #: Team metrics are evaluated every this many steps (and at the end) in em-sim; the link
 #: relay delivers before those steps so that they see what the links carried.

@@ -40,9 +40,9 @@ from typing import Any
 import numpy as np
 
 from em_exploration_ros.core.links.delivery_tally import published_so_far
-from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.links.link_model import (Delivery, DeliveryLedger, Frame, FrameKind,
-                                               TeamLinks)
+                                                      TeamLinks)
+from em_exploration_ros.core.params import ExplorationParams
 
 
 @dataclass(frozen=True)

@@ -18,12 +18,11 @@ class, so they send the same frames at the same steps.
 from __future__ import annotations
 
 from em_exploration_ros.core.links.gap_requests import GapRequests
-from em_exploration_ros.core.links.resend import MAX_RESEND_RECORDS, ResendScheduler
-from em_exploration_ros.core.records.team_data import (TeamUpdate, TeamUpdateInbox,
-                                                     TeamUpdateOutbox)
-from em_exploration_ros.core.records.team_wire import cdr_size, request_cdr_size
-from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.links.link_model import Frame, FrameKind
+from em_exploration_ros.core.links.resend import MAX_RESEND_RECORDS, ResendScheduler
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.records.team_data import TeamUpdate, TeamUpdateInbox, TeamUpdateOutbox
+from em_exploration_ros.core.records.team_wire import cdr_size, request_cdr_size
 
 
 class LinkSender:

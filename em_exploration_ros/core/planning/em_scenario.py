@@ -33,10 +33,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from em_exploration_ros.core.geometry import between, range_bearing
 from em_exploration_ros.core.params import MotionParams, SensorParams
-from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
 from em_exploration_ros.core.records.readings import LandmarkReading
 from em_exploration_ros.core.slam.team_slam import (SlamNoise, TeamSlam, landmark_key, pose_key,
                                                     pose_keys)
+from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

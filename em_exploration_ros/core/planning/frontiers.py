@@ -15,9 +15,9 @@ from typing import Mapping
 import numpy as np
 
 from em_exploration_ros.core.geometry import read_only_point
-from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import FrontierParams
 from em_exploration_ros.core.records.team_data import FrontierType
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 
 #: Positions closer than this are the same target when de-duplicating [m].
 _SAME_POSITION_M = 1e-6

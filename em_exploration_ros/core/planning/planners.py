@@ -37,17 +37,17 @@ from typing import Mapping, Protocol, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from em_exploration_ros.core.planning.frontiers import Frontier
-from em_exploration_ros.core.records.team_data import FrontierType
-from em_exploration_ros.core.virtual_map.cell_uncertainty import (CellObservations,
-                                                                 CovarianceIntersectionSums,
-                                                                 observation_confidence)
-from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams, PlannerParams
-from em_exploration_ros.core.slam.team_slam import TeamSlam
 from em_exploration_ros.core.planning.em_scenario import (ScenarioBuilder, TeamSnapshot,
                                                           VirtualNoise, VirtualScenario)
 from em_exploration_ros.core.planning.em_step import DecisionFactorization
+from em_exploration_ros.core.planning.frontiers import Frontier
+from em_exploration_ros.core.records.team_data import FrontierType
+from em_exploration_ros.core.slam.team_slam import TeamSlam
+from em_exploration_ros.core.virtual_map.cell_uncertainty import (CellObservations,
+                                                                  CovarianceIntersectionSums,
+                                                                  observation_confidence)
+from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 
 FloatArray = NDArray[np.float64]
 

@@ -27,11 +27,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from em_exploration_ros.core.records.team_data import TargetRecord, TeamUpdate
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
                                                       TeammateReading, sonar_variances,
                                                       teammate_covariance)
+from em_exploration_ros.core.records.team_data import TargetRecord, TeamUpdate
 from em_exploration_ros.core.records.wire_model import sim_time_s
 
 #: Row and column of each element of a symmetric 3x3 covariance sent as its upper triangle

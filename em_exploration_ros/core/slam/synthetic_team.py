@@ -15,9 +15,9 @@ import numpy as np
 
 from em_exploration_ros.core.geometry import between, range_bearing
 from em_exploration_ros.core.params import BOUND_95_TO_SIGMA, ExplorationParams
-from em_exploration_ros.core.records.readings import LandmarkReading, TeammateReading
+from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
+                                                      TeammateReading)
 from em_exploration_ros.core.slam.team_slam import TeamSlam
-from em_exploration_ros.core.records.readings import KeyframeMeasurements
 
 
 def exact_team_slam(trajectories: Sequence[np.ndarray], landmarks: Mapping[int, np.ndarray],

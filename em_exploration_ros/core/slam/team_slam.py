@@ -39,7 +39,6 @@ from em_exploration_ros.core.records.readings import (KeyframeId, KeyframeMeasur
                                                       LandmarkReading, OdometryReading,
                                                       TeammateReading)
 
-
 #: Covariance frame of pose accessors: ``"map"`` (additive x, y, theta errors in the map
 #: frame) or ``"body"`` (GTSAM Pose2 tangent space, x and y in the pose's body frame).
 CovarianceFrame = Literal["map", "body"]

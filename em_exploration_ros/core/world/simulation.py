@@ -12,12 +12,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.world.sensors import SensorSimulator
 from em_exploration_ros.core.records.readings import LandmarkReading, TeammateReading
 from em_exploration_ros.core.records.wire_model import (DeadReckoningIntegrator,
-                                                increment_covariance_to_twist,
-                                                sim_time_s, twist_to_command)
-from em_exploration_ros.core.world.world import World, advance_robot, generate_world, run_seed_sequences
+                                                        increment_covariance_to_twist, sim_time_s,
+                                                        twist_to_command)
+from em_exploration_ros.core.world.sensors import SensorSimulator
+from em_exploration_ros.core.world.world import (World, advance_robot, generate_world,
+                                                 run_seed_sequences)
 
 
 @dataclass(frozen=True)
