@@ -246,9 +246,9 @@ class FrontierParams:
 class ProgressParams:
     """Judging progress toward a target from the robot's own data, and giving targets up.
 
-    Defaults chosen from measured runs (README, "No livelock"): in runs that finish, no
-    robot driving to a target went ``window_s`` without its odometry moving or its
-    estimated target distance shrinking by ``min_progress_m``.
+    Defaults chosen from measured runs (docs/robustness.md, "Unreachable targets (no
+    livelock)"): in runs that finish, no robot driving to a target went ``window_s`` without
+    its odometry moving or its estimated target distance shrinking by ``min_progress_m``.
     """
 
     window_s: float = param_field(
