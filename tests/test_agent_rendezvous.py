@@ -62,8 +62,7 @@ def events_of(agent: RobotAgent) -> list[RendezvousEvent]:
 
 def requester(params: ExplorationParams = PARAMS) -> RobotAgent:
     """Robot 0 that has just requested a rendezvous with robot 1 at robot 1's target."""
-    agent = RobotAgent(0, params, ANCHOR)
-    agent.planner = PreferRendezvous()
+    agent = RobotAgent(0, params, ANCHOR, planner=PreferRendezvous())
     agent.apply_team_updates([update_from_1(1, 0.0, keyframe=True, target=TEAMMATE_TARGET)])
     sense(agent, 0, see_robot_1=True)
     return agent

@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -46,7 +47,8 @@ from em_exploration_ros.core.planning.motion import ApfController
 from em_exploration_ros.core.planning.rendezvous import Meeting, RendezvousBook, meeting_timeout_s
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.planners import Decision, PlanningContext, make_planner
+from em_exploration_ros.core.planning.planners import (Decision, Planner, PlanningContext,
+                                                      make_planner)
 from em_exploration_ros.core.planning.progress import (GivenUpTarget, GiveUpReason,
                                                        ProgressMonitor, RecoveryTurn,
                                                        TargetBlacklist, blocked_step)
@@ -138,18 +140,42 @@ class _Pending:
 class RobotAgent:
     """The decision-making of one robot, independent of ROS (see module docstring)."""
 
-    def __init__(self, robot_id: int, params: ExplorationParams, anchor_pose: np.ndarray) -> None:
-        """Args: robot id (0-based), all parameters, robot 0's launch pose in the map frame."""
+    def __init__(self, robot_id: int, params: ExplorationParams, anchor_pose: np.ndarray, *,
+                 slam: TeamSlam | None = None, planner: Planner | None = None,
+                 controller: ApfController | None = None,
+                 progress_monitor: ProgressMonitor | None = None,
+                 clock: Callable[[], float] = time.perf_counter) -> None:
+        """Each collaborator left out is built from ``params`` (what every run uses).
+
+        Args:
+            robot_id: this robot's id (0-based).
+            params: all parameters.
+            anchor_pose: robot 0's launch pose in the map frame (x [m], y [m], theta [rad]),
+                which anchors the default ``slam``.
+            slam: the team's factor graph as this robot holds it (keyframes of every robot,
+                estimates, marginals); default ``TeamSlam`` anchored at ``anchor_pose``.
+            planner: chooses the next target among the candidates; default
+                ``make_planner(params)`` (``planner.name``). Should it fail numerically, the
+                nearest frontier is taken for that decision.
+            controller: drives toward a goal around the estimated landmarks and tells when
+                a position is reached; default ``ApfController`` (``motion.*``).
+            progress_monitor: judges each step of the approach to the current target
+                (blocked, no progress); default ``ProgressMonitor(params.progress)``.
+            clock: wall clock [s] timing each decision (``DecisionRecord.planning_time_s``);
+                default ``time.perf_counter``.
+        """
         self.robot_id = robot_id
         self.params = params
         self.num_robots = params.world.num_robots
-        self.slam = TeamSlam(robot_id, self.num_robots, params.slam, np.asarray(anchor_pose))
+        self.slam = slam if slam is not None else TeamSlam(
+            robot_id, self.num_robots, params.slam, np.asarray(anchor_pose))
         self.grid = OccupancyGrid(params.world.width_m, params.world.height_m, params.map,
                                   params.sensors.sonar_max_range_m)
-        self.planner = make_planner(params)
+        self.planner = planner if planner is not None else make_planner(params)
         self._fallback_planner = make_planner(params, "NEAREST")
-        self.controller = ApfController(params.motion, params.world.landmark_radius_m,
-                                        params.world.robot_radius_m)
+        self.controller = controller if controller is not None else ApfController(
+            params.motion, params.world.landmark_radius_m, params.world.robot_radius_m)
+        self._clock = clock
         self.rendezvous = RendezvousBook()
         self.outbox = TeamUpdateOutbox(robot_id)
         self.wire = TeamWireFormat(params)
@@ -180,7 +206,8 @@ class RobotAgent:
         self.given_up: list[GivenUpTarget] = []
         self.blocked_s = 0.0
         self.blacklist = TargetBlacklist(params.progress)
-        self._progress = ProgressMonitor(params.progress)
+        self._progress = (progress_monitor if progress_monitor is not None
+                          else ProgressMonitor(params.progress))
         self._recovery: RecoveryTurn | None = None
         self._commanded_forward_m = 0.0
 
@@ -428,7 +455,7 @@ class RobotAgent:
 
     def _decide(self, pose: np.ndarray) -> None:
         """Rebuild the map from the SLAM estimate and choose the next target."""
-        started = time.perf_counter()
+        started = self._clock()
         trajectories = [self.slam.trajectory(robot)[1] for robot in range(self.num_robots)]
         landmark_positions = self.slam.landmark_estimates()
         landmarks = np.array(list(landmark_positions.values())).reshape(-1, 2)
@@ -465,7 +492,7 @@ class RobotAgent:
             decision = self._fallback_planner.choose(context)
             planner_failed = True
         self.last_decision = decision
-        planning_time_s = time.perf_counter() - started
+        planning_time_s = self._clock() - started
         self._set_target(decision.target, pose, planning_time_s, len(candidates), planner_failed)
 
     def _fall_back(self, cells: np.ndarray, pose: np.ndarray, started: float) -> None:
@@ -479,7 +506,7 @@ class RobotAgent:
                                        self.params.frontiers)[0]  # the nearest comes first
         _LOG.info("robot %d: every candidate is near a given-up target; nearest other "
                   "frontier %s", self.robot_id, target.position.tolist())
-        self._set_target(target, pose, time.perf_counter() - started, 1, planner_failed=False)
+        self._set_target(target, pose, self._clock() - started, 1, planner_failed=False)
 
     def _set_target(self, target: Frontier, pose: np.ndarray, planning_time_s: float,
                     num_candidates: int, planner_failed: bool) -> None:
