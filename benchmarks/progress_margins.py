@@ -21,35 +21,46 @@ Usage: ``python benchmarks/progress_margins.py --seed 0`` (default scenario) or
 from __future__ import annotations
 
 import argparse
-from collections import defaultdict
 
 import numpy as np
 
-from em_exploration_ros.core.planning import progress
+from em_exploration_ros.core.agent.robot_agent import RobotAgent
+from em_exploration_ros.core.params import ExplorationParams, ProgressParams
+from em_exploration_ros.core.planning.progress import ProgressMonitor
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.tools.sim_cli import add_run_arguments, params_from_args
 
 _BLOCKED_FRACTION = 0.1
 
 
-class _RecordingMonitor(progress.ProgressMonitor):
-    """The agent's progress monitor, recording every update (robot unknown: one monitor
-    per agent, keyed by identity)."""
+class _RecordingMonitor(ProgressMonitor):
+    """One agent's progress monitor, recording every update as (approach number, stamp
+    [s], distance to the target [m], commanded forward [m], odometry forward [m])."""
 
-    samples: dict[int, list[tuple[int, float, float, float, float]]] = defaultdict(list)
-
-    def __init__(self, params) -> None:
+    def __init__(self, params: ProgressParams) -> None:
         super().__init__(params)
         self._approach = 0
+        self.samples: list[tuple[int, float, float, float, float]] = []
 
     def restart(self) -> None:
         super().restart()
-        self._approach = getattr(self, "_approach", 0) + 1
+        self._approach += 1
 
     def update(self, stamp_s, distance_m, commanded_forward_m, odometry_forward_m):
-        self.samples[id(self)].append((self._approach, stamp_s, distance_m,
-                                       commanded_forward_m, odometry_forward_m))
+        self.samples.append((self._approach, stamp_s, distance_m, commanded_forward_m,
+                             odometry_forward_m))
         return super().update(stamp_s, distance_m, commanded_forward_m, odometry_forward_m)
+
+
+def _recording_runner(params: ExplorationParams) -> tuple[TeamRunner, list[_RecordingMonitor]]:
+    """em-sim's engine whose agents judge progress with recording monitors (one per robot,
+    in robot order)."""
+    runner = TeamRunner(params)
+    anchor = runner.simulation.world.start_poses[0]
+    monitors = [_RecordingMonitor(params.progress) for _ in runner.agents]
+    runner.agents = [RobotAgent(robot, params, anchor, progress_monitor=monitor)
+                     for robot, monitor in enumerate(monitors)]
+    return runner, monitors
 
 
 def _longest_without_progress(stamps: np.ndarray, distances: np.ndarray, margin: float) -> float:
@@ -80,18 +91,15 @@ def main() -> None:
     args = parser.parse_args()
     params = params_from_args(args, args.seed).replace(
         progress={"window_s": 1e5, "blacklist_duration_s": 0.0})
-    progress_monitor = progress.ProgressMonitor
-    import em_exploration_ros.core.agent.robot_agent as robot_agent
-    robot_agent.ProgressMonitor = _RecordingMonitor
-    try:
-        summary = TeamRunner(params).run()
-    finally:
-        robot_agent.ProgressMonitor = progress_monitor
+    runner, monitors = _recording_runner(params)
+    summary = runner.run()
     print(f"run: {summary.stop_reason}; explored {summary.explored_ratio:.3f}, distance "
           f"{summary.distance_m:.0f} m, {summary.decisions} decisions")
     rows = []
-    for robot, samples in enumerate(_RecordingMonitor.samples.values()):
-        data = np.array(samples)
+    for robot, monitor in enumerate(monitors):
+        if not monitor.samples:
+            continue
+        data = np.array(monitor.samples)
         for approach in np.unique(data[:, 0]):
             part = data[data[:, 0] == approach]
             if len(part) < 2:
