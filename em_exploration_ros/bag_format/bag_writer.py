@@ -9,14 +9,15 @@ the ``rosbag2`` metadata record, the summary (schemas, channels, statistics, chu
 indexes) and the footer.
 
 A write the operating system refuses (a full disk: ``OSError``) raises ``BagWriteError``
-and ends the file: the counts and times fall back to what reached the file (the chunks
-written before), nothing more is written to it, and ``close()`` only closes it.
+and ends the recording: the counts and times fall back to what reached the file (the chunks
+written before), no more messages are written, and ``close()`` cuts the file back to its
+last whole record and ends it there as a complete MCAP file (``cut_file.end_cut_file``).
 """
 from __future__ import annotations
 
 import io
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,7 @@ from types import TracebackType
 from mcap.well_known import MessageEncoding
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
+from em_exploration_ros.bag_format.cut_file import end_cut_file
 from em_exploration_ros.bag_format.mcap_ros2_schema import MessageDefinition
 from em_exploration_ros.bag_format.qos_yaml import QosProfile, qos_profiles_to_yaml
 from em_exploration_ros.bag_format.rosbag2_metadata import (
@@ -53,6 +55,11 @@ class _UnbufferedSink:
     def __init__(self, raw: io.FileIO) -> None:
         self._raw = raw
         self.bytes_written = 0
+
+    @property
+    def file(self) -> io.FileIO:
+        """The file itself."""
+        return self._raw
 
     def write(self, data: bytes) -> int:
         view = memoryview(data)
@@ -86,18 +93,22 @@ class BagWriter:
     """Writes one MCAP file that ``ros2 bag play``/``info`` and Foxglove accept.
 
     Times are nanoseconds of the recording clock (the ROS clock: sim time when it runs).
-    Creating the writer creates ``path`` and fails with ``FileExistsError`` if it exists.
+    Creating the writer creates ``path`` with ``create`` (a new file, unbuffered; a test
+    gives a file that fails as a full disk does) and fails with ``FileExistsError`` if it
+    exists.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, compression: str = "zstd",
-                 chunk_size: int = DEFAULT_CHUNK_SIZE, library: str = LIBRARY) -> None:
+                 chunk_size: int = DEFAULT_CHUNK_SIZE, library: str = LIBRARY,
+                 create: Callable[[Path], io.FileIO] = lambda path: io.FileIO(path, "xb")
+                 ) -> None:
         if compression not in COMPRESSIONS:
             raise ValueError(f"compression must be one of {sorted(COMPRESSIONS)}, "
                              f"got {compression!r}")
         if chunk_size <= 0:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
         self.path = Path(path)
-        self._sink = _UnbufferedSink(io.FileIO(self.path, "xb"))
+        self._sink = _UnbufferedSink(create(self.path))
         self._mcap = Writer(self._sink, chunk_size=chunk_size,
                             compression=COMPRESSIONS[compression], index_types=IndexType.ALL,
                             enable_crcs=True)
@@ -107,6 +118,7 @@ class BagWriter:
         self._start_ns: int | None = None
         self._end_ns = 0
         self._stored_span: tuple[int | None, int] = (None, 0)  # start, end of stored messages
+        self._whole_bytes = self._sink.bytes_written  # the file up to its last whole step
         self._failure: BagWriteError | None = None
         self._closed = False
 
@@ -198,6 +210,7 @@ class BagWriter:
             for topic in self._topics.values():
                 topic.stored = topic.count
             self._stored_span = (self._start_ns, self._end_ns)
+            self._whole_bytes = self._sink.bytes_written
 
     def metadata(self) -> BagMetadata:
         """The rosbag2 bag metadata of what was written so far."""
@@ -214,23 +227,38 @@ class BagWriter:
     def close(self) -> None:
         """Write the rosbag2 metadata record, summary and footer; close the file. Idempotent.
 
-        After a BagWriteError (``failure``) it only closes the file; raises BagWriteError if
-        the OS refuses these last records.
+        After a BagWriteError (``failure``) the file is cut back to its last whole record and
+        ended there (``end_cut_file``). Raises BagWriteError if the OS refuses these last
+        records.
         """
         if self._closed:
             return
         self._closed = True
+        self._release_reserve()
         try:
             if self._failure is None:
                 with self._writing():
                     self._mcap.flush()
                 with self._writing():
-                    self._mcap.add_metadata(METADATA_RECORD_NAME,
-                                            {SERIALIZED_METADATA_KEY: serialize_bag_metadata(
-                                                self.metadata())})
+                    self._mcap.add_metadata(METADATA_RECORD_NAME, self._rosbag2_metadata())
                     self._mcap.finish()
+            else:
+                try:
+                    end_cut_file(self._sink.file, self._whole_bytes, METADATA_RECORD_NAME,
+                                 self._rosbag2_metadata())
+                except OSError as error:
+                    raise BagWriteError(f"cannot end {self.path} after the refused write: "
+                                        f"{error.strerror or error}") from error
         finally:
             self._sink.close()
+
+    def _rosbag2_metadata(self) -> dict[str, str]:
+        """The content of the rosbag2 metadata record: the bag's metadata as YAML."""
+        return {SERIALIZED_METADATA_KEY: serialize_bag_metadata(self.metadata())}
+
+    def _release_reserve(self) -> None:
+        """Free the space kept for the end of the file (a bag directory's reserve file);
+        nothing here."""
 
     def __enter__(self) -> "BagWriter":
         return self

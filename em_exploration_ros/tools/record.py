@@ -18,10 +18,12 @@ dropped them, or a subscription's queue overflowed while the recorder fell behin
 counted from the writers' publication sequence numbers (``bag_format/message_losses.py``)
 and reported at the next poll and when the bag is closed.
 
-When the OS refuses a write (a full disk), the recorder stops: it prints one line naming the
-file and the error, closes the file (its complete chunks stay readable; ``em-bag repair``),
-writes metadata.yaml of what reached the file if it can (else it says so) and exits with
-status 3.
+When the OS refuses a write (a full disk), the recorder stops: it frees the space it kept in
+the bag directory (``bag_directory.RESERVE_BYTES``), cuts the file back to its last whole
+record and ends it there with its summary and footer, writes metadata.yaml of what reached
+the file, prints one line naming the file, the error and the messages kept, and exits with
+status 3. The bag then opens whole in every reader (what could not be ended is said on a
+line of its own; ``em-bag repair`` recovers its complete chunks).
 
 Exit codes: 0 the recording was closed; 2 bad arguments, or the output cannot be created;
 3 the bag could not be written (``EXIT_WRITE_FAILED``).
@@ -232,8 +234,10 @@ def close_bag(writer: BagDirectoryWriter) -> int:
         close_error = error
     failure = writer.failure
     if failure is not None:
+        ending = ("the bag is closed whole with them" if close_error is None
+                  else "the bag could not be closed")
         sys.stderr.write(f"em-record: {failure}; stopped recording after "
-                         f"{writer.message_count} messages\n")
+                         f"{writer.message_count} messages; {ending}\n")
     if close_error is not None and close_error is not failure:
         sys.stderr.write(f"em-record: {close_error}\n")
     return EXIT_WRITE_FAILED if failure is not None or close_error is not None else 0
