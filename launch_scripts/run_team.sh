@@ -54,7 +54,9 @@ waits for the evaluator to end the run. Progress lines come from the evaluator; 
 logs to <run dir>/logs/<name>.log. Flags override the parameter file for every node.
 Exit code: 0 done, 3 the world or the robots stopped publishing, 4 stalled (no team
 progress for run.stall_timeout_s), 5 robots lost (every live robot finished below the
-explored goal), 1 a process failed, 2 bad arguments, 130 Ctrl-C,
+explored goal), 6 done but the recording (--record) is incomplete (em-record stopped
+early, e.g. on a full disk: the bag holds the run up to then, and the summary's
+"recording" says why), 1 a process failed, 2 bad arguments, 130 Ctrl-C,
 143 SIGTERM, 129 SIGHUP (terminal closed).
 
 options:
@@ -65,6 +67,9 @@ options:
   --cell-size M           virtual map cell size [m], 0.1..50 (default: 2; the paper's 200 m
                           map: 4)
   --landmarks K           number of landmarks, 0..1000 (default: 20)
+  --world FILE            world YAML file (map size, landmarks, start poses; docs/worlds.md)
+                          instead of the world the seed generates; --robots defaults to one
+                          per start (not with --map-size or --landmarks)
   --until-explored R      stop at this team explored ratio, 0..1 (default: 0.85)
   --max-sim-time S        stop after S seconds of simulation time (default: no limit)
   --comm-range M          links: communication range [m] (default 0 = unlimited)
@@ -73,6 +78,12 @@ options:
   --comm-bandwidth B      links: each robot's send budget [bytes/s] (default 0 = unlimited)
                           (any of these set: the world relays all team data through the
                           link model, as em-sim does with the same flags)
+  --landmark-ids on|off   sonar: on, each detection names its landmark (default); off, none
+                          does and each robot associates its detections itself
+  --detection-prob P      sonar: probability of detecting each landmark in range, 0..1
+                          (default 1)
+  --clutter-rate R        sonar: mean number of false detections per scan, uniform in range
+                          and bearing, 0..1000 (default 0)
   --params FILE           ROS 2 parameter YAML (default: config/exploration.yaml)
   --realtime [FACTOR]     step on a wall timer, FACTOR sim seconds per wall second
                           (default 1.0) instead of lockstep
@@ -158,9 +169,10 @@ exit_status_text() {
 
 # -- arguments -------------------------------------------------------------------------------
 ROBOTS="" SEED="" PLANNER="" MAP_SIZE="" CELL_SIZE="" LANDMARKS="" UNTIL="" MAX_SIM_TIME="" COMM_RANGE="" COMM_LOSS="" COMM_LATENCY="" COMM_BANDWIDTH=""
+LANDMARK_IDS="" DETECTION_PROB="" CLUTTER_RATE=""
 PARAMS_FILE="$EM_REPO_ROOT/config/exploration.yaml"
 REALTIME="" SUMMARY="" DOMAIN_ID="" RECORD="" RECORD_PATH="" FOXGLOVE_PORT="" RESPAWN="" NETNS=""
-TRACE_DIR=""
+TRACE_DIR="" WORLD_FILE=""
 
 while (( $# )); do
     arg=$1
@@ -189,6 +201,11 @@ while (( $# )); do
         --map-size) needs_value "$@"; check_number "$arg" "$1" 10 2000; MAP_SIZE=$1; shift ;;
         --cell-size) needs_value "$@"; check_number "$arg" "$1" 0.1 50; CELL_SIZE=$1; shift ;;
         --landmarks) needs_value "$@"; check_number "$arg" "$1" 0 1000 int; LANDMARKS=$1; shift ;;
+        --world)
+            needs_value "$@"; check_path "$arg" "$1"
+            WORLD_FILE=$(cd "$(dirname "$1")" 2>/dev/null && pwd)/$(basename "$1") \
+                || usage_error "--world: no folder '$(dirname "$1")'"
+            shift ;;
         --until-explored) needs_value "$@"; check_number "$arg" "$1" 0 1; UNTIL=$1; shift ;;
         --max-sim-time) needs_value "$@"; check_number "$arg" "$1" 0 1e9; MAX_SIM_TIME=$1; shift ;;
         --comm-range) needs_value "$@"; check_number "$arg" "$1" 0 1000000; COMM_RANGE=$1; shift ;;
@@ -196,6 +213,16 @@ while (( $# )); do
         --comm-latency) needs_value "$@"; check_number "$arg" "$1" 0 3600; COMM_LATENCY=$1; shift ;;
         --comm-bandwidth)
             needs_value "$@"; check_number "$arg" "$1" 0 1000000000; COMM_BANDWIDTH=$1; shift ;;
+        --landmark-ids)
+            needs_value "$@"
+            case $1 in
+                on) LANDMARK_IDS=true ;;
+                off) LANDMARK_IDS=false ;;
+                *) usage_error "--landmark-ids must be on or off, got '$1'" ;;
+            esac
+            shift ;;
+        --detection-prob) needs_value "$@"; check_number "$arg" "$1" 0 1; DETECTION_PROB=$1; shift ;;
+        --clutter-rate) needs_value "$@"; check_number "$arg" "$1" 0 1000; CLUTTER_RATE=$1; shift ;;
         --params)
             needs_value "$@"
             [[ -f $1 && -r $1 ]] || usage_error "--params: no readable file '$1'"
@@ -224,6 +251,8 @@ while (( $# )); do
     esac
 done
 
+[[ -n $WORLD_FILE && -n $MAP_SIZE$LANDMARKS ]] \
+    && usage_error "--world gives the map size and the landmarks: drop --map-size and --landmarks"
 is_int "$EVALUATOR_END_GRACE_S" \
     || usage_error "EM_EVALUATOR_END_GRACE_S expects a whole number of seconds, got '$EVALUATOR_END_GRACE_S'"
 is_int "$RESPAWN_CONFIRM_S" \
@@ -249,41 +278,62 @@ OVERRIDES=()
                                   -p "world.height_m:=$(as_double "$MAP_SIZE")")
 [[ -n $CELL_SIZE ]] && OVERRIDES+=(-p "map.cell_size_m:=$(as_double "$CELL_SIZE")")
 [[ -n $LANDMARKS ]] && OVERRIDES+=(-p "world.num_landmarks:=$LANDMARKS")
+[[ -n $WORLD_FILE ]] && OVERRIDES+=(-p "world.file:=$(as_string "$WORLD_FILE")")
 [[ -n $UNTIL ]] && OVERRIDES+=(-p "run.until_explored:=$(as_double "$UNTIL")")
 [[ -n $COMM_RANGE ]] && OVERRIDES+=(-p "links.range_m:=$(as_double "$COMM_RANGE")")
 [[ -n $COMM_LOSS ]] && OVERRIDES+=(-p "links.loss_probability:=$(as_double "$COMM_LOSS")")
 [[ -n $COMM_LATENCY ]] && OVERRIDES+=(-p "links.latency_s:=$(as_double "$COMM_LATENCY")")
 [[ -n $COMM_BANDWIDTH ]] && OVERRIDES+=(
     -p "links.bandwidth_bytes_per_s:=$(as_double "$COMM_BANDWIDTH")")
+[[ -n $LANDMARK_IDS ]] && OVERRIDES+=(-p "sensors.landmark_ids:=$LANDMARK_IDS")
+[[ -n $DETECTION_PROB ]] && OVERRIDES+=(
+    -p "sensors.detection_probability:=$(as_double "$DETECTION_PROB")")
+[[ -n $CLUTTER_RATE ]] && OVERRIDES+=(-p "sensors.clutter_rate:=$(as_double "$CLUTTER_RATE")")
 
 # Check the file with the overrides as the nodes will read them (and that the world can be
-# built), and learn the values the run's names need: "<robots> <seed> <planner>". Errors are
-# printed to stdout (captured); warnings (deprecated parameters) go to stderr.
+# built), and learn the values the run's names need: "<robots> <seed> <planner>", then (with a
+# world file, --world or world.file) one line per world parameter the file sets, which every
+# node gets. Errors are printed to stdout (captured); warnings (deprecated parameters) go to
+# stderr.
 if ! RESOLVED=$("$PYTHON" - "$PARAMS_FILE" "${OVERRIDES[@]}" <<'PY'
+import json
 import sys
 
+import yaml
+
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params, nest_dotted
-from em_exploration_ros.core.world.world import generate_world, run_seed_sequences
+from em_exploration_ros.core.world.world_file import (params_for_world, read_world_file,
+                                                      world_for_params)
 
 path, args = sys.argv[1], sys.argv[2:]
 values = {}
 for flag, assignment in zip(args[::2], args[1::2]):
     name, value = assignment.split(":=", 1)
-    values[name] = value if name == "planner.name" else float(value) if "." in value or "e" in value else int(value)
+    if value in ("true", "false"):
+        values[name] = value == "true"
+    else:
+        values[name] = value if name == "planner.name" else yaml.safe_load(value) if name == "world.file" else float(value) if "." in value or "e" in value else int(value)
 try:
     params = load_params(path)
     params = params.replace(**nest_dotted(values)) if values else params
-    generate_world(params.world, params.sensors, run_seed_sequences(params.run.seed)[0])
+    if params.world.file:
+        params = params_for_world(params, read_world_file(params.world.file), params.world.file,
+                                  values.get("world.num_robots"))
+    world_for_params(params)
 except (ParamsFileError, ValueError, RuntimeError) as error:
     print(error)
     sys.exit(1)
 print(params.world.num_robots, params.run.seed, params.planner.name)
+if params.world.file:
+    for name in ("file", "width_m", "height_m", "num_landmarks", "landmark_radius_m", "num_robots"):
+        print(f"world.{name}:={json.dumps(getattr(params.world, name))}")
 PY
 ); then
     echo "$PROG: error: invalid parameters: $RESOLVED" >&2
     exit 2
 fi
-read -r NUM_ROBOTS RUN_SEED RUN_PLANNER <<<"$RESOLVED"
+{ read -r NUM_ROBOTS RUN_SEED RUN_PLANNER; mapfile -t WORLD_SETTINGS; } <<<"$RESOLVED"
+for setting in "${WORLD_SETTINGS[@]}"; do OVERRIDES+=(-p "$setting"); done
 if [[ -n $NETNS ]]; then
     for host in world $(seq -f "robot_%g" 0 $(( NUM_ROBOTS - 1 ))); do
         ip netns exec "$NETNS$host" true 2>/dev/null \
@@ -421,6 +471,8 @@ PY
     [[ -f $MAP_PNG ]] && echo "$PROG: map:     $MAP_PNG"
     echo "$PROG: logs:    $LOG_DIR"
     [[ -n $RECORD && -d $RECORD_PATH ]] && echo "$PROG: bag:     $RECORD_PATH"
+    [[ -n $RECORDING_PROBLEM ]] && echo "$PROG: recording incomplete: $RECORDING_PROBLEM"
+    return 0
 }
 
 # shellcheck disable=SC2317  # called through the traps below
@@ -526,8 +578,10 @@ TAIL_PID=$!
 
 # A robot that dies leaves its teammates to finish (the world stops waiting for it after
 # its liveliness lease or robot_timeout_s); with --respawn it is restarted (respawn_robot).
-# The Foxglove bridge is only a viewer; the world or the recorder dying ends the run.
-FAILED=""
+# The Foxglove bridge is only a viewer, and the recorder only records: the team goes on
+# without either (a recorder that stopped early is reported: exit code 6 and the summary's
+# "recording"). The world dying ends the run.
+FAILED="" RECORDING_PROBLEM=""
 # The world's log line when it steps over for good, and when this script saw it [s].
 STEPPED_OVER_LINE="stepping over at step" STEPPED_OVER_AT=""
 declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=() SEEN_BEFORE=() REJOINED_BEFORE=()
@@ -590,6 +644,14 @@ while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
                 fi
                 echo "$PROG: warning: $name exited with code $status; the team goes on" \
                     "without it (see $LOG_DIR/$name.log)" >&2
+                continue
+            fi
+            if [[ $name == record ]]; then
+                RECORDING_PROBLEM="em-record exited with code $status"
+                last_line=$(grep "^em-record:" "$LOG_DIR/record.log" 2>/dev/null | tail -n 1)
+                [[ -n $last_line ]] && RECORDING_PROBLEM+=": ${last_line#em-record: }"
+                echo "$PROG: warning: the recording stopped early; the team goes on" \
+                    "($RECORDING_PROBLEM; see $LOG_DIR/record.log)" >&2
                 continue
             fi
             if [[ $name == foxglove ]]; then
@@ -656,5 +718,12 @@ if [[ -n $FAILED ]]; then
     CODE=1
 fi
 stop_all
+if [[ -n $RECORD && -f $SUMMARY ]]; then
+    "$PYTHON" -m em_exploration_ros.tools.summary_recording "$SUMMARY" "$RECORD_PATH" \
+        "$RECORDING_PROBLEM" || echo "$PROG: warning: could not note the recording in $SUMMARY" >&2
+fi
+if [[ -n $RECORDING_PROBLEM && $CODE == 0 ]]; then
+    CODE=6
+fi
 report_results
 exit "$CODE"

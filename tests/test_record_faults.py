@@ -11,13 +11,13 @@ from __future__ import annotations
 import errno
 import io
 import os
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 from ros_process import REPO_ROOT, NodeProcess
 from rosbags.rosbag2 import Reader as RosbagsReader
+from small_disk import small_disk
 
 from em_exploration_ros.bag_format.bag_directory import (METADATA_FILE, RESERVE_FILE,
                                                          BagDirectoryWriter,
@@ -99,23 +99,13 @@ def test_a_bag_directory_that_cannot_keep_its_reserve_is_not_left_behind(
     assert not (tmp_path / "bag").exists()
 
 
-@pytest.fixture
-def small_disk(tmp_path: Path):
-    """A 12 MiB tmpfs (the 8 MiB reserve and 4 MiB of recording), unmounted afterwards."""
-    if os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root (it stands for a full disk)")
-    mount = tmp_path / "disk"
-    mount.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=12m", "tmpfs", str(mount)], check=True)
-    try:
-        yield mount
-    finally:
-        subprocess.run(["umount", "-l", str(mount)], check=False)
-
-
 def test_record_on_a_full_disk_ends_the_bag_whole_with_one_line_and_exit_code_3(
-        tmp_path: Path, small_disk: Path) -> None:
-    bag = small_disk / "rec"
+        tmp_path: Path) -> None:
+    with small_disk(tmp_path / "disk", 12 * 1024) as disk:  # the 8 MiB reserve and 4 MiB
+        _record_until_the_disk_is_full(tmp_path, disk / "rec")
+
+
+def _record_until_the_disk_is_full(tmp_path: Path, bag: Path) -> None:
     publisher = NodeProcess([sys.executable, "-c", PUBLISHER], tmp_path / "publisher.log")
     recorder = NodeProcess([sys.executable, "-m", "em_exploration_ros.tools.record", "-o",
                             str(bag), "--topics", "/em_test/big", "--compression", "none",

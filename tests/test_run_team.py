@@ -19,6 +19,7 @@ import pytest
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, finish_team_run,
                          processes_in_domain, robot_pid, start_team_run, wait_for_liveliness)
 from rosbags.rosbag2 import Reader as RosbagsReader
+from small_disk import small_disk
 from tf_chains import assert_frame_chains
 from websockets.sync.client import connect
 
@@ -186,6 +187,7 @@ def test_three_robots_explore_end_to_end(tmp_path):
 
     # The recording is a bag directory that rosbags reads whole.
     assert f"bag:     {bag}" in output
+    assert summary["recording"] == {"path": str(bag), "complete": True, "problem": None}
     info = scan_bag(bag)
     with RosbagsReader(bag) as reader:
         assert reader.message_count == info.message_count == read_metadata_yaml(bag).message_count
@@ -195,6 +197,36 @@ def test_three_robots_explore_end_to_end(tmp_path):
     steps = counts["/world/ground_truth/robot_0"]
     assert [counts[f"/robot_{robot}/motion_command"] for robot in range(3)] == [steps] * 3
     assert_frame_chains(bag, num_robots=3, max_error_m=2.0)
+
+
+def test_a_recording_onto_a_full_disk_does_not_stop_the_mission(tmp_path):
+    """The disk of the recording fills up mid-run: em-record ends the bag whole with what
+    reached it and exits 3; the team goes on to its goal; run_team.sh says so, notes it in
+    the summary ("recording") and exits 6. Before, the recorder's exit ended the run: every
+    process stopped, exit code 1, the summary cut at 42 s of simulated time."""
+    summary_path = tmp_path / "run" / "summary.json"
+    with small_disk(tmp_path / "disk", 8 * 1024 + 96) as disk:  # 96 KiB beyond the reserve
+        bag = disk / "bag"
+        run, domain = start_team_run(tmp_path, "--planner", "NEAREST", "--map-size", "40",
+                                     "--landmarks", "4", "--seed", "2", "--until-explored",
+                                     "0.7", "--summary", str(summary_path), "--record", str(bag))
+        code = finish_team_run(run, RUN_TIMEOUT_S)
+        output = run.output()
+        assert code == 6, output[-3000:]
+        assert "warning: the recording stopped early; the team goes on (em-record exited " \
+            "with code 3: cannot write to" in output
+        summary = json.loads(summary_path.read_text())
+        assert summary["explored_ratio"] >= 0.7, summary["stop_reason"]
+        recording = summary["recording"]
+        assert recording["path"] == str(bag) and recording["complete"] is False
+        assert "No space left on device" in recording["problem"]
+        assert f"recording incomplete: {recording['problem']}" in output
+        info = scan_bag(bag)  # whole: summary and footer
+        assert info.complete and info.message_count > 0
+        with RosbagsReader(bag) as reader:
+            assert reader.message_count == info.message_count
+        assert read_metadata_yaml(bag).message_count == info.message_count
+        assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
 
 
 def test_a_run_whose_robots_all_finish_at_an_evaluation_step_ends_there(tmp_path):
