@@ -28,7 +28,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE_NAME}"]),
         (f"share/{PACKAGE_NAME}", ["package.xml"]),
-        (f"share/{PACKAGE_NAME}/config", sorted(glob("config/*"))),
+        (f"share/{PACKAGE_NAME}/config", sorted(glob("config/*.*"))),
+        (f"share/{PACKAGE_NAME}/config/worlds", sorted(glob("config/worlds/*.yaml"))),
     ],
     # foxglove-sdk: the WebSocket server of em-foxglove (tools/foxglove_bridge.py), the live view;
     # no node imports it. google-re2 (module re2): the topic expressions of em-record,

@@ -71,6 +71,11 @@ class WorldParams:
     landmark_edge_margin_m: float = param_field(
         2.0, "Minimum distance between a landmark centre and the map edge [m] (project "
         "choice; the paper does not state one).", 0.0, 100.0)
+    file: str = param_field(
+        "", "World YAML file (map size, landmarks, start poses; docs/worlds.md) the run "
+        "starts from instead of the world run.seed generates; empty: generate it. "
+        "width_m, height_m, num_landmarks and landmark_radius_m must match the file "
+        "(em-sim and run_team.sh --world set them).")
 
 
 @dataclass(frozen=True)

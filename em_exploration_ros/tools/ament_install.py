@@ -4,7 +4,8 @@ launch_scripts/setup_env.sh runs it after the editable pip install, with the ven
 
 - ``share/ament_index/resource_index/packages/em_exploration_ros``: the ament index marker
   (``ament_index_python.get_package_prefix`` and ``ros2 pkg`` find the package by it);
-- ``share/em_exploration_ros/package.xml`` and ``share/em_exploration_ros/config/*``;
+- ``share/em_exploration_ros/package.xml``, ``share/em_exploration_ros/config/*`` and
+  ``config/worlds/*`` (the shipped world files);
 - ``lib/em_exploration_ros/<name>``: one executable per console script of the project, a
   small shell launcher that runs the console script's function with the venv's Python in
   the venv's own ROS 2 environment (what launch_scripts/_common.sh ``em_activate`` exports,
@@ -86,9 +87,10 @@ def install(prefix: Path, manifest: Path, python: Path, repo: Path = REPO_ROOT) 
     index = share / "ament_index" / "resource_index" / "packages"
     copy(repo / "resource" / PACKAGE, index / PACKAGE)
     copy(repo / "package.xml", share / PACKAGE / "package.xml")
-    for config in sorted((repo / "config").glob("*")):
+    configs = sorted((repo / "config").glob("*")) + sorted((repo / "config").glob("worlds/*"))
+    for config in configs:
         if config.is_file():
-            copy(config, share / PACKAGE / "config" / config.name)
+            copy(config, share / PACKAGE / config.relative_to(repo))
     executables = prefix / "lib" / PACKAGE
     executables.mkdir(parents=True, exist_ok=True)
     for name, target in sorted(console_scripts().items()):

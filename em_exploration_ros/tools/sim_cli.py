@@ -27,6 +27,9 @@ from em_exploration_ros.core.output_paths import output_path_problem, write_repl
 from em_exploration_ros.core.params import ExplorationParams, PlannerParams, current_planner_name
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
 from em_exploration_ros.core.sessions.team_runner import Progress, TeamRunner
+from em_exploration_ros.core.world.world_file import (WorldFileError, params_for_world,
+                                                      read_world_file, world_for_params,
+                                                      world_yaml)
 
 #: A progress line every this many simulation steps.
 PROGRESS_EVERY_STEPS = 250
@@ -54,6 +57,10 @@ def add_run_arguments(parser: argparse.ArgumentParser, sweep_map_sizes: bool = F
     parser.add_argument("--cell-size", type=float, metavar="M", nargs=sizes,
                         help="virtual map cell size [m] (default 2)")
     parser.add_argument("--landmarks", type=int, help="number of landmarks (default 20)")
+    parser.add_argument("--world", type=Path, metavar="FILE",
+                        help="world YAML file (map size, landmarks, start poses; "
+                        "docs/worlds.md) instead of the world the seed generates; the "
+                        "robots default to one per start")
     parser.add_argument("--until-explored", type=float, metavar="RATIO",
                         help="stop at this team explored ratio (default 0.85)")
     parser.add_argument("--max-steps", type=int, help="stop after this many steps (default 20000)")
@@ -90,7 +97,13 @@ def params_from_args(args: argparse.Namespace, seed: int | None = None) -> Explo
     put("links", "loss_probability", args.comm_loss)
     put("links", "latency_s", args.comm_latency)
     put("links", "bandwidth_bytes_per_s", args.comm_bandwidth)
-    return params.replace(**overrides) if overrides else params
+    if args.world is not None and (args.map_size is not None or args.landmarks is not None):
+        raise ValueError("--world gives the map size and the landmarks: drop --map-size and "
+                         "--landmarks")
+    params = params.replace(**overrides) if overrides else params
+    if args.world is not None:
+        params = params_for_world(params, read_world_file(args.world), args.world, args.robots)
+    return params
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -103,6 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="draw the final team map (targets, rendezvous) into this PNG file "
                         "(.png)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    parser.add_argument("--save-world", type=Path, metavar="FILE",
+                        help="write the run's world (the one the seed generates, or --world's) "
+                        "to this YAML file and exit, to edit it and run it with --world and "
+                        "the same --seed")
     return parser
 
 
@@ -121,12 +138,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                         format="%(message)s")
     try:
         params = params_from_args(args, args.seed)
+    except WorldFileError as error:
+        print(f"{parser.prog}: error: {error}", file=sys.stderr)
+        return 2
     except (ParamsFileError, ValueError) as error:
         parser.error(str(error))
     problem = _output_problem(args)
     if problem:
         parser.error(problem)
     log = logging.getLogger("em-sim")
+    if args.save_world:
+        return _save_world(params, args.save_world)
     try:
         runner = TeamRunner(params)
     except ValueError as error:
@@ -172,7 +194,8 @@ def _output_problem(args: argparse.Namespace) -> str | None:
     """Why --summary or --map cannot be written, or None: each must be writable
     (``output_path_problem``), the map a .png (the only format it is drawn in), and the
     two must not be the same file."""
-    for path, option, suffix in ((args.summary, "--summary", None), (args.map, "--map", ".png")):
+    for path, option, suffix in ((args.summary, "--summary", None), (args.map, "--map", ".png"),
+                                 (args.save_world, "--save-world", None)):
         problem = output_path_problem(path, option, suffix) if path is not None else None
         if problem:
             return problem
@@ -180,6 +203,27 @@ def _output_problem(args: argparse.Namespace) -> str | None:
             and args.summary.expanduser().resolve() == args.map.expanduser().resolve()):
         return f"--summary and --map name the same file {args.map}"
     return None
+
+
+def _save_world(params: ExplorationParams, path: Path) -> int:
+    """``--save-world``: write the run's world to ``path``; the exit code (2 if the world
+    cannot be built, ``EXIT_WRITE_FAILED`` if the file cannot be written)."""
+    try:
+        world = world_for_params(params)
+    except ValueError as error:
+        logging.getLogger("em-sim").error("cannot build the world: %s", error)
+        return 2
+    seed = params.run.seed
+    origin = (f"read from {params.world.file}" if params.world.file else
+              f"generated by em-sim --seed {seed}")
+    comment = (f"World {origin} (docs/worlds.md).\nRun it with: em-sim --world {path.name} "
+               f"--seed {seed}\n(the seed draws the sensor noise: the same seed, the same run)")
+    text = world_yaml(world, comment)
+    if not _write_output(path, "--save-world",
+                         lambda target: target.write_text(text, encoding="utf-8")):
+        return EXIT_WRITE_FAILED
+    say(f"world: {path}")
+    return 0
 
 
 def _write_output(path: Path, option: str, write: Callable[[Path], object]) -> bool:

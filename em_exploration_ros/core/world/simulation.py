@@ -1,9 +1,9 @@
 """The world simulator's state and physics: ground truth, sensing and motion.
 
-``WorldSimulation`` owns the seeded world and every robot's true pose. Each step it
-produces what each robot's sensors report (``SensorFrame``, in the form it takes on the
-wire) and applies each robot's velocity command. The ``em-world`` ROS node and em-sim
-both drive this class, so they produce the same numbers.
+``WorldSimulation`` owns the world (seeded, or from a world file) and every robot's true
+pose. Each step it produces what each robot's sensors report (``SensorFrame``, in the form
+it takes on the wire) and applies each robot's velocity command. The ``em-world`` ROS node
+and em-sim both drive this class, so they produce the same numbers.
 """
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from em_exploration_ros.core.records.wire_model import (DeadReckoningIntegrator,
                                                         increment_covariance_to_twist, sim_time_s,
                                                         twist_to_command)
 from em_exploration_ros.core.world.sensors import SensorSimulator
-from em_exploration_ros.core.world.world import (World, advance_robot, generate_world,
-                                                 run_seed_sequences)
+from em_exploration_ros.core.world.world import World, advance_robot, run_seed_sequences
+from em_exploration_ros.core.world.world_file import world_for_params
 
 
 @dataclass(frozen=True)
@@ -42,12 +42,16 @@ class SensorFrame:
 
 
 class WorldSimulation:
-    """Ground truth and physics of one seeded run (world frame)."""
+    """Ground truth and physics of one seeded run (world frame).
 
-    def __init__(self, params: ExplorationParams) -> None:
+    The world is ``world`` if given, else the run's (``world_for_params``: read from
+    ``params.world.file``, or generated from ``params.run.seed``; ``ValueError`` if it
+    cannot be); the seed draws the sensor noise either way."""
+
+    def __init__(self, params: ExplorationParams, world: World | None = None) -> None:
         self.params = params
-        world_sequence, sensor_sequence = run_seed_sequences(params.run.seed)
-        self.world: World = generate_world(params.world, params.sensors, world_sequence)
+        _, sensor_sequence = run_seed_sequences(params.run.seed)
+        self.world: World = world_for_params(params) if world is None else world
         self._sensors = SensorSimulator(self.world, params.sensors, params.motion, sensor_sequence)
         n = params.world.num_robots
         self._true_poses = np.array(self.world.start_poses, dtype=float)
