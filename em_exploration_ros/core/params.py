@@ -113,6 +113,19 @@ class SensorParams:
     def sonar_bearing_sigma_rad(self) -> float:
         """Standard deviation of a sonar bearing reading [rad]."""
         return self.sonar_bearing_bound_rad / BOUND_95_TO_SIGMA
+    landmark_ids: bool = param_field(
+        True, "Each sonar detection names its landmark (the paper's ideal sensing: the "
+        "simulated sonar resolves data association; a false detection is named as none); "
+        "false: no detection carries an identity and each robot associates its own.")
+    detection_probability: float = param_field(
+        1.0, "Probability that the sonar detects a landmark within its range, each landmark "
+        "and scan independently (seeded); 1: the paper's sonar, which never misses one.",
+        0.0, 1.0)
+    clutter_rate: float = param_field(
+        0.0, "Mean number of false detections per sonar scan (Poisson, seeded), spread "
+        "uniformly over the sonar's field of view: range in [0, sonar_max_range_m], bearing "
+        "in [-pi, pi); 0: the paper's sonar, which reports no landmark that is not there.",
+        0.0, 1000.0)
 
 
 @dataclass(frozen=True)

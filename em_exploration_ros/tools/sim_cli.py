@@ -24,7 +24,8 @@ from typing import Callable, Sequence
 
 from em_exploration_ros.core.evaluation.summary import activity_line
 from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
-from em_exploration_ros.core.params import ExplorationParams, PlannerParams, current_planner_name
+from em_exploration_ros.core.params import (ExplorationParams, PlannerParams, SensorParams,
+                                            current_planner_name)
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
 from em_exploration_ros.core.sessions.team_runner import Progress, TeamRunner
 from em_exploration_ros.core.world.world_file import (WorldFileError, params_for_world,
@@ -39,6 +40,26 @@ EXIT_WRITE_FAILED = 1
 PLANNER_NAMES = PlannerParams.__dataclass_fields__["name"].metadata["choices"]
 #: argparse ``type`` of options that name planners: deprecated names map to the new ones.
 PLANNER_TYPE = current_planner_name
+#: ``--landmark-ids`` values, as ``sensors.landmark_ids``.
+LANDMARK_IDS = {"on": True, "off": False}
+
+
+def sensor_number(field_name: str) -> Callable[[str], float]:
+    """argparse ``type`` of an option that sets the number ``sensors.<field_name>``: a value
+    outside the field's range is refused with the range."""
+    metadata = SensorParams.__dataclass_fields__[field_name].metadata
+    low, high = metadata["low"], metadata["high"]
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expects a number, got {text!r}") from None
+        if not low <= value <= high:  # NaN too
+            raise argparse.ArgumentTypeError(f"must be in [{low:g}, {high:g}], got {text}")
+        return value
+
+    return parse
 
 
 def add_run_arguments(parser: argparse.ArgumentParser, sweep_map_sizes: bool = False) -> None:
@@ -72,6 +93,15 @@ def add_run_arguments(parser: argparse.ArgumentParser, sweep_map_sizes: bool = F
                         help="links: latency [s] (default 0)")
     parser.add_argument("--comm-bandwidth", type=float, metavar="B",
                         help="links: each robot's budget [bytes/s] (default 0 = unlimited)")
+    parser.add_argument("--landmark-ids", choices=tuple(LANDMARK_IDS),
+                        help="sonar: on, each detection names its landmark (default); off, "
+                        "none does and each robot associates its detections itself")
+    parser.add_argument("--detection-prob", type=sensor_number("detection_probability"),
+                        metavar="P", help="sonar: probability of detecting each landmark in "
+                        "range, 0..1 (default 1)")
+    parser.add_argument("--clutter-rate", type=sensor_number("clutter_rate"), metavar="R",
+                        help="sonar: mean number of false detections per scan, uniform in "
+                        "range and bearing (default 0)")
 
 
 def params_from_args(args: argparse.Namespace, seed: int | None = None) -> ExplorationParams:
@@ -97,6 +127,10 @@ def params_from_args(args: argparse.Namespace, seed: int | None = None) -> Explo
     put("links", "loss_probability", args.comm_loss)
     put("links", "latency_s", args.comm_latency)
     put("links", "bandwidth_bytes_per_s", args.comm_bandwidth)
+    if args.landmark_ids is not None:
+        put("sensors", "landmark_ids", LANDMARK_IDS[args.landmark_ids])
+    put("sensors", "detection_probability", args.detection_prob)
+    put("sensors", "clutter_rate", args.clutter_rate)
     if args.world is not None and (args.map_size is not None or args.landmarks is not None):
         raise ValueError("--world gives the map size and the landmarks: drop --map-size and "
                          "--landmarks")

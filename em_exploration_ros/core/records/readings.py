@@ -13,24 +13,39 @@ import numpy as np
 from numpy.typing import NDArray
 
 from em_exploration_ros.core.params import BOUND_95_TO_SIGMA, SensorParams
+from em_exploration_ros.core.records.limits import MAX_ID
 
 FloatArray = NDArray[np.float64]
 
 #: (robot id, keyframe index) of one graph pose.
 KeyframeId = tuple[int, int]
 
+#: ``LandmarkReading.landmark_id`` of a sonar detection that names no landmark: every
+#: detection when ``sensors.landmark_ids`` is false, a false detection (clutter) when it is
+#: true. The largest id (``limits.MAX_ID``), so it fits the uint32 id of a LandmarkDetection
+#: message and passes a receiver's id checks unchanged.
+UNIDENTIFIED = MAX_ID
 
 
 @dataclass(frozen=True)
 class LandmarkReading:
     """One sonar return: range [m] and bearing [rad, observer body frame, wrapped] of a
-    landmark centre, with the variances of their noise [m^2], [rad^2]."""
+    landmark centre, with the variances of their noise [m^2], [rad^2].
+
+    ``landmark_id`` names the landmark: in a sonar scan, the world's landmark (the sonar's
+    own association) or :data:`UNIDENTIFIED`; in a keyframe, the landmark of the team graph
+    the observer associated it with (see ``TeamSlam``)."""
 
     landmark_id: int
     range_m: float
     bearing_rad: float
     range_variance: float
     bearing_variance: float
+
+    @property
+    def identified(self) -> bool:
+        """True unless ``landmark_id`` is :data:`UNIDENTIFIED`."""
+        return self.landmark_id != UNIDENTIFIED
 
 
 @dataclass(frozen=True)

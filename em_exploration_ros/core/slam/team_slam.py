@@ -117,7 +117,8 @@ class KeyframeBuilder:
     """Turns one robot's per-step sensor stream into :class:`KeyframeMeasurements`.
 
     A keyframe is cut at every step that is a multiple of ``keyframe_interval_steps``;
-    landmark and teammate readings are kept only at those steps.
+    landmark and teammate readings are kept only at those steps, landmark readings only
+    when they name their landmark (``LandmarkReading.identified``).
     """
 
     def __init__(self, robot_id: int, slam_params: SlamParams) -> None:
@@ -148,7 +149,8 @@ class KeyframeBuilder:
             is_first=is_first, previous_index=-1 if is_first else self._last_index,
             odom_delta=np.zeros(3) if is_first else delta,
             odom_covariance=np.zeros((3, 3)) if is_first else covariance,
-            landmarks=tuple(sonar), teammates=tuple(teammates))
+            landmarks=tuple(reading for reading in sonar if reading.identified),
+            teammates=tuple(teammates))
         self._last_index = keyframe.index
         return keyframe
 

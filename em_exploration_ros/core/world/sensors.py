@@ -7,6 +7,12 @@ of a sensor draws a fixed number of normals (independent of what is visible), so
 noise of the k-th call of a robot's sensor depends only on the seed, the robot id, the
 sensor and k: never on other robots or on the order of calls across robots.
 
+The sonar's misses (``detection_probability``) and false detections (``clutter_rate``) draw
+from a fourth stream of their own, ``DETECTION_STREAM``, and only when the sonar is not the
+paper's ideal one: the ideal sonar draws the same noise as before they existed. Its k-th
+scan draws one uniform per landmark of the world (detected when below the probability),
+then a Poisson count of false detections and their ranges and bearings.
+
 With ``SensorParams.noise_enabled = False`` the outputs are exact, while the reported
 variances and covariances stay those of the noise model, so an estimator is configured
 the same way in both cases.
@@ -20,15 +26,17 @@ from numpy.typing import ArrayLike, NDArray
 
 from em_exploration_ros.core.geometry import between, range_bearing, wrap_angle
 from em_exploration_ros.core.params import BOUND_95_TO_SIGMA, MotionParams, SensorParams
-from em_exploration_ros.core.records.readings import (LandmarkReading, OdometryReading,
-                                                      TeammateReading, sonar_variances,
-                                                      teammate_covariance)
+from em_exploration_ros.core.records.readings import (UNIDENTIFIED, LandmarkReading,
+                                                      OdometryReading, TeammateReading,
+                                                      sonar_variances, teammate_covariance)
 from em_exploration_ros.core.world.world import World, derive_seed_sequence
 
 FloatArray = NDArray[np.float64]
 
 #: Index of each sensor's stream under a robot's branch of the seed sequence.
-SONAR_STREAM, TEAMMATE_STREAM, ODOMETRY_STREAM = 0, 1, 2
+SONAR_STREAM, TEAMMATE_STREAM, ODOMETRY_STREAM, DETECTION_STREAM = 0, 1, 2, 3
+#: Truth of a sonar detection that came from no landmark (clutter), in ``sonar_scan``'s sources.
+CLUTTER = -1
 
 #: A step shorter than this [m] counts as no translation; a smaller turn [rad] as no turn.
 _STILL_TOLERANCE = 1e-12
@@ -78,7 +86,7 @@ class SensorSimulator:
         self._motion = motion_params
         self._streams = [
             [np.random.default_rng(derive_seed_sequence(seed_sequence, robot, sensor))
-             for sensor in (SONAR_STREAM, TEAMMATE_STREAM, ODOMETRY_STREAM)]
+             for sensor in (SONAR_STREAM, TEAMMATE_STREAM, ODOMETRY_STREAM, DETECTION_STREAM)]
             for robot in range(world.num_robots)]
         self._range_variance, self._bearing_variance = sonar_variances(sensor_params)
         self._teammate_covariance = teammate_covariance(sensor_params)
@@ -97,22 +105,65 @@ class SensorSimulator:
         return self._streams[robot_id][sensor].standard_normal(shape)
 
     def sonar(self, robot_id: int, true_pose: ArrayLike) -> list[LandmarkReading]:
-        """Readings of the landmarks within ``sonar_max_range_m`` of the true pose ``(3,)``
-        (world frame), sorted by landmark id; range and bearing carry independent noise."""
+        """One scan of robot ``robot_id`` at the true pose ``(3,)`` (world frame): the
+        readings of :meth:`sonar_scan`, without their truth."""
+        return self.sonar_scan(robot_id, true_pose)[0]
+
+    def sonar_scan(self, robot_id: int, true_pose: ArrayLike
+                   ) -> tuple[list[LandmarkReading], tuple[int, ...]]:
+        """One scan of robot ``robot_id`` at the true pose ``(3,)`` (world frame) and, for
+        the truth side only, where each reading came from (a landmark id or
+        :data:`CLUTTER`).
+
+        Each landmark within ``sonar_max_range_m`` is detected with probability
+        ``detection_probability``, its range and bearing with independent noise; about
+        ``clutter_rate`` false detections (Poisson) are uniform in range
+        ``[0, sonar_max_range_m]`` and bearing. With ``landmark_ids`` a detection names its
+        landmark (a false one :data:`UNIDENTIFIED`), detections in landmark-id order, then
+        the false ones; without, every detection is unidentified and the scan is in
+        bearing order (nothing in it tells one landmark from another).
+        """
         pose = np.asarray(true_pose, dtype=float)
         noise = self._normals(robot_id, SONAR_STREAM, (self._world.num_landmarks, 2))
         ranges, bearings = range_bearing(pose, self._world.landmarks)
         ranges = ranges + np.sqrt(self._range_variance) * noise[:, 0]
         bearings = wrap_angle(bearings + np.sqrt(self._bearing_variance) * noise[:, 1])
-        visible = np.flatnonzero(
-            np.linalg.norm(self._world.landmarks - pose[:2], axis=1)
-            <= self._params.sonar_max_range_m)
+        in_range = (np.linalg.norm(self._world.landmarks - pose[:2], axis=1)
+                    <= self._params.sonar_max_range_m)
+        clutter_ranges = clutter_bearings = np.zeros(0)
+        if self._params.detection_probability < 1.0 or self._params.clutter_rate > 0.0:
+            in_range, clutter_ranges, clutter_bearings = self._misses_and_clutter(robot_id,
+                                                                                  in_range)
+        visible = np.flatnonzero(in_range)
         visible = visible[np.argsort(self._world.landmark_ids[visible], kind="stable")]
-        return [LandmarkReading(landmark_id=int(self._world.landmark_ids[k]),
-                                range_m=float(ranges[k]), bearing_rad=float(bearings[k]),
-                                range_variance=self._range_variance,
-                                bearing_variance=self._bearing_variance)
-                for k in visible]
+        sources = [int(self._world.landmark_ids[k]) for k in visible]
+        sources += [CLUTTER] * len(clutter_ranges)
+        all_ranges = np.concatenate([ranges[visible], clutter_ranges])
+        all_bearings = np.concatenate([bearings[visible], clutter_bearings])
+        named = self._params.landmark_ids
+        order = np.arange(len(sources)) if named else np.argsort(all_bearings, kind="stable")
+        readings = [LandmarkReading(landmark_id=sources[k] if named and sources[k] != CLUTTER
+                                    else UNIDENTIFIED,
+                                    range_m=float(all_ranges[k]),
+                                    bearing_rad=float(all_bearings[k]),
+                                    range_variance=self._range_variance,
+                                    bearing_variance=self._bearing_variance)
+                    for k in order]
+        return readings, tuple(sources[k] for k in order)
+
+    def _misses_and_clutter(self, robot_id: int, in_range: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """From the robot's ``DETECTION_STREAM``: which of the landmarks ``in_range`` (M,)
+        bool are detected, and the ranges [m] and bearings [rad] of the false detections."""
+        if not 0 <= robot_id < self._world.num_robots:
+            raise ValueError(f"robot_id {robot_id} outside [0, {self._world.num_robots})")
+        stream = self._streams[robot_id][DETECTION_STREAM]
+        detected = in_range & (stream.random(self._world.num_landmarks)
+                               < self._params.detection_probability)
+        count = int(stream.poisson(self._params.clutter_rate))
+        clutter_ranges = stream.uniform(0.0, self._params.sonar_max_range_m, count)
+        clutter_bearings = wrap_angle(stream.uniform(-np.pi, np.pi, count))
+        return detected, clutter_ranges, np.asarray(clutter_bearings, dtype=float)
 
     def teammates(self, robot_id: int, true_poses: ArrayLike,
                   active: Sequence[bool] | None = None) -> list[TeammateReading]:

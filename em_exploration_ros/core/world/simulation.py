@@ -59,6 +59,7 @@ class WorldSimulation:
         self._twist_covariance = [np.zeros((6, 6)) for _ in range(n)]
         self.active = np.ones(n, dtype=bool)
         self.step = 0
+        self._detection_sources: list[tuple[int, ...]] = [() for _ in range(n)]
 
     @property
     def stamp_s(self) -> float:
@@ -76,13 +77,20 @@ class WorldSimulation:
     def sense(self, robot_id: int) -> SensorFrame:
         """What robot ``robot_id``'s sensors report at the current step."""
         pose = self._true_poses[robot_id]
+        readings, self._detection_sources[robot_id] = self._sensors.sonar_scan(robot_id, pose)
         return SensorFrame(
             robot_id=robot_id, step=self.step, stamp_s=self.stamp_s,
             odom_pose=self._dead_reckoning[robot_id].pose,
             odom_pose_covariance=self._dead_reckoning[robot_id].covariance,
             twist_covariance=self._twist_covariance[robot_id].copy(),
-            landmarks=tuple(self._sensors.sonar(robot_id, pose)),
+            landmarks=tuple(readings),
             teammates=tuple(self._sensors.teammates(robot_id, self._true_poses, self.active)))
+
+    def detection_sources(self, robot_id: int) -> tuple[int, ...]:
+        """Truth side only: where each sonar reading of robot ``robot_id``'s latest
+        :meth:`sense` came from, in the readings' order: a landmark id, or
+        ``sensors.CLUTTER`` for a false detection."""
+        return self._detection_sources[robot_id]
 
     def apply_command(self, robot_id: int, linear_x: float, angular_z: float) -> None:
         """Move a robot for one step by its velocity command (Twist: m/s, rad/s)."""
