@@ -11,10 +11,11 @@ an rclpy ``TimeSource`` whose ``clock_callback`` first asks ``core.agent.input_c
 ClockGuard``: a negative, malformed or backwards clock (or one that leaps further ahead
 than any simulation runs) is dropped with a throttled WARN
 (``InputGuard``) and the node's ROS clock keeps its last valid time (a clock that went
-back and runs on alone is taken up again after a while, with a WARN); everything else goes
-to rclpy's own handling, so ``use_sim_time`` set at start or later keeps working. (Keeping
-rclpy's TimeSource and subscribing /clock a second time would not help: its callback would
-still raise.) rclpy creates the time source inside ``Node.__init__`` and offers no hook, so
+back and runs on alone is taken up again after a while, with a WARN, once it has itself
+advanced: never one that repeats a stamp); everything else goes to rclpy's own handling,
+so ``use_sim_time`` set at start or later keeps working. (Keeping rclpy's TimeSource
+and subscribing /clock a second time would not help: its callback would still raise.)
+rclpy creates the time source inside ``Node.__init__`` and offers no hook, so
 ``install_validated_clock`` swaps the node's private ``_time_source`` attribute after
 detaching the original from the node and its parameter callback.
 """

@@ -34,6 +34,12 @@ MAX_SIM_RATE = 10_000.0
 #: continued the later time, is taken up (``ClockGuard``): the world publishes /clock
 #: every step, many times a second.
 CLOCK_RECOVERY_S = 2.0
+#: How far [simulated s] a clock that went back must have advanced on its own, in at least
+#: ``CLOCK_RECOVERY_INCREASES`` strictly increasing samples, before ``ClockGuard`` takes it
+#: up: repeated identical stamps (a publisher sending sec = 0 at 20 Hz while the world
+#: paused) are no clock. The world's clock advances 0.2 s a step.
+CLOCK_RECOVERY_ADVANCE_S = 1.0
+CLOCK_RECOVERY_INCREASES = 3
 #: Nanoseconds per second, the bound of builtin_interfaces/Time.nanosec.
 _NANOSECONDS_PER_SECOND = 1_000_000_000
 #: Key under which a RejectionLog counts input once it tells ``max_keys`` keys apart.
@@ -189,19 +195,25 @@ class ClockGuard:
     One hostile sample can still come first (nothing precedes it to bound it) or leap
     within the bound, and then every true sample is "backwards". So the samples dropped as
     backwards are followed as a rival timeline (each within the leap bound of the one
-    before): once it has advanced for ``recover_after_s`` wall seconds while no sample
-    continued the accepted one, the guard takes it up (``take_notice`` says so). A clock
-    that keeps publishing is never overruled, and neither is a replay that starts over
-    while the accepted clock still runs.
+    before, never earlier than it): once it has run for ``recover_after_s`` wall seconds
+    while no sample continued the accepted one, and has itself advanced by at least
+    ``recover_advance_s`` in at least ``recover_increases`` strictly increasing samples,
+    the guard takes it up (``take_notice`` says so). A clock that keeps publishing is never
+    overruled, and neither is a replay that starts over while the accepted clock still
+    runs, nor a rival that repeats one stamp (however long) or barely creeps.
     """
 
     max_rate: float = MAX_SIM_RATE
     recover_after_s: float = CLOCK_RECOVERY_S
+    recover_advance_s: float = CLOCK_RECOVERY_ADVANCE_S
+    recover_increases: int = CLOCK_RECOVERY_INCREASES
     latest_ns: int = -1
     latest_wall_s: float = 0.0
     _rival_ns: int = -1
     _rival_wall_s: float = 0.0
     _rival_since_s: float = 0.0
+    _rival_first_ns: int = -1
+    _rival_increases: int = 0
     _notice: str | None = None
 
     def check(self, sec: int, nanosec: int, wall_s: float) -> str | None:
@@ -250,9 +262,14 @@ class ClockGuard:
         if (self._rival_ns < 0 or now_ns < self._rival_ns
                 or self._leap_problem(self._rival_ns, self._rival_wall_s, now_ns, wall_s)):
             self._rival_since_s = wall_s  # a new rival starts here
+            self._rival_first_ns, self._rival_increases = now_ns, 0
+        elif now_ns > self._rival_ns:
+            self._rival_increases += 1  # the same stamp again continues it, advancing nothing
         self._rival_ns, self._rival_wall_s = now_ns, wall_s
         return (wall_s - self._rival_since_s >= self.recover_after_s
-                and wall_s - self.latest_wall_s >= self.recover_after_s)
+                and wall_s - self.latest_wall_s >= self.recover_after_s
+                and self._rival_increases >= self.recover_increases
+                and now_ns - self._rival_first_ns >= self.recover_advance_s * 1e9)
 
 
 def reason_kind(reason: str) -> str:
