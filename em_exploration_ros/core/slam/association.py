@@ -1,0 +1,285 @@
+"""Data association of one robot's sonar detections when they carry no landmark identity
+(issue 38): the individual Mahalanobis gate, joint compatibility branch and bound (JCBB)
+over one scan, and tentative tracks that become landmarks only once seen consistently.
+
+Frames and units: the ``map`` frame. A pose is ``(x [m], y [m], theta [rad])`` with the
+``(3, 3)`` covariance of its additive coordinate errors; a landmark is a point ``(x, y)
+[m]`` with its ``(2, 2)`` marginal covariance [m^2]; a detection is ``(bearing [rad, body
+frame], range [m])``, GTSAM's BearingRange order, with its ``(2, 2)`` noise covariance
+[rad^2, m^2]. Everything here is plain NumPy on arrays: the robot's SLAM supplies the
+prediction (``ScanPrediction``) and turns the answers into graph landmarks.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from em_exploration_ros.core.geometry import wrap_angle
+
+FloatArray = NDArray[np.float64]
+
+#: One detection's answer: the row of the landmark it is paired with, or None.
+Pairing = int | None
+
+
+def chi2_quantile(dof: int, probability: float) -> float:
+    """The ``probability`` quantile of the chi-square distribution with an even number
+    ``dof`` of degrees of freedom (every innovation here has two per detection), by
+    bisection on its closed-form CDF ``1 - exp(-x/2) sum_{i<dof/2} (x/2)^i / i!``."""
+    if dof <= 0 or dof % 2:
+        raise ValueError(f"dof must be even and positive, got {dof}")
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f"probability must be in (0, 1), got {probability}")
+
+    def cdf(x: float) -> float:
+        half, term, total = x / 2.0, 1.0, 1.0
+        for i in range(1, dof // 2):
+            term *= half / i
+            total += term
+        return 1.0 - math.exp(-half) * total
+
+    low, high = 0.0, 1.0
+    while cdf(high) < probability:
+        high *= 2.0
+    for _ in range(100):
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if cdf(middle) < probability else (low, middle)
+    return high
+
+
+def predict_measurements(pose: FloatArray, points: FloatArray
+                         ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Predicted ``(bearing, range)`` ``(L, 2)`` of points ``(L, 2)`` seen from ``pose``
+    ``(3,)``, with their Jacobians with respect to the pose ``(L, 2, 3)`` and to the point
+    ``(L, 2, 2)``."""
+    points = np.asarray(points, dtype=float).reshape(-1, 2)
+    dx, dy = points[:, 0] - pose[0], points[:, 1] - pose[1]
+    squared = np.maximum(dx * dx + dy * dy, 1e-12)
+    ranges = np.sqrt(squared)
+    predicted = np.stack([wrap_angle(np.arctan2(dy, dx) - pose[2]), ranges], axis=1)
+    point_jacobian = np.stack([np.stack([-dy / squared, dx / squared], axis=1),
+                               np.stack([dx / ranges, dy / ranges], axis=1)], axis=1)
+    pose_jacobian = np.concatenate(
+        [-point_jacobian, np.stack([-np.ones_like(ranges), np.zeros_like(ranges)],
+                                   axis=1)[:, :, None]], axis=2)
+    return predicted, pose_jacobian, point_jacobian
+
+
+def detection_points(pose: FloatArray, pose_covariance: FloatArray, measurements: FloatArray,
+                     noise: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Map-frame points ``(D, 2)`` of detections ``(D, 2)`` (bearing, range) seen from
+    ``pose`` and their covariances ``(D, 2, 2)`` to first order, from the pose's and the
+    detections' own (``noise`` ``(D, 2, 2)``)."""
+    measurements = np.asarray(measurements, dtype=float).reshape(-1, 2)
+    angle = pose[2] + measurements[:, 0]
+    distance = measurements[:, 1]
+    cos, sin = np.cos(angle), np.sin(angle)
+    points = np.stack([pose[0] + distance * cos, pose[1] + distance * sin], axis=1)
+    ones, zeros = np.ones_like(distance), np.zeros_like(distance)
+    pose_jacobian = np.stack([np.stack([ones, zeros, -distance * sin], axis=1),
+                              np.stack([zeros, ones, distance * cos], axis=1)], axis=1)
+    measurement_jacobian = np.stack([np.stack([-distance * sin, cos], axis=1),
+                                     np.stack([distance * cos, sin], axis=1)], axis=1)
+    covariances = (pose_jacobian @ pose_covariance @ np.swapaxes(pose_jacobian, 1, 2)
+                   + measurement_jacobian @ noise @ np.swapaxes(measurement_jacobian, 1, 2))
+    return points, covariances
+
+
+@dataclass(frozen=True)
+class ScanPrediction:
+    """What a robot expects before it associates one scan: its pose at the scan ``(3,)``
+    with covariance ``(3, 3)``, and the landmarks it may see, points ``(L, 2)`` with their
+    marginal covariances ``(L, 2, 2)`` (map frame)."""
+
+    pose: FloatArray
+    pose_covariance: FloatArray
+    points: FloatArray
+    point_covariances: FloatArray
+
+
+class ScanCompatibility:
+    """The innovations of every detection of one scan against every predicted landmark,
+    their individual normalized squared innovations (NIS), and the joint NIS of a set of
+    pairings.
+
+    The joint innovation covariance keeps the correlation that the shared robot pose gives
+    the detections of one scan (``A_i P_x A_j^T`` between pairings ``i`` and ``j``) and
+    takes the landmarks as independent (their marginals: no landmark cross-covariance).
+    """
+
+    def __init__(self, prediction: ScanPrediction, measurements: FloatArray,
+                 noise: FloatArray) -> None:
+        """``measurements`` ``(D, 2)`` (bearing, range), ``noise`` ``(D, 2, 2)``."""
+        self.measurements = np.asarray(measurements, dtype=float).reshape(-1, 2)
+        self.noise = np.asarray(noise, dtype=float).reshape(-1, 2, 2)
+        predicted, self._pose_jacobians, point_jacobians = predict_measurements(
+            prediction.pose, prediction.points)
+        self._pose_covariance = np.asarray(prediction.pose_covariance, dtype=float)
+        #: Landmark part of each pairing's innovation covariance, (L, 2, 2).
+        self._point_parts = (point_jacobians @ prediction.point_covariances
+                             @ np.swapaxes(point_jacobians, 1, 2))
+        self._pose_parts = (self._pose_jacobians @ self._pose_covariance
+                            @ np.swapaxes(self._pose_jacobians, 1, 2))
+        innovations = self.measurements[:, None, :] - predicted[None, :, :]
+        innovations[..., 0] = wrap_angle(innovations[..., 0])
+        #: Innovation of detection d against landmark l, (D, L, 2).
+        self.innovations = innovations
+        covariances = (self._pose_parts + self._point_parts)[None] + self.noise[:, None]
+        #: Individual NIS of detection d against landmark l, (D, L).
+        self.nis = np.einsum("dli,dlij,dlj->dl", innovations, np.linalg.inv(covariances),
+                             innovations) if innovations.size else np.zeros(
+                                 (len(self.measurements), len(predicted)))
+
+    @property
+    def num_detections(self) -> int:
+        """D, the detections of the scan."""
+        return self.nis.shape[0]
+
+    @property
+    def num_landmarks(self) -> int:
+        """L, the predicted landmarks."""
+        return self.nis.shape[1]
+
+    def joint_nis(self, pairs: Sequence[tuple[int, int]]) -> float:
+        """NIS of the stacked innovations of ``pairs`` ``[(detection, landmark row), ...]``
+        under their joint covariance; 0 for no pair."""
+        if not pairs:
+            return 0.0
+        detections = np.array([d for d, _ in pairs])
+        landmarks = np.array([l for _, l in pairs])
+        jacobians = self._pose_jacobians[landmarks].reshape(-1, 3)
+        joint = jacobians @ self._pose_covariance @ jacobians.T
+        for k, (d, l) in enumerate(pairs):
+            joint[2 * k:2 * k + 2, 2 * k:2 * k + 2] += self._point_parts[l] + self.noise[d]
+        innovation = self.innovations[detections, landmarks].reshape(-1)
+        return float(innovation @ np.linalg.solve(joint, innovation))
+
+
+def jcbb(compatibility: ScanCompatibility, gate_probability: float) -> tuple[Pairing, ...]:
+    """Joint compatibility branch and bound (Neira and Tardos, IEEE T-RA 2001) over one
+    scan: for each detection, the row of its landmark or None (new landmark or clutter).
+
+    This variant: the recursive search in detection order; a detection may pair with a
+    landmark of its individual gate (NIS below the ``gate_probability`` quantile of
+    chi-square with 2 degrees of freedom) that no earlier detection of the hypothesis took,
+    and only while the hypothesis stays jointly compatible (joint NIS, recomputed in full at
+    every node, below the quantile with 2k degrees of freedom for k pairings); the answer
+    has the most pairings, the lowest joint NIS among those. The bound prunes a branch that
+    can no longer reach the best number of pairings.
+    """
+    detections, landmarks = compatibility.num_detections, compatibility.num_landmarks
+    gate = chi2_quantile(2, gate_probability)
+    candidates = [sorted(range(landmarks), key=lambda l, d=d: compatibility.nis[d, l])
+                  for d in range(detections)]
+    candidates = [[l for l in row if compatibility.nis[d, l] <= gate]
+                  for d, row in enumerate(candidates)]
+    thresholds = [0.0] + [chi2_quantile(2 * k, gate_probability)
+                          for k in range(1, detections + 1)]
+    best: list = [(None,) * detections, 0, 0.0]  # hypothesis, pairings, joint NIS
+
+    def search(index: int, hypothesis: list[Pairing], pairs: list[tuple[int, int]],
+               nis: float) -> None:
+        if index == detections:
+            if len(pairs) > best[1] or (len(pairs) == best[1] and nis < best[2]):
+                best[:] = [tuple(hypothesis), len(pairs), nis]
+            return
+        remaining = detections - index - 1
+        taken = {l for _, l in pairs}
+        if len(pairs) + 1 + remaining >= best[1]:
+            for landmark in candidates[index]:
+                if landmark in taken:
+                    continue
+                trial = pairs + [(index, landmark)]
+                joint = compatibility.joint_nis(trial)
+                if joint <= thresholds[len(trial)]:
+                    search(index + 1, hypothesis + [landmark], trial, joint)
+        if len(pairs) + remaining >= best[1]:
+            search(index + 1, hypothesis + [None], pairs, nis)
+
+    search(0, [], [], 0.0)
+    return best[0]
+
+
+@dataclass
+class _Track:
+    """A tentative landmark: its map-frame point ``(2,)`` and covariance ``(2, 2)`` fused
+    from its sightings, and the keyframe indices it was seen at."""
+
+    point: FloatArray
+    covariance: FloatArray
+    seen_at: list[int] = field(default_factory=list)
+
+
+class TentativeTracks:
+    """Detections that match no landmark, kept until they are seen consistently.
+
+    A detection within the gate (Mahalanobis distance of its point to a track's, under the
+    sum of their covariances, below the ``gate_probability`` quantile of chi-square with 2
+    degrees of freedom) of a track is another sighting of it (each track takes at most one
+    detection per keyframe, the nearest first); any other detection starts a track. A track
+    seen at ``confirm_hits`` of the last ``window_keyframes`` keyframes is confirmed: the
+    caller makes it a landmark. A track not seen in the last ``window_keyframes`` keyframes
+    is dropped. Clutter, uniform over the sonar's field of view, seldom falls twice within
+    a gate of centimetres, so it does not become a landmark.
+    """
+
+    def __init__(self, confirm_hits: int, window_keyframes: int,
+                 gate_probability: float) -> None:
+        if not 1 <= confirm_hits <= window_keyframes:
+            raise ValueError(f"need 1 <= confirm_hits <= window_keyframes, got {confirm_hits}, "
+                             f"{window_keyframes}")
+        self.confirm_hits = confirm_hits
+        self.window_keyframes = window_keyframes
+        self._gate = chi2_quantile(2, gate_probability)
+        self._tracks: list[_Track] = []
+
+    def __len__(self) -> int:
+        """Tentative tracks held."""
+        return len(self._tracks)
+
+    def observe(self, index: int, points: FloatArray, covariances: FloatArray
+                ) -> list[bool]:
+        """Sightings at keyframe ``index`` (increasing between calls): map-frame points
+        ``(U, 2)`` and covariances ``(U, 2, 2)`` of detections that matched no landmark.
+        Returns, per detection, whether it confirmed its track at this keyframe (the track
+        is then removed here: the caller adds the landmark at that detection)."""
+        points = np.asarray(points, dtype=float).reshape(-1, 2)
+        covariances = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
+        self._tracks = [track for track in self._tracks
+                        if track.seen_at[-1] > index - self.window_keyframes]
+        distances = np.full((len(points), len(self._tracks)), np.inf)
+        for t, track in enumerate(self._tracks):
+            difference = points - track.point
+            combined = np.linalg.inv(covariances + track.covariance)
+            distances[:, t] = np.einsum("ui,uij,uj->u", difference, combined, difference)
+        matched: dict[int, int] = {}
+        for flat in np.argsort(distances, axis=None, kind="stable"):
+            detection, track = np.unravel_index(flat, distances.shape)
+            if distances[detection, track] > self._gate:
+                break
+            if detection not in matched and track not in matched.values():
+                matched[int(detection)] = int(track)
+        confirmed = [False] * len(points)
+        finished: set[int] = set()
+        for detection in range(len(points)):
+            if detection not in matched:
+                self._tracks.append(_Track(points[detection], covariances[detection], [index]))
+                continue
+            track = self._tracks[matched[detection]]
+            track_information = np.linalg.inv(track.covariance)
+            detection_information = np.linalg.inv(covariances[detection])
+            fused = np.linalg.inv(track_information + detection_information)
+            track.point = fused @ (track_information @ track.point
+                                   + detection_information @ points[detection])
+            track.covariance = fused
+            track.seen_at.append(index)
+            recent = [seen for seen in track.seen_at if seen > index - self.window_keyframes]
+            if len(recent) >= self.confirm_hits:
+                confirmed[detection] = True
+                finished.add(matched[detection])
+        self._tracks = [track for t, track in enumerate(self._tracks) if t not in finished]
+        return confirmed
