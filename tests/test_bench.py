@@ -344,7 +344,7 @@ def test_the_summary_check_covers_what_results_md_reads(bench_out):
     assert refused > 100 and made > 100, (refused, made)
 
 
-def test_plot_does_not_pass_a_bug_off_as_bad_input(bench_out, tmp_path, monkeypatch):
+def test_plot_does_not_pass_a_bug_off_as_bad_input(bench_out, tmp_path):
     """Only what bench_plots names as not as em-bench writes it is reported as bad input;
     an error of the plotting code itself is raised as it is."""
     out = tmp_path / "out"
@@ -353,9 +353,9 @@ def test_plot_does_not_pass_a_bug_off_as_bad_input(bench_out, tmp_path, monkeypa
     def broken_plot(*args, **kwargs):
         raise KeyError("a bug")
 
-    monkeypatch.setattr(bench_plots, "plot_metric", broken_plot)
     with pytest.raises(KeyError, match="a bug"):
-        bench.command_plot(bench.build_parser().parse_args(["plot", "--out", str(out)]))
+        bench.command_plot(bench.build_parser().parse_args(["plot", "--out", str(out)]),
+                           plot=broken_plot)
 
 
 def test_rerun_with_other_parameters_is_refused(bench_out):
@@ -519,15 +519,15 @@ class _FakeWorker:
         self.started = True
 
 
-def test_a_worker_whose_fork_server_just_died_is_started_again(monkeypatch):
+def test_a_worker_whose_fork_server_just_died_is_started_again():
     """SIGKILL of the fork server just before a start: multiprocessing still takes the server
     for alive and the start fails reading the pid (a CI run ended em-bench with an EOFError
     traceback); the next try starts a new server."""
-    monkeypatch.setattr(bench, "START_RETRY_S", 0.0)
     failures: list[BaseException] = [EOFError("unexpected EOF"), ConnectionResetError()]
     made: list[_FakeWorker] = []
-    started = bench.start_worker(lambda: made.append(_FakeWorker(failures)) or made[-1])
+    started = bench.start_worker(lambda: made.append(_FakeWorker(failures)) or made[-1],
+                                 retry_s=0.0)
     assert started.started and len(made) == 3
     always = [EOFError("unexpected EOF")] * bench.START_ATTEMPTS
     with pytest.raises(EOFError):
-        bench.start_worker(lambda: _FakeWorker(always))
+        bench.start_worker(lambda: _FakeWorker(always), retry_s=0.0)

@@ -305,12 +305,12 @@ def run_trials(specs: Sequence[TrialSpec], jobs: int, progress: ProgressBar) -> 
         progress.close()
 
 
-def start_worker(make_process: Callable[[], multiprocessing.process.BaseProcess]
-                 ) -> multiprocessing.process.BaseProcess:
+def start_worker(make_process: Callable[[], multiprocessing.process.BaseProcess],
+                 retry_s: float = START_RETRY_S) -> multiprocessing.process.BaseProcess:
     """A started process from ``make_process()``. A fork server killed a moment before
     still looks alive to multiprocessing, and the start then fails reading the new pid
     (EOFError, or a broken connection); multiprocessing starts a new server at the next
-    try, so a new process is tried up to ``START_ATTEMPTS`` times."""
+    try, so a new process is tried up to ``START_ATTEMPTS`` times, ``retry_s`` [s] apart."""
     for _ in range(START_ATTEMPTS - 1):
         process = make_process()
         try:
@@ -319,7 +319,7 @@ def start_worker(make_process: Callable[[], multiprocessing.process.BaseProcess]
         except (EOFError, ConnectionError) as error:
             _LOG.warning("%s: could not start its worker (%s: the fork server died?); "
                          "trying again", process.name, type(error).__name__)
-            time.sleep(START_RETRY_S)
+            time.sleep(retry_s)
     process = make_process()
     process.start()
     return process
@@ -516,11 +516,12 @@ def prepare_out_dir(out_dir: Path) -> None:
         raise ValueError(problem)
 
 
-def command_plot(args: argparse.Namespace) -> int:
+def command_plot(args: argparse.Namespace,
+                 plot: Callable[..., None] = bench_plots.plot_metric) -> int:
     """``em-bench plot``: plots and results.md from saved results (ValueError if they are
-    not as em-bench writes them)."""
+    not as em-bench writes them); ``plot`` draws each PNG (``bench_plots.make_all``)."""
     try:
-        made = bench_plots.make_all(args.out)
+        made = bench_plots.make_all(args.out, plot)
     except ValueError as error:  # bench_plots names what in which file is not as it writes
         raise ValueError(f"cannot make the plots from {args.out}: its summary.json or "
                          f"results.csv is not as em-bench writes it ({error})") from None

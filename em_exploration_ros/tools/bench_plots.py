@@ -15,7 +15,7 @@ import json
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -294,8 +294,9 @@ def _is_list_of(value: Any, kind: type) -> bool:
     return isinstance(value, list) and all(isinstance(item, kind) for item in value)
 
 
-def make_all(out_dir: Path) -> list[Path]:
-    """All plots and results.md from ``out_dir``'s results.csv and summary.json.
+def make_all(out_dir: Path, plot: Callable[..., None] = plot_metric) -> list[Path]:
+    """All plots and results.md from ``out_dir``'s results.csv and summary.json; ``plot``
+    draws each PNG (arguments as ``plot_metric``'s).
 
     Returns the PNG paths written. FileNotFoundError if an input is missing, ValueError
     naming what is wrong if one is not as em-bench writes it (``summary_problem``,
@@ -317,7 +318,7 @@ def make_all(out_dir: Path) -> list[Path]:
         plots[setting] = []
         for metric, suffix, title, y_label in PLOTS:
             path = out_dir / f"{setting}_{suffix}.png"
-            plot_metric(by_planner, metric, f"{title}\n{caption}", y_label, path)
+            plot(by_planner, metric, f"{title}\n{caption}", y_label, path)
             plots[setting].append(path)
     (out_dir / "results.md").write_text(results_markdown(summary, plots), encoding="utf-8")
     return [path for paths in plots.values() for path in paths]
