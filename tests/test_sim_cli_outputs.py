@@ -6,8 +6,6 @@ from pathlib import Path
 
 import pytest
 
-from em_exploration_ros.core.evaluation import map_render
-from em_exploration_ros.core.evaluation.summary import RunSummary
 from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
 from em_exploration_ros.tools import sim_cli
 
@@ -57,29 +55,27 @@ def _no_run(*args: object) -> None:
     (["--summary", "{tmp}/F.png", "--map", "{tmp}/F.png"],
      "--summary and --map name the same file {tmp}/F.png"),
 ])
-def test_em_sim_refuses_bad_outputs_before_the_run(tmp_path, monkeypatch, capsys, args,
-                                                   message):
+def test_em_sim_refuses_bad_outputs_before_the_run(tmp_path, capsys, args, message):
     (tmp_path / "dangling.json").symlink_to(tmp_path / "absent" / "x.json")
     (tmp_path / "X.png").mkdir()
-    monkeypatch.setattr(sim_cli, "TeamRunner", _no_run)
     with pytest.raises(SystemExit) as exited:
-        sim_cli.main(SMALL_RUN + [arg.format(tmp=tmp_path) for arg in args])
+        sim_cli.main(SMALL_RUN + [arg.format(tmp=tmp_path) for arg in args], make_runner=_no_run)
     assert exited.value.code == 2
     assert message.format(tmp=tmp_path) in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("option", ["--summary", "--map"])
-def test_em_sim_reports_a_write_failing_after_the_run_in_one_line(tmp_path, monkeypatch,
-                                                                  capsys, caplog, option):
-    if option == "--summary":
-        monkeypatch.setattr(RunSummary, "write", lambda self, path: _fail_after_partial_write(path))
-    else:
-        monkeypatch.setattr(map_render, "render_team_map",
-                            lambda layers, path: _fail_after_partial_write(path))
+def test_em_sim_reports_a_write_failing_after_the_run_in_one_line(tmp_path, capsys, caplog,
+                                                                  option):
     summary, team_map = tmp_path / "run.json", tmp_path / "map.png"
-    with caplog.at_level(logging.ERROR):
-        code = sim_cli.main(SMALL_RUN + ["--summary", str(summary), "--map", str(team_map)])
     failed = summary if option == "--summary" else team_map
+
+    def write_file(path: Path, write) -> None:  # the output ``option`` fails half-written
+        write_replacing(path, _fail_after_partial_write if path == failed else write)
+
+    with caplog.at_level(logging.ERROR):
+        code = sim_cli.main(SMALL_RUN + ["--summary", str(summary), "--map", str(team_map)],
+                            write_file=write_file)
     assert code == sim_cli.EXIT_WRITE_FAILED
     assert [record.getMessage() for record in caplog.records] == [
         f"cannot write {option} {failed}: No space left on device"]

@@ -164,8 +164,13 @@ def _format_progress(progress: Progress) -> str:
             f"  loc RMSE {loc}  decisions {progress.decisions}")
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of em-sim; returns the process exit code."""
+def main(argv: Sequence[str] | None = None,
+         make_runner: Callable[[ExplorationParams], TeamRunner] = TeamRunner,
+         write_file: Callable[[Path, Callable[[Path], object]], None] = write_replacing
+         ) -> int:
+    """Entry point of em-sim; returns the process exit code. ``argv``: the arguments (default
+    the command line's); ``make_runner``: builds the run's engine from the parameters;
+    ``write_file(path, write)``: writes one output file after the run with ``write``."""
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
@@ -184,7 +189,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.save_world:
         return _save_world(params, args.save_world)
     try:
-        runner = TeamRunner(params)
+        runner = make_runner(params)
     except ValueError as error:
         log.error("cannot build the world: %s", error)
         return 2
@@ -199,14 +204,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     # The files first: a reader that closes stdout early (| head) must not cost them.
     unwritten: list[Path] = []
-    if args.summary and not _write_output(args.summary, "--summary", summary.write):
+    if args.summary and not _write_output(args.summary, "--summary", summary.write,
+                                          write_file):
         unwritten.append(args.summary)
     if args.map:
         # Imported here: matplotlib takes about 0.4 s to load, half of a trial's start-up,
         # and only a run that draws its map needs it.
         from em_exploration_ros.core.evaluation.map_render import render_team_map
         layers = runner.map_layers()
-        if not _write_output(args.map, "--map", lambda path: render_team_map(layers, path)):
+        if not _write_output(args.map, "--map", lambda path: render_team_map(layers, path),
+                             write_file):
             unwritten.append(args.map)
     say(f"done ({summary.stop_reason}): explored {summary.explored_ratio:.3f}, "
         f"distance {summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, "
@@ -260,11 +267,13 @@ def _save_world(params: ExplorationParams, path: Path) -> int:
     return 0
 
 
-def _write_output(path: Path, option: str, write: Callable[[Path], object]) -> bool:
-    """Write one output file whole (``write_replacing``); False, with one error line, if
-    writing failed."""
+def _write_output(path: Path, option: str, write: Callable[[Path], object],
+                  write_file: Callable[[Path, Callable[[Path], object]], None] = write_replacing
+                  ) -> bool:
+    """Write one output file whole with ``write_file`` (``write_replacing``); False, with
+    one error line, if writing failed."""
     try:
-        write_replacing(path, write)
+        write_file(path, write)
     except OSError as error:
         logging.getLogger("em-sim").error("cannot write %s %s: %s", option, path,
                                           error.strerror or error)
