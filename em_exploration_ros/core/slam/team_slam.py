@@ -484,18 +484,19 @@ class TeamSlam:
         (same robot and index) are ignored."""
         self._graph.receive(keyframe)
 
-    def update(self) -> int:
+    def update(self, backlog_slice_indices: int = BACKLOG_SLICE_INDICES) -> int:
         """Add every newly connectable keyframe to iSAM2; returns how many were added.
 
-        Keyframes waiting in a backlog that spans more than :data:`BACKLOG_SLICE_INDICES`
-        keyframe indices (a restarted robot's recovered stream with its teammates', or a
-        teammate's records after a long link outage) go in index order, one slice of that
-        many indices per iSAM2 update, as they would have arrived during the mission: all
-        at once, every pose starts from its dead reckoning and a few Gauss-Newton steps
-        from there do not reach the optimum (:meth:`_update_with`).
+        Keyframes waiting in a backlog that spans more than ``backlog_slice_indices``
+        (:data:`BACKLOG_SLICE_INDICES`) keyframe indices (a restarted robot's recovered
+        stream with its teammates', or a teammate's records after a long link outage) go in
+        index order, one slice of that many indices per iSAM2 update, as they would have
+        arrived during the mission: all at once, every pose starts from its dead reckoning
+        and a few Gauss-Newton steps from there do not reach the optimum
+        (:meth:`_update_with`).
         """
         added = 0
-        for up_to_index in self._graph.backlog_slices(BACKLOG_SLICE_INDICES):
+        for up_to_index in self._graph.backlog_slices(backlog_slice_indices):
             factors, values, count = self._graph.collect(self._estimate, up_to_index)
             added += count
             if factors.size() > 0:
