@@ -54,10 +54,12 @@ class ParamsFileError(ValueError):
     """A parameter file that cannot be used; the message names the file and the problem."""
 
 
-def load_params(path: str | Path, base: ExplorationParams | None = None) -> ExplorationParams:
-    """Parameters from a YAML file, applied on top of ``base`` (default: the paper's values)."""
+def load_params(path: str | Path, base: ExplorationParams | None = None,
+                max_bytes: int = MAX_FILE_BYTES) -> ExplorationParams:
+    """Parameters from a YAML file of at most ``max_bytes`` bytes, applied on top of ``base``
+    (default: the paper's values)."""
     file_path = Path(path)
-    text = _read_text(file_path)
+    text = _read_text(file_path, max_bytes)
     document = load_yaml(text, str(file_path), ParamsFileError)
     try:
         check_document(document)
@@ -68,16 +70,16 @@ def load_params(path: str | Path, base: ExplorationParams | None = None) -> Expl
         raise ParamsFileError(f"{file_path}: {error}") from None
 
 
-def _read_text(file_path: Path) -> str:
+def _read_text(file_path: Path, max_bytes: int) -> str:
     """The text of the parameter file ``file_path``: a regular file of at most
-    ``MAX_FILE_BYTES`` bytes of UTF-8 (``ParamsFileError`` otherwise)."""
+    ``max_bytes`` bytes of UTF-8 (``ParamsFileError`` otherwise)."""
     try:
-        data = read_regular_file(file_path, MAX_FILE_BYTES)
+        data = read_regular_file(file_path, max_bytes)
     except NotRegularFile:
         raise ParamsFileError(f"parameter file {file_path} is not a regular file") from None
     except FileTooLarge:
         raise ParamsFileError(f"parameter file {file_path} is larger than "
-                              f"{MAX_FILE_BYTES // 1024} KiB") from None
+                              f"{max_bytes // 1024} KiB") from None
     except OSError as error:
         raise ParamsFileError(f"cannot read parameter file {file_path}: {error.strerror}") from None
     try:
