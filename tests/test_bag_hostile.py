@@ -2,6 +2,7 @@
 bounded result), never a traceback, a hang or a huge allocation."""
 from __future__ import annotations
 
+import io
 import os
 import struct
 import sys
@@ -64,19 +65,20 @@ def test_qos_error_shows_a_bounded_value() -> None:
     assert "deadline" in str(raised.value) and len(str(raised.value)) < 300
 
 
-def test_repair_output_appears_only_when_complete(tmp_path: Path,
-                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+def test_repair_output_appears_only_when_complete(tmp_path: Path) -> None:
     source = _mcap(tmp_path / "in.mcap")
     target = tmp_path / "out.mcap"
     seen_while_writing = []
-    write = BagWriter.write
 
-    def watched(self: BagWriter, *args: object, **kwargs: object) -> None:
-        seen_while_writing.append(target.exists())
-        write(self, *args, **kwargs)
+    class WatchedFile(io.FileIO):
+        """The output file; as it is closed (written whole), whether ``target`` exists."""
 
-    monkeypatch.setattr(BagWriter, "write", watched)
-    assert bag.repair(source, target).messages == 1
+        def close(self) -> None:
+            if not self.closed:
+                seen_while_writing.append(target.exists())
+            super().close()
+
+    assert bag.repair(source, target, create=lambda path: WatchedFile(path, "xb")).messages == 1
     assert seen_while_writing == [False]
     assert scan_bag(target).complete
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in.mcap", "out.mcap"]

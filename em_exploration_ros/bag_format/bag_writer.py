@@ -89,6 +89,12 @@ class _Topic:
     stored: int = 0  # of count, messages in chunks handed to the OS
 
 
+def new_file(path: Path) -> io.FileIO:
+    """``path`` created as a new unbuffered file (FileExistsError if it exists): the file a
+    ``BagWriter`` writes unless it is given another maker."""
+    return io.FileIO(path, "xb")
+
+
 class BagWriter:
     """Writes one MCAP file that ``ros2 bag play``/``info`` and Foxglove accept.
 
@@ -100,8 +106,7 @@ class BagWriter:
 
     def __init__(self, path: str | os.PathLike[str], *, compression: str = "zstd",
                  chunk_size: int = DEFAULT_CHUNK_SIZE, library: str = LIBRARY,
-                 create: Callable[[Path], io.FileIO] = lambda path: io.FileIO(path, "xb")
-                 ) -> None:
+                 create: Callable[[Path], io.FileIO] = new_file) -> None:
         if compression not in COMPRESSIONS:
             raise ValueError(f"compression must be one of {sorted(COMPRESSIONS)}, "
                              f"got {compression!r}")

@@ -17,17 +17,19 @@ A recording that cannot be read gives a one-line error and exit status 2.
 from __future__ import annotations
 
 import argparse
+import io
 import math
 import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from em_exploration_ros.bag_format.bag_directory import BagDirectoryWriter
 from em_exploration_ros.bag_format.bag_reader import BagError, BagInfo, BagScanner, scan_bag
-from em_exploration_ros.bag_format.bag_writer import BagWriter
+from em_exploration_ros.bag_format.bag_writer import BagWriter, new_file
 from em_exploration_ros.bag_format.mcap_ros2_schema import MessageDefinition
 from em_exploration_ros.bag_format.qos_yaml import QosFormatError
 from em_exploration_ros.bag_format.rosbag2_metadata import MetadataFormatError
@@ -104,9 +106,11 @@ def _check_new_output(target: Path) -> None:
         raise BagError(f"{target}: the output folder {target.parent} {what}")
 
 
-def repair(source: Path, target: Path) -> RepairResult:
+def repair(source: Path, target: Path,
+           create: Callable[[Path], io.FileIO] = new_file) -> RepairResult:
     """Rewrite the readable records of ``source`` as a complete recording at ``target`` (a
-    new bag directory if ``source`` is one, else a new .mcap file).
+    new bag directory if ``source`` is one, else a new .mcap file); ``create`` makes the
+    output's .mcap file (``BagWriter``'s).
 
     Keeps every message of every chunk that is whole and passes its CRC, with the schemas
     and channels (QoS, type hash) they use; the first damaged record ends the recovery.
@@ -126,7 +130,8 @@ def repair(source: Path, target: Path) -> RepairResult:
         raise BagError(f"{target}: cannot write: {error.strerror}") from None
     try:
         staged = staging / target.name
-        writer = BagDirectoryWriter(staged) if source.is_dir() else BagWriter(staged)
+        writer = (BagDirectoryWriter(staged, create=create) if source.is_dir()
+                  else BagWriter(staged, create=create))
         try:
             topics = _copy_readable(scanner, writer)
         finally:
