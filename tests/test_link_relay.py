@@ -26,8 +26,10 @@ from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.records.team_data import (MissingRange, TeamUpdate, TeamUpdateInbox,
                                                        TeamUpdateOutbox)
+from em_exploration_ros.core.node_settings import WorldNodeSettings
 from em_exploration_ros.core.sessions.lockstep import StepAnswer
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
+from em_exploration_ros.core.sessions.world_session import WorldSession
 from em_exploration_ros.nodes.conversions import time_to_seconds
 from em_exploration_ros.nodes.input_guard import InputGuard
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, TEAM_QOS
@@ -185,16 +187,17 @@ def test_the_world_relay_counts_requests_published_before_its_reader_matched():
         own_stream = TeamUpdateRequest(requester_id=1, robot_id=1, first_sequence=1,
                                        last_sequence=0)
         publisher.publish(own_stream)  # no reader yet: never delivered (volatile)
-        relay = TeamRelay(world, ExplorationParams(), InputGuard(world), lambda: 100,
-                          lambda: None)
+        session = WorldSession(ExplorationParams(), WorldNodeSettings(), 0.0, 3.0,
+                               relayed=True)
+        TeamRelay(world, session, InputGuard(world), lambda effects: None)
         executor.add_node(world)
         wait_until(lambda: publisher.get_subscription_count() >= 1, 10.0,
                    "the relay's reader matched")
         publisher.publish(own_stream)
-        wait_until(lambda: relay.relay.received[1].requests > 0, 10.0, "the request heard",
+        wait_until(lambda: session.relay.received[1].requests > 0, 10.0, "the request heard",
                    while_waiting=lambda: executor.spin_once(timeout_sec=0.05))
         answer = StepAnswer(0.0, 0.0, 0, False, team_messages=0, team_requests=2)
-        assert relay.missing_from({1: answer}) == []
+        assert session.missing_messages({1: answer}) == []
     finally:
         executor.shutdown()
         rclpy.try_shutdown(context=context)

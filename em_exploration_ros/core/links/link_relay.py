@@ -31,6 +31,9 @@ one wait: ``written_off`` takes the answers' counts as heard.
 
 A restarted robot's history exchange happens outside the steps (its frames join the step
 open when they arrive), so runs with restarts are not repeatable frame for frame.
+
+The world's session (``core/sessions/world_session.py``) owns the relay, in em-world's relay
+mode and always in em-sim, whose robots hand it their frames as they are (``offer``).
 """
 from __future__ import annotations
 
@@ -106,6 +109,13 @@ class LinkRelay:
         self.links.offer(Frame(FrameKind.HISTORY, sender, (owner,), sequence, size_bytes,
                                step, payload))
 
+    def offer(self, frame: Frame) -> None:
+        """A frame handed over in one process (em-sim), its kind known from its sender
+        (``link_sender.LinkSender``); a new update's first sending goes into the ledger."""
+        if frame.kind == FrameKind.UPDATE:
+            self.ledger.sent(frame.sender, frame.key, frame.sent_step)
+        self.links.offer(frame)
+
     def holds(self, sent: dict[int, SentCounts]) -> list[int]:
         """The robots among ``sent`` (robot -> what its answer says it published) whose
         messages have not all been heard yet. A restarted process whose first message has not
@@ -138,3 +148,12 @@ class LinkRelay:
             if frame.kind != FrameKind.HISTORY:
                 self.ledger.delivered(frame.sender, receiver, frame.key, step)
         return due
+
+    def summary_line(self, step: int) -> str:
+        """What the links did before ``step``, for the world's log."""
+        counts = self.links.counts
+        updates = self.ledger.counts(step)
+        return (f"links: {updates.sent} (update, teammate) pairs: {updates.on_time} on time, "
+                f"{updates.late} late, {updates.never} never; frames per receiver: "
+                f"{counts.delivered} delivered, {counts.lost} lost, {counts.out_of_range} out "
+                f"of range, {counts.dropped} dropped (full queue); {counts.bytes_sent} bytes sent")

@@ -1,0 +1,41 @@
+"""A session's ``LogLine`` (``core/sessions/effects.py``) written to a node's logger."""
+from __future__ import annotations
+
+import time
+
+from rclpy.node import Node
+
+from em_exploration_ros.core.sessions.effects import Level, LogLine
+from em_exploration_ros.nodes.input_guard import LOG_PERIOD_S
+
+
+class LineWriter:
+    """Writes ``LogLine``s on ``node``'s logger at their level; lines with the same
+    ``throttle_key`` at most once per ``period_s`` of wall time (the keys are the
+    session's own, a bounded set)."""
+
+    def __init__(self, node: Node, period_s: float = LOG_PERIOD_S) -> None:
+        self._logger = node.get_logger()
+        self.period_s = period_s
+        self._last_s: dict[str, float] = {}
+
+    def write(self, line: LogLine) -> None:
+        """Log ``line`` unless a line with its throttle key was logged less than the
+        period ago."""
+        if line.throttle_key is not None:
+            now_s = time.monotonic()
+            last_s = self._last_s.get(line.throttle_key)
+            if last_s is not None and now_s - last_s < self.period_s:
+                return
+            self._last_s[line.throttle_key] = now_s
+        # One call site per severity: rclpy refuses a call site whose severity changes
+        # ("Logger severity cannot be changed between calls").
+        level, logger = line.level, self._logger
+        if level is Level.ERROR:
+            logger.error(line.text)
+        elif level is Level.WARN:
+            logger.warning(line.text)
+        elif level is Level.INFO:
+            logger.info(line.text)
+        else:
+            logger.debug(line.text)
