@@ -6,6 +6,7 @@
 # Defines the repository paths (EM_REPO_ROOT, EM_VENV, EM_BUILD_DIR) and:
 #   em_activate          export the environment of the project's venv (ROS 2 from PyPI wheels)
 #   em_pick_ros_domain   choose a ROS_DOMAIN_ID no other run on this machine holds, and hold it
+#   em_hold_run_lock     take a domain for one run_team.sh run; refused while another holds it
 #   em_pip_freeze [VENV] print "name==version" of every package pip installed in a venv
 
 EM_REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -56,6 +57,25 @@ em_pick_ros_domain() {
     done
     echo "error: all ROS domains 1..101 are held by other runs (locks in $EM_DOMAIN_LOCK_DIR)" >&2
     return 1
+}
+
+# Hold the run lock of ROS domain $1 for the life of this shell and its children, writing
+# $2 (who holds it: the run's pid and folder) into it; returns 1 with the holder's text in
+# EM_RUN_LOCK_HOLDER when another run of this project (run_team.sh) holds it. It is a lock of
+# its own ($EM_DOMAIN_LOCK_DIR/<id>.run.lock), not the free-domain choice's: a test run holds
+# its domain's choice lock and starts runs in it, one at a time. Every process of the run
+# inherits the descriptor, so a node left running keeps the domain taken.
+em_hold_run_lock() {
+    local lock="$EM_DOMAIN_LOCK_DIR/$1.run.lock" fd
+    mkdir -p "$EM_DOMAIN_LOCK_DIR"
+    exec {fd}<>"$lock"
+    if ! flock --nonblock "$fd"; then
+        EM_RUN_LOCK_HOLDER=$(head -c 1000 "$lock" | tr -d '\0')
+        exec {fd}>&-
+        return 1
+    fi
+    truncate -s 0 "$lock" && printf '%s\n' "$2" >"$lock"
+    return 0
 }
 
 # Print "name==version" (PEP 503 normalised names, sorted) of every distribution that pip

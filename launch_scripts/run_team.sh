@@ -389,14 +389,19 @@ PY
 fi
 [[ -d $LOG_DIR/ros ]] || usage_error "--summary: cannot create the log folder '$LOG_DIR'"
 [[ -d $STATE_DIR ]] || usage_error "--summary: cannot create the state folder '$STATE_DIR'"
-rm -f "$SUMMARY" "$MAP_PNG" "$LOG_DIR"/*.log  # logs are appended to (a respawned robot's too)
-rm -f "$STATE_DIR"/robot_*.journal "$STATE_DIR"/robot_*.journal.new  # another run's streams
-
 if [[ -n $DOMAIN_ID ]]; then
     export ROS_DOMAIN_ID=$DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 else
     em_pick_ros_domain || exit 1
 fi
+# Two runs in one domain would take each other's messages: a domain a live run holds is
+# refused, whether it was given (--domain-id) or chosen (a chooser that skips held domains).
+RUN_LOCK_TEXT="run_team.sh pid $$, seed $RUN_SEED, run folder $(dirname "$SUMMARY")"
+em_hold_run_lock "$ROS_DOMAIN_ID" "$RUN_LOCK_TEXT" \
+    || usage_error "ROS_DOMAIN_ID $ROS_DOMAIN_ID is in use by another run of this project" \
+        "(${EM_RUN_LOCK_HOLDER:-holder unknown}); give another --domain-id, or none for a free one"
+rm -f "$SUMMARY" "$MAP_PNG" "$LOG_DIR"/*.log  # logs are appended to (a respawned robot's too)
+rm -f "$STATE_DIR"/robot_*.journal "$STATE_DIR"/robot_*.journal.new  # another run's streams
 if [[ -n $NETNS ]]; then  # hosts apart: discovery by multicast on the subnet, no shared memory
     export ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET FASTDDS_BUILTIN_TRANSPORTS=UDPv4
 fi

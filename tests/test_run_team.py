@@ -144,6 +144,17 @@ def test_three_robots_explore_end_to_end(tmp_path):
                             "--until-explored", str(until), "--max-sim-time", "600",
                             "--params", str(params),
                             "--summary", str(summary_path), "--record", str(bag))
+    # A second mission (another seed) given the same domain id is refused at start, naming
+    # the first; before, both ran and took each other's messages. The first equals em-sim's
+    # run below, as alone.
+    second_dir = tmp_path / "second"
+    second = run_team("--seed", "5", "--domain-id", domain, "--summary",
+                      str(second_dir / "summary.json"), timeout_s=60.0)
+    assert second.returncode == 2, second.stdout + second.stderr
+    assert (f"error: ROS_DOMAIN_ID {domain} is in use by another run of this project "
+            f"(run_team.sh pid {run.pid}, seed 2, run folder {summary_path.parent})"
+            in second.stderr), second.stderr
+    assert not second_dir.exists()
     code = finish_team_run(run, RUN_TIMEOUT_S)
     output = run.output()
     assert code == 0, output[-3000:]
