@@ -19,6 +19,16 @@ CONSOLE_SCRIPTS = {
     "em-fuzz": "em_exploration_ros.tools.fuzz:main",
 }
 
+# Planners, found by name in this entry-point group (core/planner_registry.py): a plugin
+# package registers its own the same way (docs/plugins.md).
+PLANNERS = {
+    "EM_2": "em_exploration_ros.core.planning.planners:em2_planner",
+    "EM_3": "em_exploration_ros.core.planning.planners:em3_planner",
+    "CE": "em_exploration_ros.core.planning.planners:ce_planner",
+    "BSP": "em_exploration_ros.core.planning.planners:bsp_planner",
+    "NEAREST": "em_exploration_ros.core.planning.planners:nearest_planner",
+}
+
 setup(
     name=PACKAGE_NAME,
     version="0.1.0",
@@ -43,6 +53,9 @@ setup(
     maintainer_email="maintainers@em-exploration.example.org",
     description="Multi-robot exploration under localization uncertainty with EM, on ROS 2 Jazzy",
     license="Apache-2.0",
-    entry_points={"console_scripts": [f"{name} = {target}" for name, target in
-                                      CONSOLE_SCRIPTS.items()]},
+    entry_points={
+        "console_scripts": [f"{name} = {target}" for name, target in CONSOLE_SCRIPTS.items()],
+        "em_exploration_ros.planners": [f"{name} = {target}" for name, target in
+                                        PLANNERS.items()],
+    },
 )

@@ -31,6 +31,11 @@ em_activate() {
     # chose is kept.
     export FASTRTPS_DEFAULT_PROFILES_FILE="${FASTRTPS_DEFAULT_PROFILES_FILE:-$EM_REPO_ROOT/config/fastdds_profiles.xml}"
     unset PYTHONPATH PYTHONHOME LD_LIBRARY_PATH COLCON_PREFIX_PATH _ROS_WHEELS_BOOTSTRAP_COMPLETE
+    # Planner plugins installed apart (pip install --target DIR; docs/plugins.md): the
+    # folders of EM_PLUGIN_PATH (':'-separated) are the processes' PYTHONPATH.
+    if [[ -n ${EM_PLUGIN_PATH:-} ]]; then
+        export PYTHONPATH="$EM_PLUGIN_PATH"
+    fi
 }
 
 # Choose a ROS 2 domain for this run and keep it for the life of this shell and its children.

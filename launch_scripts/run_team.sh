@@ -14,13 +14,14 @@
 #
 # Environment: EM_EVALUATOR_END_GRACE_S (default 60) wall seconds the evaluator has, after the
 # world stepped over, to end the run before it is taken for wedged (a run's tests shorten it).
+# EM_PLUGIN_PATH: folders (':'-separated) of planner plugins installed apart with pip install
+# --target, on every process's PYTHONPATH (docs/plugins.md).
 set -uo pipefail
 
 # shellcheck source=launch_scripts/_common.sh
 source "$(dirname "${BASH_SOURCE[0]}")/_common.sh"
 
 PROG=run_team.sh
-PLANNERS=(EM_2 EM_3 CE BSP NEAREST)
 # Deprecated planner names, still accepted with a warning: old name -> new name.
 declare -A RENAMED_PLANNERS=([NF]=NEAREST)
 NODES=em_exploration_ros.nodes
@@ -62,7 +63,8 @@ early, e.g. on a full disk: the bag holds the run up to then, and the summary's
 options:
   --robots N              number of robots, 1..26 (file default: 3)
   --seed S                seed of the world and of every noise draw, >= 0 (default: 0)
-  --planner NAME          one of: ${PLANNERS[*]} (default: EM_3)
+  --planner NAME          EM_2, EM_3, CE, BSP, NEAREST or an installed plugin's planner
+                          (docs/plugins.md; default: EM_3)
   --map-size M            side of the square map [m], 10..2000 (default: 100)
   --cell-size M           virtual map cell size [m], 0.1..50 (default: 2; the paper's 200 m
                           map: 4)
@@ -195,8 +197,6 @@ while (( $# )); do
                      "'${RENAMED_PLANNERS[$1]}' (write ${RENAMED_PLANNERS[$1]})" >&2
                 set -- "${RENAMED_PLANNERS[$1]}" "${@:2}"
             fi
-            [[ " ${PLANNERS[*]} " == *" $1 "* ]] \
-                || usage_error "unknown planner '$1' (one of: ${PLANNERS[*]})"
             PLANNER=$1; shift ;;
         --map-size) needs_value "$@"; check_number "$arg" "$1" 10 2000; MAP_SIZE=$1; shift ;;
         --cell-size) needs_value "$@"; check_number "$arg" "$1" 0.1 50; CELL_SIZE=$1; shift ;;
@@ -293,15 +293,16 @@ OVERRIDES=()
 # Check the file with the overrides as the nodes will read them (and that the world can be
 # built), and learn the values the run's names need: "<robots> <seed> <planner>", then (with a
 # world file, --world or world.file) one line per world parameter the file sets, which every
-# node gets. Errors are printed to stdout (captured); warnings (deprecated parameters) go to
-# stderr.
-if ! RESOLVED=$("$PYTHON" - "$PARAMS_FILE" "${OVERRIDES[@]}" <<'PY'
+# node gets. Errors are printed to stdout (captured; exit 3 for a --planner that names no
+# installed planner, a bad argument); warnings (deprecated parameters) go to stderr.
+RESOLVED=$("$PYTHON" - "$PARAMS_FILE" "${OVERRIDES[@]}" <<'PY'
 import json
 import sys
 
 import yaml
 
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params, nest_dotted
+from em_exploration_ros.core.planner_registry import installed_planner_names
 from em_exploration_ros.core.world.world_file import (params_for_world, read_world_file,
                                                       world_for_params)
 
@@ -313,6 +314,10 @@ for flag, assignment in zip(args[::2], args[1::2]):
         values[name] = value == "true"
     else:
         values[name] = value if name == "planner.name" else yaml.safe_load(value) if name == "world.file" else float(value) if "." in value or "e" in value else int(value)
+planner, installed = values.get("planner.name"), installed_planner_names()
+if planner is not None and planner not in installed:
+    print(f"unknown planner '{planner}' (installed: {' '.join(installed)})")
+    sys.exit(3)
 try:
     params = load_params(path)
     params = params.replace(**nest_dotted(values)) if values else params
@@ -328,10 +333,12 @@ if params.world.file:
     for name in ("file", "width_m", "height_m", "num_landmarks", "landmark_radius_m", "num_robots"):
         print(f"world.{name}:={json.dumps(getattr(params.world, name))}")
 PY
-); then
-    echo "$PROG: error: invalid parameters: $RESOLVED" >&2
-    exit 2
-fi
+)
+case $? in
+    0) ;;
+    3) usage_error "$RESOLVED" ;;  # --planner names no installed planner
+    *) echo "$PROG: error: invalid parameters: $RESOLVED" >&2; exit 2 ;;
+esac
 { read -r NUM_ROBOTS RUN_SEED RUN_PLANNER; mapfile -t WORLD_SETTINGS; } <<<"$RESOLVED"
 for setting in "${WORLD_SETTINGS[@]}"; do OVERRIDES+=(-p "$setting"); done
 if [[ -n $NETNS ]]; then

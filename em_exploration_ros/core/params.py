@@ -17,8 +17,9 @@ import math
 import warnings
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
+from em_exploration_ros.core.planner_registry import installed_planner_names
 from em_exploration_ros.core.untrusted_yaml import shown_value
 
 #: Ratio between a 95% error bound and the standard deviation of a Gaussian.
@@ -33,10 +34,19 @@ MIN_CELLS_PER_SIDE = 4
 
 
 def param_field(default: Any, description: str, low: float | None = None,
-                high: float | None = None, choices: tuple[str, ...] | None = None) -> Any:
-    """A dataclass field with its documentation and range kept in metadata."""
+                high: float | None = None,
+                choices: tuple[str, ...] | Callable[[], tuple[str, ...]] | None = None) -> Any:
+    """A dataclass field with its documentation and range kept in metadata; ``choices``, the
+    values a text may take, may be a function that lists them when asked (``field_choices``)."""
     metadata = {"description": description, "low": low, "high": high, "choices": choices}
     return field(default=default, metadata=metadata)
+
+
+def field_choices(f: dataclasses.Field) -> tuple[str, ...] | None:
+    """The values the text parameter ``f`` may take (for ``planner.name``, the planners
+    installed now: ``core.planner_registry``), or None for any text."""
+    choices = f.metadata.get("choices")
+    return choices() if callable(choices) else choices
 
 
 @dataclass(frozen=True)
@@ -291,8 +301,8 @@ class PlannerParams:
     """Utility-based target selection: EM_2, EM_3, CE, BSP and the nearest frontier rule
     (NEAREST)."""
 
-    name: str = param_field("EM_3", "Planner to use.",
-                            choices=("EM_2", "EM_3", "CE", "BSP", "NEAREST"))
+    name: str = param_field("EM_3", "Planner to use: a built-in one or an installed plugin's "
+                            "(docs/plugins.md).", choices=installed_planner_names)
     virtual_waypoint_spacing_m: float = param_field(
         2.0, "Spacing of virtual waypoints along a candidate path in the EM step [m].", 0.1, 100.0)
     allocation_d_max_m: float = param_field(
@@ -526,8 +536,8 @@ def _checked_value(group_name: str, f: dataclasses.Field, default: Any, value: A
             raise ValueError(f"{where} must be finite, got {shown_value(value)}")
         return coerced_tuple
     if isinstance(default, str):
-        choices = f.metadata.get("choices")
-        if not isinstance(value, str) or (choices and value not in choices):
+        choices = field_choices(f)
+        if not isinstance(value, str) or (choices is not None and value not in choices):
             raise ValueError(f"{where} must be one of {choices}, got {shown_value(value)}")
         return value
     if isinstance(default, int):

@@ -29,7 +29,7 @@ from typing import Any, Mapping
 import yaml
 
 from em_exploration_ros.core.node_settings import NODE_SETTINGS, checked_settings
-from em_exploration_ros.core.params import ExplorationParams, closest_name_hint
+from em_exploration_ros.core.params import ExplorationParams, closest_name_hint, field_choices
 from em_exploration_ros.core.untrusted_files import (FileTooLarge, NotRegularFile,
                                                     read_regular_file)
 from em_exploration_ros.core.untrusted_yaml import load_yaml, shown_value
@@ -232,7 +232,7 @@ def dump_params(params: ExplorationParams, node_pattern: str = "/**") -> str:
 def _describe(f: dataclasses.Field) -> str:
     """One-line description of a parameter with its range or choices."""
     text = f.metadata.get("description", "")
-    choices, low, high = (f.metadata.get(key) for key in ("choices", "low", "high"))
+    choices, low, high = field_choices(f), f.metadata.get("low"), f.metadata.get("high")
     if choices:
         text += f" One of: {', '.join(choices)}."
     elif low is not None or high is not None:

@@ -25,7 +25,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.node import Node
 
 from em_exploration_ros.core.params import (REMOVED_PARAMETERS, ExplorationParams,
-                                            closest_name_hint, replace_checked,
+                                            closest_name_hint, field_choices, replace_checked,
                                             upgrade_deprecated)
 from em_exploration_ros.core.params_yaml import NODE_SETTINGS_ANYWHERE, nest_dotted
 
@@ -36,7 +36,7 @@ _RCLPY_PREFIXES = ("qos_overrides.",)
 def _descriptor(name: str, f: dataclasses.Field, default: Any) -> ParameterDescriptor:
     descriptor = ParameterDescriptor(name=name, description=f.metadata.get("description", ""),
                                      read_only=True)
-    low, high, choices = (f.metadata.get(key) for key in ("low", "high", "choices"))
+    low, high, choices = f.metadata.get("low"), f.metadata.get("high"), field_choices(f)
     if choices:
         descriptor.additional_constraints = "one of: " + ", ".join(choices)
     if low is not None and high is not None and not isinstance(default, bool):

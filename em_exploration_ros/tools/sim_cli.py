@@ -24,9 +24,10 @@ from typing import Callable, Sequence
 
 from em_exploration_ros.core.evaluation.summary import activity_line
 from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
-from em_exploration_ros.core.params import (ExplorationParams, PlannerParams, SensorParams,
+from em_exploration_ros.core.params import (ExplorationParams, SensorParams,
                                             current_planner_name)
 from em_exploration_ros.core.params_yaml import ParamsFileError, load_params
+from em_exploration_ros.core.planner_registry import installed_planner_names
 from em_exploration_ros.core.sessions.team_runner import Progress, TeamRunner
 from em_exploration_ros.core.world.world_file import (WorldFileError, params_for_world,
                                                       read_world_file, world_for_params,
@@ -37,7 +38,8 @@ PROGRESS_EVERY_STEPS = 250
 #: Exit status when the summary or the map could not be written after the run.
 EXIT_WRITE_FAILED = 1
 
-PLANNER_NAMES = PlannerParams.__dataclass_fields__["name"].metadata["choices"]
+#: The installed planners: the built-in ones and the plugins' (docs/plugins.md).
+PLANNER_NAMES = installed_planner_names()
 #: argparse ``type`` of options that name planners: deprecated names map to the new ones.
 PLANNER_TYPE = current_planner_name
 #: ``--landmark-ids`` values, as ``sensors.landmark_ids``.
@@ -72,7 +74,7 @@ def add_run_arguments(parser: argparse.ArgumentParser, sweep_map_sizes: bool = F
     parser.add_argument("--params", type=Path, help="ROS 2 parameter YAML file to start from")
     parser.add_argument("--robots", type=int, help="number of robots (default 3)")
     parser.add_argument("--planner", type=PLANNER_TYPE, choices=PLANNER_NAMES,
-                        help="planner (default EM_3)")
+                        help="planner: a built-in one or an installed plugin's (default EM_3)")
     parser.add_argument("--map-size", type=float, metavar="M", nargs=sizes,
                         help="side of the square map [m] (default 100)")
     parser.add_argument("--cell-size", type=float, metavar="M", nargs=sizes,

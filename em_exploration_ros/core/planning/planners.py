@@ -26,28 +26,34 @@ U_T + 10 U_D`` (``r``: explored ratio); CE ``1 U_D + 10 U_T``; BSP ``5 U_D + 1 U
 NEAREST: the nearest exploration frontier (the nearest frontier rule; not the "Next
 Frontier" method the paper cites). Reference EM weights: ``U_M + 100 max(1 - r, 0) U_T
 + 10 r U_D`` (``U_T`` weight kept 0 for EM_2).
+
+What a planner gets and returns is in :mod:`planner_api`; each planner is registered by name
+in the entry-point group ``em_exploration_ros.planners`` (setup.py), through which
+:func:`make_planner` finds it and any installed plugin (docs/plugins.md).
 """
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
-from typing import Mapping, Protocol, Sequence
+from typing import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from em_exploration_ros.core.params import ExplorationParams, PlannerParams
+from em_exploration_ros.core.planner_registry import planner_entry_points
 from em_exploration_ros.core.planning.em_scenario import (ScenarioBuilder, TeamSnapshot,
                                                           VirtualNoise, VirtualScenario)
 from em_exploration_ros.core.planning.em_step import DecisionFactorization
 from em_exploration_ros.core.planning.frontiers import Frontier
+# CandidateUtility: re-exported for the modules that import the planner types from here.
+from em_exploration_ros.core.planning.planner_api import (CandidateUtility,  # noqa: F401
+                                                          Decision, Planner, PlannerFactory,
+                                                          PlanningContext, decide)
 from em_exploration_ros.core.records.team_data import FrontierType
-from em_exploration_ros.core.slam.team_slam import TeamSlam
 from em_exploration_ros.core.virtual_map.cell_uncertainty import (CellObservations,
                                                                   CovarianceIntersectionSums,
                                                                   observation_confidence)
-from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 
 FloatArray = NDArray[np.float64]
 
@@ -56,59 +62,6 @@ _LOG = logging.getLogger(__name__)
 #: Relative covariance changes up to this are round-off (``history_change_tolerance``
 #: at or below it is the exact U_M).
 _ROUND_OFF = 1e-12
-
-
-@dataclass(frozen=True)
-class PlanningContext:
-    """Everything a planner may use for one decision of robot ``robot_id``.
-
-    ``slam``: the robot's team SLAM (virtual paths start at every robot's latest keyframe
-    in it); ``grid``: the team occupancy grid (the inter-robot map's probability of being
-    observed, and the virtual map layout); ``robot_pose``: (3,) current map-frame pose
-    (``U_D``); ``teammates``: ``{id: (position (2,), current target (2,) or None)}``;
-    ``target_history``: ``{robot id: targets (2,) in chronological order}`` (alpha's own
-    entry is ignored); ``explored_ratio`` in [0, 1].
-    """
-
-    robot_id: int
-    slam: TeamSlam
-    grid: OccupancyGrid
-    candidates: Sequence[Frontier]
-    robot_pose: np.ndarray
-    teammates: Mapping[int, tuple[np.ndarray, np.ndarray | None]]
-    target_history: Mapping[int, Sequence[np.ndarray]]
-    explored_ratio: float
-
-
-@dataclass(frozen=True)
-class CandidateUtility:
-    """Utility terms of one candidate; ``nan`` for a term the planner does not use."""
-
-    frontier: Frontier
-    u_m: float
-    u_t: float
-    u_d: float
-    total: float
-
-
-@dataclass(frozen=True)
-class Decision:
-    """The chosen target, every candidate's utilities (candidate order) and
-    ``choose_time_s``, the wall time of ``Planner.choose`` alone [s] (the robot's whole
-    decision, map rebuild included, is ``DecisionRecord.planning_time_s``)."""
-
-    target: Frontier
-    utilities: list[CandidateUtility]
-    choose_time_s: float
-
-
-class Planner(Protocol):
-    """A target-selection rule."""
-
-    name: str
-
-    def choose(self, context: PlanningContext) -> Decision:
-        """Choose among ``context.candidates`` (at least one)."""
 
 
 def distance_utility(robot_xy: np.ndarray, candidates: Sequence[Frontier]) -> FloatArray:
@@ -167,17 +120,6 @@ def _utility_terms(context: PlanningContext,
             distance_utility(context.robot_pose, context.candidates))
 
 
-def _decide(context: PlanningContext, u_m: FloatArray, u_t: FloatArray, u_d: FloatArray,
-            total: FloatArray, started: float) -> Decision:
-    """The argmin of ``total`` (first candidate on ties) with every candidate's terms."""
-    if len(context.candidates) == 0:
-        raise ValueError("no candidate target to choose from")
-    utilities = [CandidateUtility(c, float(m), float(t), float(d), float(s))
-                 for c, m, t, d, s in zip(context.candidates, u_m, u_t, u_d, total)]
-    best = int(np.argmin(total))
-    return Decision(context.candidates[best], utilities, time.perf_counter() - started)
-
-
 class NearestFrontierPlanner:
     """NEAREST: the nearest exploration candidate (the nearest candidate if there is none)."""
 
@@ -189,7 +131,7 @@ class NearestFrontierPlanner:
         exploring = np.array([c.kind == FrontierType.EXPLORATION for c in context.candidates])
         total = np.where(exploring, u_d, np.inf) if exploring.any() else u_d
         nan = np.full(len(u_d), np.nan)
-        return _decide(context, nan, nan, u_d, total, started)
+        return decide(context, nan, nan, u_d, total, started)
 
 
 class CoordinatedPlanner:
@@ -204,7 +146,7 @@ class CoordinatedPlanner:
         started = time.perf_counter()
         u_t, u_d = _utility_terms(context, self.params)
         weight_d, weight_t = self.params.ce_lambdas
-        return _decide(context, np.full(len(u_d), np.nan), u_t, u_d,
+        return decide(context, np.full(len(u_d), np.nan), u_t, u_d,
                        weight_d * u_d + weight_t * u_t, started)
 
 
@@ -255,7 +197,7 @@ class BspPlanner(_PropagationPlanner):
             u_m = np.array([trace_sqrt_sum(r.predicted_covariances)
                             + trace_sqrt_sum(r.next_covariances) for r in results])
         weight_d, weight_m = self.params.planner.bsp_lambdas
-        return _decide(context, u_m, np.full(len(u_d), np.nan), u_d,
+        return decide(context, u_m, np.full(len(u_d), np.nan), u_d,
                        weight_d * u_d + weight_m * u_m, started)
 
 
@@ -284,7 +226,7 @@ class EmPlanner(_PropagationPlanner):
         u_t, u_d = _utility_terms(context, self.params.planner)
         u_m = self.map_uncertainty(context)
         weight_m, weight_t, weight_d = self.weights(context.explored_ratio)
-        return _decide(context, u_m, u_t, u_d,
+        return decide(context, u_m, u_t, u_d,
                        weight_m * u_m + weight_t * u_t + weight_d * u_d, started)
 
     def map_uncertainty(self, context: PlanningContext) -> FloatArray:
@@ -361,15 +303,44 @@ def _history_sums(history: CellObservations, current: FloatArray,
 
 
 def make_planner(params: ExplorationParams, name: str | None = None) -> Planner:
-    """The planner called ``name`` (default ``params.planner.name``): EM_2, EM_3, CE, BSP
-    or NEAREST."""
+    """The planner called ``name`` (default ``params.planner.name``), made by the factory its
+    entry point names (``core.planner_registry``): a built-in one (EM_2, EM_3, CE, BSP,
+    NEAREST) or an installed plugin's. ``ValueError`` for a name no installed planner has
+    (listing the installed ones) or a plugin that cannot be loaded."""
     name = params.planner.name if name is None else name
-    if name in ("EM_2", "EM_3"):
-        return EmPlanner(params, name)
-    if name == "CE":
-        return CoordinatedPlanner(params.planner)
-    if name == "BSP":
-        return BspPlanner(params)
-    if name == "NEAREST":
-        return NearestFrontierPlanner()
-    raise ValueError(f"unknown planner {name!r}; expected EM_2, EM_3, CE, BSP or NEAREST")
+    entry_points = planner_entry_points()
+    if name not in entry_points:
+        installed = ", ".join(entry_points) or "none (pip install -e . registers the built-in ones)"
+        raise ValueError(f"unknown planner {name!r}; installed: {installed}")
+    try:
+        factory: PlannerFactory = entry_points[name].load()
+    except Exception as error:  # a plugin's import can fail in any way
+        raise ValueError(f"planner {name!r}: cannot load {entry_points[name].value} "
+                         f"({type(error).__name__}: {error})") from error
+    return factory(params)
+
+
+def em2_planner(params: ExplorationParams) -> EmPlanner:
+    """EM_2's factory (its entry point)."""
+    return EmPlanner(params, "EM_2")
+
+
+def em3_planner(params: ExplorationParams) -> EmPlanner:
+    """EM_3's factory (its entry point)."""
+    return EmPlanner(params, "EM_3")
+
+
+def ce_planner(params: ExplorationParams) -> CoordinatedPlanner:
+    """CE's factory (its entry point)."""
+    return CoordinatedPlanner(params.planner)
+
+
+def bsp_planner(params: ExplorationParams) -> BspPlanner:
+    """BSP's factory (its entry point)."""
+    return BspPlanner(params)
+
+
+def nearest_planner(params: ExplorationParams) -> NearestFrontierPlanner:
+    """NEAREST's factory (its entry point; it has no parameters)."""
+    del params
+    return NearestFrontierPlanner()
