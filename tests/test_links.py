@@ -126,14 +126,15 @@ def short_run_updates():
                                          run={"max_steps": 60})
     runner = TeamRunner(params)
     sent = []
-    original = runner.links.offer
+    links = runner.world.relay.links
+    original = links.offer
 
     def spy(frame):
         if frame.kind == FrameKind.UPDATE:
             sent.append(frame)
         return original(frame)
 
-    runner.links.offer = spy
+    links.offer = spy
     runner.run()
     return sent
 

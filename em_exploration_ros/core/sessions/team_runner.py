@@ -1,7 +1,9 @@
 """An N-robot exploration in one process: the engine of em-sim and of the benchmark.
 
-The runner plays the roles of the ROS system without ROS: ``WorldSimulation`` is the
-world node, one ``RobotAgent`` per robot is each robot process, and team updates travel
+The runner plays the roles of the ROS system without ROS: ``WorldSession``
+(``world_session.py``, the protocol em-world drives, with its ``WorldSimulation`` and link
+relay) is the world node, one ``RobotAgent`` per robot is each robot process, and team
+updates travel
 through the link model (``core/links/link_model.py``, the relay) into one ``TeamUpdateInbox`` per
 robot. Message timing follows the lockstep protocol of the ROS system: an update a robot
 publishes while processing step k is applied by a teammate before it processes the step
@@ -26,6 +28,7 @@ import numpy as np
 
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.links.link_sender import LinkSender
+from em_exploration_ros.core.node_settings import WorldNodeSettings
 from em_exploration_ros.core.records.team_data import (MissingRange, RendezvousEvent,
                                                      TeamUpdate, TeamUpdateInbox)
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
@@ -36,8 +39,10 @@ from em_exploration_ros.core.evaluation.run_monitor import (METRICS_INTERVAL_STE
                                                             RobotProgressRecord, RunMonitor)
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, RunSummary
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.links.link_model import DeliveryLedger, FrameKind, TeamLinks
-from em_exploration_ros.core.world.simulation import SensorFrame, WorldSimulation
+from em_exploration_ros.core.links.link_model import Delivery, FrameKind
+from em_exploration_ros.core.sessions.world_effects import PublishSensors
+from em_exploration_ros.core.sessions.world_session import WorldSession
+from em_exploration_ros.core.world.simulation import SensorFrame
 from em_exploration_ros.core.records.wire_model import (command_to_twist, pose_through_wire,
                                                     twist_to_increment_covariance)
 
@@ -63,15 +68,14 @@ class TeamRunner:
 
     def __init__(self, params: ExplorationParams) -> None:
         self.params = params
-        self.simulation = WorldSimulation(params)
+        # The world as em-world runs it, always with the links (perfect ones deliver at k+1).
+        self.world = WorldSession(params, WorldNodeSettings(), 0.0, relayed=True)
+        self.simulation = self.world.sim
         world = self.simulation.world
         n = params.world.num_robots
         self.agents = [RobotAgent(i, params, world.start_poses[0]) for i in range(n)]
         self.evaluator = TeamEvaluator(world, params)
         self._inboxes = [TeamUpdateInbox(i, n) for i in range(n)]
-        time_step = params.motion.time_step_s
-        self.links = TeamLinks(params.links, n, time_step, params.run.seed)
-        self.ledger = DeliveryLedger(n)
         self._senders = [LinkSender(i, params) for i in range(n)]
         self.monitor = RunMonitor(params)
         self.rendezvous_events: list[RendezvousEvent] = []
@@ -95,35 +99,36 @@ class TeamRunner:
         sim = self.simulation
         step = sim.step
         time_step = self.params.motion.time_step_s
-        self._deliver(step)
+        sensors = []
+        for effect in self.world.step_messages():
+            kind = type(effect)
+            if kind is Delivery:
+                self._deliver(effect)
+            elif kind is PublishSensors:
+                sensors.append(effect)
         commands = []
         for agent, inbox in zip(self.agents, self._inboxes):
-            frame = sim.sense(agent.robot_id)
+            frame = sensors[agent.robot_id].frame
             self.evaluator.record_truth(agent.robot_id, frame.stamp_s,
                                         sim.true_pose(agent.robot_id))
             agent.apply_team_updates(inbox.pop_ready())
             command = agent.step(step_input(frame, time_step))
             self._send(agent, step)
             commands.append(command_to_twist(command.turn_rad, command.forward_m, time_step))
-        self.links.transmit(step, sim.true_positions())
-        for robot_id, (linear_x, angular_z) in enumerate(commands):
-            sim.apply_command(robot_id, linear_x, angular_z)
-        sim.advance()
+        self.world.advance(commands)
 
-    def _deliver(self, step: int) -> None:
-        """Hand every frame the links bring before ``step`` to its receiver: records into
-        its inbox, requests to its re-send scheduler."""
-        for delivery in self.links.deliveries(step):
-            frame, receiver = delivery.frame, delivery.receiver
-            if frame.kind == FrameKind.REQUEST:
-                gap: MissingRange = frame.payload
-                self._senders[receiver].file_request(
-                    frame.sender, gap.first_sequence, gap.last_sequence,
-                    self.agents[receiver].outbox.last_sequence)
-                continue
-            update: TeamUpdate = frame.payload
-            self.ledger.delivered(update.robot_id, receiver, update.sequence, step)
-            self._inboxes[receiver].receive(update)
+    def _deliver(self, delivery: Delivery) -> None:
+        """Hand a frame the links bring to its receiver: a record into its inbox, a request
+        to its re-send scheduler."""
+        frame, receiver = delivery.frame, delivery.receiver
+        if frame.kind == FrameKind.REQUEST:
+            gap: MissingRange = frame.payload
+            self._senders[receiver].file_request(
+                frame.sender, gap.first_sequence, gap.last_sequence,
+                self.agents[receiver].outbox.last_sequence)
+            return
+        update: TeamUpdate = frame.payload
+        self._inboxes[receiver].receive(update)
 
     def _send(self, agent: RobotAgent, step: int) -> None:
         """Offer what ``agent`` sends at ``step`` to its channel (``LinkSender``): a request
@@ -132,10 +137,9 @@ class TeamRunner:
         update = agent.take_outgoing()
         if update is not None:
             self.rendezvous_events.extend(update.rendezvous)
-            self.ledger.sent(robot, update.sequence, step)
         for frame in self._senders[robot].frames(step, self._inboxes[robot], agent.outbox,
                                                  update):
-            self.links.offer(frame)
+            self.world.offer(frame)
 
     @property
     def num_decisions(self) -> int:
@@ -198,5 +202,5 @@ class TeamRunner:
         summary = self.monitor.summary(decisions, wall_s, progress=progress,
                                        rendezvous_events=self.rendezvous_events,
                                        meetings=meetings)
-        summary.team_updates = dataclasses.asdict(self.ledger.counts(self.simulation.step))
+        summary.team_updates = dataclasses.asdict(self.world.update_counts())
         return summary
