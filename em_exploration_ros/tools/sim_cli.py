@@ -32,6 +32,8 @@ from em_exploration_ros.core.sessions.team_runner import Progress, TeamRunner
 from em_exploration_ros.core.world.world_file import (WorldFileError, params_for_world,
                                                       read_world_file, world_for_params,
                                                       world_yaml)
+from em_exploration_ros.tools.run_pictures import (AnimationFrames, add_picture_arguments,
+                                                   default_pictures, picture_problem)
 
 #: A progress line every this many simulation steps.
 PROGRESS_EVERY_STEPS = 250
@@ -149,8 +151,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=None, help="seed of world and noise")
     parser.add_argument("--summary", type=Path, help="write the JSON summary here")
     parser.add_argument("--map", type=Path, metavar="PNG",
-                        help="draw the final team map (targets, rendezvous) into this PNG file "
-                        "(.png)")
+                        help="draw the final team map (paths, landmarks, uncertainty, targets, "
+                        "rendezvous) into this PNG file (.png); default with --summary: "
+                        "beside it, <stem>_map.png, with <stem>_timeline.png")
+    add_picture_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     parser.add_argument("--save-world", type=Path, metavar="FILE",
                         help="write the run's world (the one the seed generates, or --world's) "
@@ -184,7 +188,8 @@ def main(argv: Sequence[str] | None = None,
         return 2
     except (ParamsFileError, ValueError) as error:
         parser.error(str(error))
-    problem = _output_problem(args)
+    default_pictures(args)
+    problem = _output_problem(args) or picture_problem(args)
     if problem:
         parser.error(problem)
     log = logging.getLogger("em-sim")
@@ -195,9 +200,13 @@ def main(argv: Sequence[str] | None = None,
     except ValueError as error:
         log.error("cannot build the world: %s", error)
         return 2
+    frames = AnimationFrames() if args.animate else None
+
     def report(progress: Progress) -> None:
         if not args.quiet and progress.step % PROGRESS_EVERY_STEPS == 0:
             say(_format_progress(progress))
+        if frames is not None:
+            frames.offer(progress.metrics.stamp_s, runner.map_layers)
 
     try:
         summary = runner.run(report)
@@ -217,6 +226,18 @@ def main(argv: Sequence[str] | None = None,
         if not _write_output(args.map, "--map", lambda path: render_team_map(layers, path),
                              write_file):
             unwritten.append(args.map)
+    if args.timeline:
+        from em_exploration_ros.core.evaluation.run_timeline import render_timeline
+        data = summary.to_dict()
+        if not _write_output(args.timeline, "--timeline",
+                             lambda path: render_timeline(data, path), write_file):
+            unwritten.append(args.timeline)
+    if frames is not None:
+        final = runner.map_layers()
+        if not _write_output(args.animate, "--animate",
+                             lambda path: frames.write(summary.sim_time_s, final, path),
+                             write_file):
+            unwritten.append(args.animate)
     say(f"done ({summary.stop_reason}): explored {summary.explored_ratio:.3f}, "
         f"distance {summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, "
         f"landmark RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, "
@@ -225,7 +246,8 @@ def main(argv: Sequence[str] | None = None,
     for agent in runner.agents:
         for recovery in agent.slam.recoveries:
             log.warning("robot %d: %s", agent.robot_id, recovery.describe())
-    for label, path in (("summary", args.summary), ("map", args.map)):
+    for label, path in (("summary", args.summary), ("map", args.map),
+                        ("timeline", args.timeline), ("animation", args.animate)):
         if path and path not in unwritten:
             say(f"{label}: {path}")
     if unwritten:

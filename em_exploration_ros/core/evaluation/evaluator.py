@@ -106,7 +106,8 @@ def landmark_truth(world_params: WorldParams, landmark_ids: np.ndarray,
 @dataclass(frozen=True)
 class TeamMetrics:
     """Metrics of the team at one simulation time ``stamp_s`` [s]: team and per-robot true
-    distance [m], explored ratio, robot localization and landmark RMSE [m]."""
+    distance [m], explored ratio, robot localization and landmark RMSE [m], and, when the
+    watcher knows them, each robot's position uncertainty [m] (``pose_sigma_m``)."""
 
     stamp_s: float
     distance_m: float
@@ -114,6 +115,14 @@ class TeamMetrics:
     loc_rmse_m: float
     landmark_rmse_m: float
     robot_distances_m: tuple[float, ...] = ()
+    robot_pose_sigma_m: tuple[float, ...] = ()
+
+
+def pose_sigma_m(covariance: np.ndarray) -> float:
+    """Position uncertainty [m] of a pose covariance (3, 3) (x, y [m], theta [rad]; body or
+    map frame): the square root of the trace of its position block, as the paper's."""
+    covariance = np.asarray(covariance, dtype=float)
+    return float(np.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0)))
 
 
 class TeamEvaluator:
@@ -121,12 +130,19 @@ class TeamEvaluator:
 
     def __init__(self, world: World, params: ExplorationParams) -> None:
         self.world = world
+        self.params = params
         self._grid = OccupancyGrid(world.width_m, world.height_m, params.map,
                                    params.sensors.sonar_max_range_m)
         n = params.world.num_robots
         self._truth = [_TruePoses() for _ in range(n)]
         self._last_true_xy: list[np.ndarray | None] = [None] * n
         self._distance = np.zeros(n)
+
+    @property
+    def num_robots(self) -> int:
+        """Robots of the run (``world.num_robots``; a world read from published landmarks
+        has no start poses to count them by)."""
+        return len(self._truth)
 
     @property
     def robot_distances_m(self) -> np.ndarray:
@@ -153,13 +169,17 @@ class TeamEvaluator:
 
     def evaluate(self, stamp_s: float,
                  trajectories: dict[int, tuple[np.ndarray, np.ndarray]],
-                 landmark_estimates: dict[int, dict[int, np.ndarray]]) -> TeamMetrics:
+                 landmark_estimates: dict[int, dict[int, np.ndarray]],
+                 latest_pose_covariances: dict[int, np.ndarray] | None = None) -> TeamMetrics:
         """Metrics from each robot's own trajectory estimate and landmark estimates.
 
         Args:
             stamp_s: simulation time of the evaluation [s].
             trajectories: ``{robot: (stamps_s (K,), poses (K, 3))}``, map frame.
             landmark_estimates: ``{robot: {landmark_id: position (2,)}}``, map frame.
+            latest_pose_covariances: ``{robot: (3, 3)}`` marginal covariance of each robot's
+                latest keyframe in its own estimate, when the watcher knows it; gives
+                ``robot_pose_sigma_m`` (NaN for a robot left out; empty when None).
         """
         estimated, true = [np.zeros((0, 3))], [np.zeros((0, 3))]
         for robot, (stamps, poses) in trajectories.items():
@@ -182,5 +202,9 @@ class TeamEvaluator:
                          for est in landmark_estimates.values()]
         self._grid.rebuild(np.concatenate(all_poses) if all_poses else np.zeros((0, 3)),
                            np.concatenate(all_landmarks) if all_landmarks else np.zeros((0, 2)))
+        sigmas = () if latest_pose_covariances is None else tuple(
+            pose_sigma_m(latest_pose_covariances[r]) if r in latest_pose_covariances
+            else math.nan for r in range(self.num_robots))
         return TeamMetrics(stamp_s, float(self._distance.sum()), self._grid.explored_ratio(),
-                           loc_rmse, landmark_error, tuple(float(d) for d in self._distance))
+                           loc_rmse, landmark_error, tuple(float(d) for d in self._distance),
+                           sigmas)

@@ -312,6 +312,7 @@ class RunMonitor:
             summary.loc_rmse_m, summary.landmark_rmse_m = final.loc_rmse_m, final.landmark_rmse_m
             summary.sim_time_s = final.stamp_s
             summary.history = [HistorySample(m.stamp_s, m.distance_m, m.explored_ratio,
-                                             m.loc_rmse_m, m.landmark_rmse_m)
+                                             m.loc_rmse_m, m.landmark_rmse_m,
+                                             list(m.robot_pose_sigma_m))
                                for m in self.history if m.stamp_s <= final.stamp_s]
         return summary

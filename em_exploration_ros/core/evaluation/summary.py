@@ -16,7 +16,8 @@ writer cannot know them),
 plus ``seed``,
 ``planner``, ``num_robots``, ``map_size_m``, ``cell_size_m`` (the virtual map's cell side),
 ``num_landmarks``, ``stop_reason`` and
-``history``: samples of the metrics against distance travelled; ``decisions_by_type``
+``history``: samples of the metrics against distance travelled (with each robot's position
+uncertainty ``robot_pose_sigma_m`` where the writer knows it); ``decisions_by_type``
 (decisions per frontier type), ``planner_failures`` (decisions where the planner failed and
 the nearest frontier rule chose), ``rendezvous`` (requested / met / timed_out / open, see
 ``rendezvous_stats``) and ``meetings`` (em-sim only: per rendezvous with an inter-robot
@@ -106,13 +107,16 @@ class MeetingEntry:
 
 @dataclass
 class HistorySample:
-    """Team metrics at one moment, for plots against distance travelled."""
+    """Team metrics at one moment, for plots against distance travelled or time;
+    ``robot_pose_sigma_m``: each robot's position uncertainty [m] (by id; empty where the
+    writer does not know it)."""
 
     sim_time_s: float
     distance_m: float
     explored_ratio: float
     loc_rmse_m: float
     landmark_rmse_m: float
+    robot_pose_sigma_m: list[float] = field(default_factory=list)
 
 
 @dataclass
