@@ -20,9 +20,12 @@ from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.serialization import deserialize_message, serialize_message
 
 from em_exploration_ros.core.agent.stream_journal import (JournalContents, JournalIdentity,
-                                                          StreamJournal, read_journal)
+                                                          StreamJournal, mission_fingerprint,
+                                                          read_journal)
+from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.records.team_data import InvalidTeamUpdate, TeamUpdate
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
+from em_exploration_ros.core.sessions.robot_session import JournalRecords
 from em_exploration_ros.nodes.conversions import team_update_to_msg
 from em_exploration_ros.nodes.input_guard import checked_team_update
 
@@ -78,6 +81,12 @@ class RecordJournal:
                 break
         return updates
 
+    def read_back(self) -> JournalRecords:
+        """The journal as read back, for the robot's session to check and file."""
+        contents = self.read()
+        return JournalRecords(self.what, str(self.path), contents.problem,
+                              self.decoded(contents))
+
     def _encoded(self, update: TeamUpdate) -> bytes:
         return serialize_message(team_update_to_msg(update, self._wire))
 
@@ -87,3 +96,18 @@ class RecordJournal:
         with contextlib.suppress(OSError):
             self._journal.close()
         self._journal = None
+
+
+def robot_journals(state_dir: str, robot_id: int, params: ExplorationParams,
+                   wire: TeamWireFormat, logger: RcutilsLogger
+                   ) -> tuple[RecordJournal, RecordJournal] | None:
+    """Robot ``robot_id``'s journals in ``state_dir`` (its own stream, the teammates'
+    records it applied), None without a ``state_dir``."""
+    if not state_dir:
+        return None
+    identity = JournalIdentity(robot_id, params.world.num_robots, mission_fingerprint(params))
+    stem = pathlib.Path(state_dir) / f"robot_{robot_id}"
+    return (RecordJournal(stem.with_suffix(".journal"), identity, wire, logger,
+                          "stream journal"),
+            RecordJournal(stem.with_suffix(".team.journal"), identity, wire, logger,
+                          "team journal"))
