@@ -79,7 +79,9 @@ def test_refuses_a_respawn_confirmation_time_that_is_not_whole_seconds(monkeypat
 @pytest.mark.parametrize("text, extra, message", [
     ("/em_world:\n  ros__parameters:\n    robot_timout_s: 3.0\n", [],
      "did you mean 'robot_timeout_s'"),
-    ("/**:\n  ros__parameters:\n    world.width_m: abc\n", [], "must be a number"),
+    ("/em_world:\n  ros__parameters:\n    world.width_m: abc\n", [], "must be a number"),
+    # the file's own section again: one of the keys twice, which YAML would keep the last of
+    ("/**:\n  ros__parameters:\n    world.width_m: 50.0\n", [], "duplicate key '/**' at line"),
     # --cell-size reaches the parameters the nodes would get: checked against the world's side
     ("", ["--map-size", "40", "--cell-size", "20"],
      "MapParams.cell_size_m = 20.0 m gives fewer than 4 cells along the world's 40.0 m side"),
