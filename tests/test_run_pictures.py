@@ -6,6 +6,7 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pytest
 from matplotlib.collections import EllipseCollection
 from matplotlib.patches import Circle
 from PIL import Image
@@ -206,5 +207,14 @@ def test_em_sim_draws_its_pictures_beside_the_summary_unless_told_not_to(tmp_pat
         "run.json", "run_map.png", "run_timeline.png"]
     quiet = tmp_path / "quiet"
     quiet.mkdir()
-    assert sim_cli.main(SMALL_RUN + ["--summary", str(quiet / "run.json"), "--no-pictures"]) == 0
-    assert [p.name for p in quiet.iterdir()] == ["run.json"]
+    assert sim_cli.main(SMALL_RUN + ["--summary", str(quiet / "run.json"), "--no-pictures",
+                                     "--animate", str(quiet / "run.gif")]) == 0
+    assert sorted(p.name for p in quiet.iterdir()) == ["run.gif", "run.json"]
+    with Image.open(quiet / "run.gif") as image:  # 20 steps of 0.2 s: frames at 2 s, 4 s (the end)
+        assert image.n_frames == 2
+
+
+def test_em_sim_refuses_an_animation_it_cannot_write(tmp_path, capsys) -> None:
+    with pytest.raises(SystemExit) as exited:
+        sim_cli.main(SMALL_RUN + ["--animate", str(tmp_path / "run.avi")])
+    assert exited.value.code == 2 and "must end in .gif" in capsys.readouterr().err
