@@ -45,6 +45,7 @@ The world watch: a world that leaves the graph is logged at once; after
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -720,7 +721,7 @@ class RobotSession:
         self._request(self.robot_id, 1, 0)
 
     def _file_journaled(self, journal: JournalRecords, team_holds: list[int],
-                        file) -> list[TeamUpdate]:
+                        file: Callable[[TeamUpdate], object]) -> list[TeamUpdate]:
         """File a journal's records with ``file`` up to the first one it refuses (WARN);
         none if they cannot be this run's (WARN). Returns those filed."""
         if journal.problem is not None:
