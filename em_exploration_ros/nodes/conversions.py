@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -15,7 +16,7 @@ from em_exploration_msgs import msg as em_msg
 from geometry_msgs.msg import PoseStamped, Quaternion
 from nav_msgs.msg import Odometry, Path
 
-from em_exploration_ros.core.evaluation.summary import GivenUpEntry
+from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry
 from em_exploration_ros.core.planning.progress import GivenUpTarget, GiveUpReason
 from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
                                                       TeammateReading)
@@ -32,6 +33,9 @@ from em_exploration_ros.core.records.wire_model import (NANOSECONDS_PER_SECOND,
 from em_exploration_ros.core.world.simulation import SensorFrame
 from em_exploration_ros.nodes.odometry_cdr import OdometryCodec, PlanarOdometry
 from em_exploration_ros.nodes.path_cdr import DecodedPath, encode_path
+
+if TYPE_CHECKING:  # the evaluator process does not load the robot's agent
+    from em_exploration_ros.core.agent.robot_agent import MeetingEffect
 
 MAP_FRAME = "map"
 WORLD_FRAME = "world"
@@ -255,6 +259,22 @@ def given_up_from_msg(message: em_msg.GivenUpTarget, stamp_s: float) -> GivenUpE
     return GivenUpEntry(float(message.x), float(message.y), stamp_s, reason.value)
 
 
+def meeting_to_msg(meeting: MeetingEffect) -> em_msg.Meeting:
+    """A rendezvous the robot requested that added an inter-robot factor, as carried in its
+    MotionCommand (the requester is the command's robot)."""
+    return em_msg.Meeting(rendezvous_id=meeting.rendezvous_id, partner_id=meeting.partner_id,
+                          requested_at_s=meeting.requested_at_s, stamp_s=meeting.stamp_s,
+                          trace_before_m2=meeting.trace_before_m2,
+                          trace_after_m2=meeting.trace_after_m2)
+
+
+def meeting_from_msg(message: em_msg.Meeting, requester_id: int) -> MeetingEntry:
+    """The summary's entry of a meeting robot ``requester_id`` reported."""
+    return MeetingEntry(requester_id, int(message.partner_id), int(message.rendezvous_id),
+                        float(message.requested_at_s), float(message.stamp_s),
+                        float(message.trace_before_m2), float(message.trace_after_m2))
+
+
 def _rendezvous_to_msg(event: RendezvousEvent) -> em_msg.Rendezvous:
     message = em_msg.Rendezvous(
         rendezvous_id=event.rendezvous_id, requester_id=event.requester_id,
@@ -265,7 +285,8 @@ def _rendezvous_to_msg(event: RendezvousEvent) -> em_msg.Rendezvous:
     return message
 
 
-def _rendezvous_from_msg(message: em_msg.Rendezvous) -> RendezvousEvent:
+def rendezvous_from_msg(message: em_msg.Rendezvous) -> RendezvousEvent:
+    """A Rendezvous message as a core event; InvalidTeamUpdate for an unknown state."""
     try:
         state = RendezvousState(message.state)
     except ValueError:
@@ -304,7 +325,7 @@ def team_update_from_msg(message: em_msg.TeamUpdate, wire: TeamWireFormat) -> Te
             robot_id=robot_id, sequence=int(message.sequence), stamp_s=stamp_s,
             keyframes=tuple(_keyframe_from_msg(k, robot_id, wire) for k in message.keyframes),
             targets=tuple(target_from_msg(t, robot_id, stamp_s) for t in message.targets),
-            rendezvous=tuple(_rendezvous_from_msg(r) for r in message.rendezvous),
+            rendezvous=tuple(rendezvous_from_msg(r) for r in message.rendezvous),
             finished=bool(message.finished))
     except (ValueError, TypeError) as error:  # e.g. wrong covariance length
         raise InvalidTeamUpdate(f"malformed TeamUpdate: {error}") from None

@@ -1,9 +1,10 @@
-"""What a session asks its driver to do besides its own effects: log a line.
+"""What any session asks its driver to do besides its own effects: log a line, drop an input.
 
 A session (``RobotSession``, ``WorldSession``, ``EvaluatorSession``) takes inputs and
 returns effects; it never logs, publishes or reads a clock itself. A ROS node turns a
 ``LogLine`` into its logger's call (``throttle_key`` lines at most once per ``LOG_PERIOD_S``
-of wall time per key), em-sim into a line on stderr or nothing.
+of wall time per key), em-sim into a line on stderr or nothing; a ``Dropped`` input into its
+input guard's count and throttled line.
 """
 from __future__ import annotations
 
@@ -43,3 +44,11 @@ def warn(text: str, throttle_key: str | None = None) -> LogLine:
 def error(text: str, throttle_key: str | None = None) -> LogLine:
     """An ERROR line."""
     return LogLine(Level.ERROR, text, throttle_key)
+
+
+@dataclass(frozen=True)
+class Dropped:
+    """The input just handed to the session is dropped for ``reason`` (the driver's input
+    guard counts it and logs it, throttled per kind of reason)."""
+
+    reason: str

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from em_exploration_ros.core.links.link_model import UpdateDeliveryCounts
+from em_exploration_ros.core.sessions.effects import Dropped as Dropped  # every session's
 from em_exploration_ros.core.world.simulation import SensorFrame
 
 
@@ -74,9 +75,3 @@ class StartTicking:
     period_s: float
 
 
-@dataclass(frozen=True)
-class Dropped:
-    """The input just handed to the session is dropped for ``reason`` (the driver's input
-    guard counts it and logs it, throttled per kind of reason)."""
-
-    reason: str
