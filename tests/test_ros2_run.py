@@ -46,8 +46,11 @@ def test_package_is_in_the_ament_index_with_its_manifest_and_config() -> None:
     manifest = parse_package(share)
     manifest.validate()
     assert manifest.name == PACKAGE and manifest.get_build_type() == "ament_python"
-    for config in (REPO_ROOT / "config").iterdir():
-        assert (share / "config" / config.name).read_bytes() == config.read_bytes(), config.name
+    configs = [path for path in (REPO_ROOT / "config").rglob("*") if path.is_file()]
+    assert REPO_ROOT / "config" / "worlds" / "paper_100m_seed0.yaml" in configs
+    for config in configs:  # config/worlds/ too
+        name = config.relative_to(REPO_ROOT)
+        assert (share / name).read_bytes() == config.read_bytes(), name
 
 
 def test_every_console_script_is_an_executable_of_the_package() -> None:

@@ -232,6 +232,7 @@ def test_em_bench_runs_trials_on_a_world_file(tmp_path):
     assert {spec.params.world.file for spec in specs} == {str(path)}
     assert {(spec.params.world.width_m, spec.params.world.num_robots) for spec in specs} == {
         (40.0, 2)}
+    assert {spec.setting for spec in specs} == {"world_40x30m_cell0.8m"}  # the file's stem first
 
 
 def test_run_team_refuses_a_bad_world_file_before_starting(tmp_path):

@@ -85,11 +85,13 @@ def paper_cell_size_m(map_size_m: float) -> float:
 
 
 def setting_name(params: ExplorationParams) -> str:
-    """Folder and file name of a map setting, e.g. ``100m_cell2m``."""
+    """Folder and file name of a map setting, e.g. ``100m_cell2m``; a world file's stem
+    comes first (``site_120x70m_cell2m``), so two files of one size stay apart."""
     world = params.world
     size = (f"{world.width_m:g}m" if world.width_m == world.height_m
             else f"{world.width_m:g}x{world.height_m:g}m")
-    return f"{size}_cell{params.map.cell_size_m:g}m"
+    site = f"{Path(world.file).stem}_" if world.file else ""
+    return f"{site}{size}_cell{params.map.cell_size_m:g}m"
 
 
 def trial_specs(args: argparse.Namespace, out_dir: Path, version: str = "unknown"
