@@ -27,6 +27,8 @@ em_activate() {
     export AMENT_PREFIX_PATH="$EM_VENV"
     export CMAKE_PREFIX_PATH="$EM_VENV"
     export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
+    # The distribution of the venv's ROS 2 wheels (ros2 doctor reports a missing one).
+    export ROS_DISTRO=jazzy
     # Writers' heartbeat every 100 ms instead of 3 s: see the file. A profile the caller
     # chose is kept.
     export FASTRTPS_DEFAULT_PROFILES_FILE="${FASTRTPS_DEFAULT_PROFILES_FILE:-$EM_REPO_ROOT/config/fastdds_profiles.xml}"

@@ -470,6 +470,24 @@ stop_all() {
     wait 2>/dev/null
 }
 
+# The lines a ROS user pastes into a second terminal to see this team (ros2 topic list, rviz2):
+# a ROS 2 Jazzy install with this venv's packages added (docs/topics.md), then the ROS
+# environment the run's processes have.
+print_second_terminal() {
+    local site variable exports=export
+    site=$(compgen -G "$EM_VENV/lib/python3*/site-packages" | head -n 1)
+    echo "$PROG: to see the team from a second terminal (ROS 2 Jazzy; docs/topics.md), paste:"
+    echo "source /opt/ros/jazzy/setup.bash"
+    # shellcheck disable=SC2016  # $AMENT_PREFIX_PATH and $PYTHONPATH: the second terminal's
+    printf 'export AMENT_PREFIX_PATH=$AMENT_PREFIX_PATH:%q PYTHONPATH=$PYTHONPATH:%q\n' \
+        "$EM_VENV" "$site"
+    for variable in ROS_DISTRO ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE RMW_IMPLEMENTATION \
+            FASTRTPS_DEFAULT_PROFILES_FILE FASTDDS_BUILTIN_TRANSPORTS; do
+        [[ -n ${!variable:-} ]] && exports+=" $variable=$(printf '%q' "${!variable}")"
+    done
+    echo "$exports"
+}
+
 report_results() {
     [[ -f $SUMMARY ]] && echo "$PROG: summary: $SUMMARY" && "$PYTHON" - "$SUMMARY" <<'PY' \
         | sed "s/^/$PROG: /"
@@ -551,6 +569,7 @@ fi
 
 echo "$PROG: $NUM_ROBOTS robots, planner $RUN_PLANNER, seed $RUN_SEED, $MODE," \
      "ROS_DOMAIN_ID=$ROS_DOMAIN_ID; logs in $LOG_DIR"
+print_second_terminal
 if [[ -n $RECORD ]]; then
     start record -m "$RECORD_MODULE" -o "$RECORD_PATH" --ros-args -p use_sim_time:=true
 fi
