@@ -113,16 +113,6 @@ class SensorParams:
         10, "Number of simulation steps over which the gyro/accelerometer bounds apply; "
         "noise is drawn every step with variance bound^2 / 1.96^2 / interval.", 1, 1000)
     noise_enabled: bool = param_field(True, "False makes every sensor output noise-free.")
-
-    @property
-    def sonar_range_sigma_m(self) -> float:
-        """Standard deviation of a sonar range reading [m]."""
-        return self.sonar_range_bound_m / BOUND_95_TO_SIGMA
-
-    @property
-    def sonar_bearing_sigma_rad(self) -> float:
-        """Standard deviation of a sonar bearing reading [rad]."""
-        return self.sonar_bearing_bound_rad / BOUND_95_TO_SIGMA
     landmark_ids: bool = param_field(
         True, "Each sonar detection names its landmark (the paper's ideal sensing: the "
         "simulated sonar resolves data association; a false detection is named as none); "
@@ -136,6 +126,22 @@ class SensorParams:
         "uniformly over the sonar's field of view: range in [0, sonar_max_range_m], bearing "
         "in [-pi, pi); 0: the paper's sonar, which reports no landmark that is not there.",
         0.0, 1000.0)
+
+    @property
+    def ideal_sonar(self) -> bool:
+        """The paper's sonar: every landmark in range detected and named, nothing else."""
+        return (self.landmark_ids and self.detection_probability == 1.0
+                and self.clutter_rate == 0.0)
+
+    @property
+    def sonar_range_sigma_m(self) -> float:
+        """Standard deviation of a sonar range reading [m]."""
+        return self.sonar_range_bound_m / BOUND_95_TO_SIGMA
+
+    @property
+    def sonar_bearing_sigma_rad(self) -> float:
+        """Standard deviation of a sonar bearing reading [rad]."""
+        return self.sonar_bearing_bound_rad / BOUND_95_TO_SIGMA
 
 
 @dataclass(frozen=True)
@@ -199,6 +205,27 @@ class SlamParams:
     divergence_error_ratio: float = param_field(
         2.0, "Rise of the graph's total error over one update that counts as a diverging "
         "Gauss-Newton step (ratio of the error after to the error before).", 1.0, 1e6)
+    association_gate_probability: float = param_field(
+        0.99, "Without landmark identities (sensors.landmark_ids false): probability of the "
+        "chi-square gates of data association: a detection against a landmark (individual), "
+        "a scan's pairings together (JCBB), a detection against a tentative track, a "
+        "teammate's landmark against an own one and two such correspondences together "
+        "(pairwise consistency).", 0.5, 0.999999)
+    track_confirm_hits: int = param_field(
+        3, "Without landmark identities: a detection that matches no landmark starts a "
+        "tentative track, which becomes a landmark once seen in this many of the last "
+        "track_window_keyframes keyframes (clutter seldom is).", 1, 100)
+    track_window_keyframes: int = param_field(
+        5, "Without landmark identities: the window of keyframes of a tentative track; a "
+        "track not seen for this many keyframes is dropped.", 1, 100)
+    correspondence_sigma_m: float = param_field(
+        0.01, "Without landmark identities: sigma per axis [m] of the factor that ties a "
+        "teammate's landmark to the robot's own (the same point), under a Huber loss.",
+        1e-6, 10.0)
+    correspondence_huber_k: float = param_field(
+        1.345, "Without landmark identities: Huber threshold (whitened residual) of a "
+        "correspondence factor; beyond it the factor pulls linearly, not quadratically.",
+        0.01, 100.0)
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,8 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
+from em_exploration_ros.core.evaluation.association_stats import (association_line,
+                                                                  team_association)
 from em_exploration_ros.core.evaluation.summary import activity_line
 from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
 from em_exploration_ros.core.params import (ExplorationParams, SensorParams,
@@ -213,6 +215,10 @@ def main(argv: Sequence[str] | None = None,
     except KeyboardInterrupt:
         log.warning("interrupted")
         return 130
+    if not params.sensors.ideal_sonar:
+        summary.association = team_association(
+            [agent.slam for agent in runner.agents], runner.simulation.keyframe_scans(),
+            params.slam.keyframe_interval_steps)
     # The files first: a reader that closes stdout early (| head) must not cost them.
     unwritten: list[Path] = []
     if args.summary and not _write_output(args.summary, "--summary", summary.write,
@@ -243,6 +249,8 @@ def main(argv: Sequence[str] | None = None,
         f"landmark RMSE {summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, "
         f"wall {summary.wall_s:.1f} s, sim {summary.sim_time_s:.1f} s")
     say(activity_line(summary.to_dict()))
+    if summary.association is not None:
+        say(association_line(summary.association))
     for agent in runner.agents:
         for recovery in agent.slam.recoveries:
             log.warning("robot %d: %s", agent.robot_id, recovery.describe())

@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from em_exploration_ros.core.evaluation.metrics import landmark_rmse, localization_rmse
+from em_exploration_ros.core.evaluation.metrics import (landmark_rmse, localization_rmse,
+                                                        nearest_landmark_rmse)
 from em_exploration_ros.core.params import ExplorationParams, WorldParams
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.world.world import World
@@ -133,6 +134,8 @@ class TeamEvaluator:
         self.params = params
         self._grid = OccupancyGrid(world.width_m, world.height_m, params.map,
                                    params.sensors.sonar_max_range_m)
+        #: Landmark estimates carry world ids (else each is scored at the nearest landmark).
+        self._named_landmarks = params.sensors.landmark_ids
         n = params.world.num_robots
         self._truth = [_TruePoses() for _ in range(n)]
         self._last_true_xy: list[np.ndarray | None] = [None] * n
@@ -191,7 +194,8 @@ class TeamEvaluator:
                     if len(estimated_poses) else math.nan)
         pooled_errors = []
         for estimates in landmark_estimates.values():
-            value = landmark_rmse(estimates, self.world)
+            value = (landmark_rmse(estimates, self.world) if self._named_landmarks
+                     else nearest_landmark_rmse(list(estimates.values()), self.world))
             if math.isfinite(value):
                 pooled_errors.append((value ** 2, len(estimates)))
         total = sum(count for _, count in pooled_errors)

@@ -52,3 +52,14 @@ def landmark_rmse(estimates: Mapping[int, ArrayLike], truth: World) -> float:
     estimated = np.array([np.asarray(p, dtype=float).reshape(2) for p in estimates.values()])
     errors = estimated - truth.landmarks[rows]
     return float(np.sqrt(np.mean(np.sum(errors ** 2, axis=1))))
+
+
+def nearest_landmark_rmse(points: ArrayLike, truth: World) -> float:
+    """Position RMSE [m] of estimated landmarks ``(K, 2)`` that name no world landmark
+    (``sensors.landmark_ids`` false), each against the nearest true landmark; NaN if
+    nothing is estimated (or the world has no landmark)."""
+    points = np.asarray(points, dtype=float).reshape(-1, 2)
+    if points.shape[0] == 0 or truth.landmarks.shape[0] == 0:
+        return float("nan")
+    distances = np.linalg.norm(points[:, None, :] - truth.landmarks[None, :, :], axis=2)
+    return float(np.sqrt(np.mean(distances.min(axis=1) ** 2)))

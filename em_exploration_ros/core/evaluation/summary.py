@@ -23,7 +23,9 @@ the nearest frontier rule chose), ``rendezvous`` (requested / met / timed_out / 
 ``rendezvous_stats``) and ``meetings`` (em-sim only: per rendezvous with an inter-robot
 factor, the requester's pose-covariance trace just before and after it), ``team_updates``
 (em-sim and the benchmark: how many teammate updates the links delivered on time, late or
-never).
+never), ``association`` (em-sim, when the sonar is not the paper's ideal one: the robots'
+data association against ground truth, ``precision``, ``recall`` and the counts of
+``association_stats``, the team's and per robot; null otherwise).
 """
 from __future__ import annotations
 
@@ -148,6 +150,9 @@ class RunSummary:
     #: Over every (team update, teammate) pair: ``sent``, delivered ``on_time`` / ``late``,
     #: ``never`` delivered (``core/links/link_model.py``); None where the writer cannot know.
     team_updates: dict[str, int] | None = None
+    #: ``association_stats.association_summary``; None where the writer cannot know it or
+    #: the sonar names every landmark it sees and nothing else.
+    association: dict[str, Any] | None = None
     robots: list[RobotSummary] = field(default_factory=list)
     history: list[HistorySample] = field(default_factory=list)
 

@@ -283,3 +283,45 @@ class TentativeTracks:
                 finished.add(matched[detection])
         self._tracks = [track for t, track in enumerate(self._tracks) if t not in finished]
         return confirmed
+
+
+def pairwise_consistency(points_a: FloatArray, covariances_a: FloatArray, points_b: FloatArray,
+                         covariances_b: FloatArray, gate_probability: float) -> np.ndarray:
+    """Which pairs of correspondences ``a_i = b_i`` agree (``(N, N)`` bool, diagonal true):
+    ``i`` and ``j`` do when the difference of their offsets, ``(a_i - a_j) - (b_i - b_j)``,
+    is within the ``gate_probability`` chi-square gate (2 degrees of freedom) under the sum
+    of the four points' covariances. Points ``(N, 2)`` and covariances ``(N, 2, 2)`` of one
+    side each, map frame [m], [m^2]."""
+    offsets = np.asarray(points_a, dtype=float) - np.asarray(points_b, dtype=float)
+    spread = np.asarray(covariances_a, dtype=float) + np.asarray(covariances_b, dtype=float)
+    difference = offsets[:, None, :] - offsets[None, :, :]
+    combined = spread[:, None] + spread[None, :]
+    distances = np.einsum("ijk,ijkl,ijl->ij", difference, np.linalg.inv(combined), difference)
+    consistent = distances <= chi2_quantile(2, gate_probability)
+    np.fill_diagonal(consistent, True)
+    return consistent
+
+
+def maximum_consistent_set(consistent: np.ndarray, required: Sequence[int] = ()) -> list[int]:
+    """The largest set of indices that are pairwise consistent (a maximum clique of the
+    ``(N, N)`` bool graph ``consistent``) containing every index of ``required`` (which
+    must be consistent with each other), sorted; the lowest indices first among equally
+    large sets. Exact branch and bound, for the tens of candidates of one teammate (pairwise
+    consistency maximization, Mangelson et al., ICRA 2018)."""
+    consistent = np.asarray(consistent, dtype=bool)
+    chosen = sorted(set(required))
+    pool = [i for i in range(len(consistent))
+            if i not in chosen and all(consistent[i, j] for j in chosen)]
+    best: list[list[int]] = [chosen]
+
+    def grow(members: list[int], candidates: list[int]) -> None:
+        if len(members) > len(best[0]):
+            best[0] = members
+        for position, candidate in enumerate(candidates):
+            if len(members) + len(candidates) - position <= len(best[0]):
+                return
+            grow(members + [candidate], [other for other in candidates[position + 1:]
+                                         if consistent[candidate, other]])
+
+    grow(chosen, pool)
+    return sorted(best[0])

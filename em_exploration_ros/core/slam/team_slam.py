@@ -68,6 +68,25 @@ def landmark_key(landmark_id: int) -> int:
     return gtsam.symbol("L", landmark_id)
 
 
+#: Without landmark identities, the team graph's id of robot r's own landmark n is
+#: ``(r + 1) * OWNED_LANDMARK_STRIDE + n``: distinct per robot, never a world id (those are
+#: below the stride), and within a LandmarkEstimate's uint32 and the id checks (< 2^31).
+OWNED_LANDMARK_STRIDE = 1 << 24
+
+
+def owned_landmark_id(robot_id: int, own_id: int) -> int:
+    """The team graph's id of robot ``robot_id``'s landmark ``own_id`` (its own number)."""
+    if not 0 <= own_id < OWNED_LANDMARK_STRIDE:
+        raise ValueError(f"own landmark id {own_id} outside [0, {OWNED_LANDMARK_STRIDE})")
+    return (robot_id + 1) * OWNED_LANDMARK_STRIDE + own_id
+
+
+def landmark_owner(landmark_id: int) -> int | None:
+    """The robot whose own landmark a team-graph id is, None for a world id (identities on)."""
+    return landmark_id // OWNED_LANDMARK_STRIDE - 1 if landmark_id >= OWNED_LANDMARK_STRIDE \
+        else None
+
+
 def is_landmark_key(key: int) -> bool:
     """True for the key of a landmark, False for a pose's (by the key's symbol character)."""
     return gtsam.symbolChr(int(key)) == ord("L")
@@ -118,11 +137,15 @@ class KeyframeBuilder:
 
     A keyframe is cut at every step that is a multiple of ``keyframe_interval_steps``;
     landmark and teammate readings are kept only at those steps, landmark readings only
-    when they name their landmark (``LandmarkReading.identified``).
+    when they name their landmark (``LandmarkReading.identified``) unless
+    ``keep_unidentified`` (without landmark identities: ``OwnLandmarks.associate`` names
+    them next).
     """
 
-    def __init__(self, robot_id: int, slam_params: SlamParams) -> None:
+    def __init__(self, robot_id: int, slam_params: SlamParams,
+                 keep_unidentified: bool = False) -> None:
         self._robot_id = robot_id
+        self._keep_unidentified = keep_unidentified
         self._interval = slam_params.keyframe_interval_steps
         self._accumulator = OdometryAccumulator()
         self._last_index: int | None = None
@@ -149,7 +172,8 @@ class KeyframeBuilder:
             is_first=is_first, previous_index=-1 if is_first else self._last_index,
             odom_delta=np.zeros(3) if is_first else delta,
             odom_covariance=np.zeros((3, 3)) if is_first else covariance,
-            landmarks=tuple(reading for reading in sonar if reading.identified),
+            landmarks=tuple(reading for reading in sonar
+                            if reading.identified or self._keep_unidentified),
             teammates=tuple(teammates))
         self._last_index = keyframe.index
         return keyframe
@@ -224,10 +248,15 @@ class _TeamGraph:
     what still waits, and the construction of the factors and initial values of
     everything that became connectable."""
 
-    def __init__(self, num_robots: int, noise: SlamNoise, anchor_pose: np.ndarray) -> None:
+    def __init__(self, num_robots: int, noise: SlamNoise, anchor_pose: np.ndarray,
+                 shared_landmark_ids: bool = True) -> None:
         self.num_robots = num_robots
         self.noise = noise
         self.anchor_pose = np.asarray(anchor_pose, dtype=float)
+        self.shared_landmark_ids = shared_landmark_ids
+        #: Every landmark reading in the graph: (robot, keyframe index, landmark id, bearing
+        #: [rad], range [m]), in the order added.
+        self.landmark_readings: list[tuple[int, int, int, float, float]] = []
         self.factors = gtsam.NonlinearFactorGraph()
         self.indices: list[list[int]] = [[] for _ in range(num_robots)]
         self.landmark_ids: list[int] = []
@@ -348,14 +377,18 @@ class _TeamGraph:
         """Bearing-range factors; unseen landmarks start at the first reading's point."""
         key = pose_key(*keyframe.keyframe_id)
         for reading in keyframe.landmarks:
-            point_key = landmark_key(reading.landmark_id)
-            if reading.landmark_id not in self._landmark_set:
+            landmark_id = (reading.landmark_id if self.shared_landmark_ids
+                           else owned_landmark_id(keyframe.robot_id, reading.landmark_id))
+            point_key = landmark_key(landmark_id)
+            if landmark_id not in self._landmark_set:
                 in_body = reading.range_m * np.array([np.cos(reading.bearing_rad),
                                                       np.sin(reading.bearing_rad)])
                 point = transform_points(pose, in_body)
                 batch.values.insert(point_key, gtsam.Point2(point))
-                bisect.insort(self.landmark_ids, reading.landmark_id)
-                self._landmark_set.add(reading.landmark_id)
+                bisect.insort(self.landmark_ids, landmark_id)
+                self._landmark_set.add(landmark_id)
+            self.landmark_readings.append((keyframe.robot_id, keyframe.index, landmark_id,
+                                           reading.bearing_rad, reading.range_m))
             landmark_noise = self.noise.bearing_range(reading)
             batch.factors.push_back(gtsam.BearingRangeFactor2D(
                 key, point_key, gtsam.Rot2.fromAngle(reading.bearing_rad), reading.range_m,
@@ -450,10 +483,16 @@ class TeamSlam:
     initialised from an observation linking it to an anchored teammate's keyframe with
     the same index (robot 0 preferred). Later keyframes start at the previous estimate
     composed with their odometry; landmarks at their first bearing-range reading.
+
+    With ``landmark_ids`` (the sonar names each landmark) a reading's landmark id is the
+    world's, the same in every robot's records. Without, it is the observing robot's own
+    number of the landmark (``association.py`` pairs its detections), the graph holds robot
+    r's landmark n as :func:`owned_landmark_id` ``(r, n)``, and
+    :meth:`add_landmark_correspondences` ties a teammate's landmark to the robot's own.
     """
 
     def __init__(self, robot_id: int, num_robots: int, slam_params: SlamParams,
-                 anchor_pose: np.ndarray) -> None:
+                 anchor_pose: np.ndarray, landmark_ids: bool = True) -> None:
         if not 0 <= robot_id < num_robots <= 26:
             raise ValueError(f"need 0 <= robot_id < num_robots <= 26, got {robot_id}, "
                              f"{num_robots}")
@@ -461,7 +500,9 @@ class TeamSlam:
         self.num_robots = num_robots
         self.slam_params = slam_params
         self.noise = SlamNoise(slam_params)
-        self._graph = _TeamGraph(num_robots, self.noise, anchor_pose)
+        self._graph = _TeamGraph(num_robots, self.noise, anchor_pose, landmark_ids)
+        #: Landmark pairs (own id, teammate's id) tied by a correspondence factor, in order.
+        self.landmark_correspondences: list[tuple[int, int]] = []
         self._isam = gtsam.ISAM2(_isam_params(slam_params))
         self._estimate = gtsam.Values()
         #: Landmark positions (L, 2) and the poses of every robot (P, 3) extracted from
@@ -483,6 +524,30 @@ class TeamSlam:
         """Queue a keyframe (own or a teammate's) for the next :meth:`update`; duplicates
         (same robot and index) are ignored."""
         self._graph.receive(keyframe)
+
+    def landmark_readings(self) -> list[tuple[int, int, int, float, float]]:
+        """Every landmark reading in the graph: ``(robot, keyframe index, landmark id,
+        bearing [rad], range [m])`` in the order added (a copy)."""
+        return list(self._graph.landmark_readings)
+
+    def add_landmark_correspondences(self, pairs: Iterable[tuple[int, int]]) -> None:
+        """Tie each pair of landmarks ``(a, b)`` of the graph as one point: a factor
+        ``b - a = 0`` with sigma ``correspondence_sigma_m`` per axis under a Huber loss
+        (``correspondence_huber_k``), added to iSAM2 at once."""
+        pairs = list(pairs)
+        if not pairs:
+            return
+        params = self.slam_params
+        noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(params.correspondence_huber_k),
+            gtsam.noiseModel.Isotropic.Sigma(2, params.correspondence_sigma_m))
+        factors = gtsam.NonlinearFactorGraph()
+        for a, b in pairs:
+            factors.push_back(gtsam.BetweenFactorPoint2(landmark_key(a), landmark_key(b),
+                                                        gtsam.Point2(0.0, 0.0), noise))
+        self._graph.factors.push_back(factors)
+        self.landmark_correspondences.extend(pairs)
+        self._update_with(factors, gtsam.Values())
 
     def update(self, backlog_slice_indices: int = BACKLOG_SLICE_INDICES) -> int:
         """Add every newly connectable keyframe to iSAM2; returns how many were added.

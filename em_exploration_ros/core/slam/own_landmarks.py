@@ -1,0 +1,258 @@
+"""One robot's landmarks when sonar detections carry no identity (``sensors.landmark_ids``
+false, issue 38): its own detections paired with its own landmarks, and which of its
+teammates' landmarks are its own.
+
+Each robot numbers its own landmarks (0, 1, ...), and its keyframes carry those numbers to
+the teammates; ``TeamSlam`` keeps robot r's landmark n as ``owned_landmark_id(r, n)``.
+Nothing here sees a world landmark id: only the robot's detections, its keyframes, the
+teammates' keyframes and the estimates of its own graph.
+
+Frames and units: the ``map`` frame; poses ``(x [m], y [m], theta [rad])`` with covariances
+of additive coordinate errors; detections (bearing [rad, body frame], range [m]).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from em_exploration_ros.core.geometry import compose, compose_jacobians
+from em_exploration_ros.core.params import SensorParams
+from em_exploration_ros.core.records.readings import KeyframeMeasurements
+from em_exploration_ros.core.slam.association import (ScanCompatibility, ScanPrediction,
+                                                      TentativeTracks, detection_points, jcbb,
+                                                      predict_measurements,
+                                                      maximum_consistent_set,
+                                                      pairwise_consistency)
+from em_exploration_ros.core.slam.team_slam import (OWNED_LANDMARK_STRIDE, TeamSlam,
+                                                    body_to_map_covariance, landmark_owner,
+                                                    owned_landmark_id)
+
+#: Landmarks up to this far [m] beyond the sonar's range of the predicted pose are
+#: candidates of a scan (the prediction's error).
+CANDIDATE_MARGIN_M = 2.0
+#: A teammate's landmark is a candidate correspondence of an own landmark only within this
+#: distance [m] of it: loose, as two robots' maps may be offset by their drift (pairwise
+#: consistency then judges); distinct landmarks of the world lie
+#: ``world.landmark_min_separation_m`` (10 m) apart.
+CORRESPONDENCE_RADIUS_M = 3.0
+#: A landmark last seen at most this many keyframes before the previous one is gated on
+#: the odometry since (relative), an older one on the marginals from iSAM2.
+RECENT_KEYFRAMES = 10
+#: Fewest correspondences with one teammate, consistent with each other, before any is
+#: accepted: one alone has nothing to be checked against.
+FIRST_CORRESPONDENCES = 2
+
+
+class OwnLandmarks:
+    """Data association of one robot without landmark identities.
+
+    :meth:`associate` turns a keyframe of unidentified detections into one whose readings
+    name the robot's own landmarks: the detections of a scan are paired with the own
+    landmarks near the predicted pose by JCBB, the others go to tentative tracks, and a
+    track seen in ``track_confirm_hits`` of the last ``track_window_keyframes`` keyframes
+    becomes a new landmark; detections paired with nothing are left out.
+    :meth:`match_teammates` finds teammates' landmarks that are own ones and ties them in
+    the graph, accepting a correspondence only when it is consistent with the others it
+    holds with that teammate (pairwise consistency maximization).
+
+    Uncertainty is relative where it can be: the estimates of iSAM2 place the previous
+    keyframe and the landmarks; the prediction's pose covariance is the odometry since the
+    previous keyframe (shared by every detection of the scan, which JCBB uses). A landmark
+    seen within the last ``RECENT_KEYFRAMES`` keyframes has the odometry covariance from
+    the keyframe that last saw it to the previous one, moved to the landmark, plus the
+    sonar's noise; an older one its marginal plus the previous pose's, moved to the
+    landmark (the map-frame marginals from iSAM2, which hold what the team's graph did to
+    both since). The marginals hold the drift from the mission's start, common to pose and
+    landmarks (about 0.3 m after 250 steps): as gates of every landmark and track they let
+    clutter in where the landmark was missed.
+    """
+
+    def __init__(self, slam: TeamSlam, sensor_params: SensorParams) -> None:
+        self._slam = slam
+        self._robot = slam.robot_id
+        params = slam.slam_params
+        self._probability = params.association_gate_probability
+        self._floor = params.covariance_floor_sigma ** 2
+        self._window = params.track_window_keyframes
+        self._tracks = TentativeTracks(params.track_confirm_hits, self._window,
+                                       self._probability)
+        self._reach_m = sensor_params.sonar_max_range_m + CANDIDATE_MARGIN_M
+        self._next_own = 0
+        #: Own keyframe index -> (odometry delta (3,), covariance (3, 3)) from the previous.
+        self._motion: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        #: Own landmark (graph id) -> the latest own keyframe index that saw it.
+        self._last_seen: dict[int, int] = {}
+        #: Accepted correspondences with each teammate: (own id, teammate's id).
+        self._held: dict[int, list[tuple[int, int]]] = {}
+
+    @property
+    def num_tentative(self) -> int:
+        """Tentative tracks held."""
+        return len(self._tracks)
+
+    def associate(self, keyframe: KeyframeMeasurements) -> KeyframeMeasurements:
+        """``keyframe`` (this robot's, detections unidentified) with its landmark readings
+        named by own landmark numbers; detections of no landmark (yet) are left out, and all
+        of them while the robot cannot predict its pose (not yet tied to the map)."""
+        if not keyframe.is_first:
+            self._motion[keyframe.index] = (np.asarray(keyframe.odom_delta, dtype=float),
+                                            np.asarray(keyframe.odom_covariance, dtype=float))
+        prediction = self._predicted_pose(keyframe)
+        if prediction is None or not keyframe.landmarks:
+            return dataclasses.replace(keyframe, landmarks=())
+        previous, pose, pose_covariance = prediction
+        readings = keyframe.landmarks
+        measurements = np.array([[r.bearing_rad, r.range_m] for r in readings])
+        noise = np.array([np.diag([r.bearing_variance + self._floor,
+                                   r.range_variance + self._floor]) for r in readings])
+        ids, points, covariances = self._own_landmarks_near(previous, pose, keyframe,
+                                                            noise[0])
+        pairing = jcbb(ScanCompatibility(ScanPrediction(pose, pose_covariance, points,
+                                                        covariances), measurements, noise),
+                       self._probability)
+        unpaired = [d for d, row in enumerate(pairing) if row is None]
+        window = self._relative_covariance(keyframe.index - self._window, keyframe.index)
+        track_points, track_covariances = detection_points(
+            pose, window, measurements[unpaired], noise[unpaired])
+        confirmed = dict(zip(unpaired, self._tracks.observe(keyframe.index, track_points,
+                                                            track_covariances)))
+        named = []
+        for d, reading in enumerate(readings):
+            if pairing[d] is not None:
+                landmark = int(ids[pairing[d]])
+            elif confirmed[d]:
+                landmark = owned_landmark_id(self._robot, self._new_own_number())
+            else:
+                continue
+            self._last_seen[landmark] = keyframe.index
+            named.append(dataclasses.replace(reading,
+                                             landmark_id=landmark % OWNED_LANDMARK_STRIDE))
+        return dataclasses.replace(keyframe, landmarks=tuple(named))
+
+    def _new_own_number(self) -> int:
+        """The next own landmark number: after every own landmark of the graph too (a
+        restarted robot's recovered stream holds its earlier ones)."""
+        in_graph = [landmark_id % OWNED_LANDMARK_STRIDE + 1
+                    for landmark_id in self._slam.landmark_estimates()
+                    if landmark_owner(landmark_id) == self._robot]
+        number = max([self._next_own, *in_graph])
+        self._next_own = number + 1
+        return number
+
+    def _predicted_pose(self, keyframe: KeyframeMeasurements
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The previous keyframe's estimate (3,), this keyframe's pose (3,) predicted from
+        it by the odometry, and the covariance (3, 3) of that odometry (map frame); None
+        while the previous keyframe is not in the graph (or this is the first one)."""
+        if keyframe.is_first or self._slam.latest_index(self._robot) != keyframe.previous_index:
+            return None
+        previous = self._slam.pose(self._robot, keyframe.previous_index)
+        _, j_delta = compose_jacobians(previous, keyframe.odom_delta)
+        covariance = j_delta @ np.asarray(keyframe.odom_covariance) @ j_delta.T
+        return previous, compose(previous, keyframe.odom_delta), covariance
+
+    def _relative_covariance(self, since: int, until: int) -> np.ndarray:
+        """Covariance (3, 3) of the motion from own keyframe ``since`` to ``until`` (body
+        frame of ``since``; first order, from the recorded odometry in between)."""
+        delta, covariance = np.zeros(3), np.zeros((3, 3))
+        for index in range(max(since, 0) + 1, until + 1):
+            step = self._motion.get(index)
+            if step is None:
+                continue
+            j_accumulated, j_step = compose_jacobians(delta, step[0])
+            covariance = j_accumulated @ covariance @ j_accumulated.T + \
+                j_step @ step[1] @ j_step.T
+            delta = compose(delta, step[0])
+        return covariance
+
+    def _own_landmarks_near(self, previous: np.ndarray, pose: np.ndarray,
+                            keyframe: KeyframeMeasurements, noise: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Ids (L,), points (L, 2) and covariances (L, 2, 2) of this robot's own landmarks
+        within the sonar's range (plus a margin) of ``pose``: each the motion's covariance
+        from the keyframe that last saw it to ``previous``, moved to the landmark, plus the
+        sonar's ``noise`` (2, 2) there."""
+        near = [(landmark_id, point) for landmark_id, point
+                in self._slam.landmark_estimates().items()
+                if landmark_owner(landmark_id) == self._robot
+                and np.hypot(*(point - pose[:2])) <= self._reach_m]
+        ids = np.array([landmark_id for landmark_id, _ in near], dtype=np.int64)
+        points = np.array([point for _, point in near], dtype=float).reshape(-1, 2)
+        covariances = np.zeros((len(near), 2, 2))
+        for row, (landmark_id, point) in enumerate(near):
+            lever = point - previous[:2]
+            moved = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]]])
+            last_seen = self._last_seen.get(landmark_id, keyframe.previous_index)
+            if keyframe.previous_index - last_seen <= RECENT_KEYFRAMES:
+                motion = self._relative_covariance(last_seen, keyframe.previous_index)
+                measured = predict_measurements(previous, point[None])[0]
+                point_part = detection_points(previous, np.zeros((3, 3)), measured,
+                                              noise[None])[1][0]
+            else:
+                motion = body_to_map_covariance(previous, self._slam.pose_covariance(
+                    self._robot, keyframe.previous_index))
+                point_part = self._slam.landmark_covariance(int(landmark_id))
+            covariances[row] = moved @ motion @ moved.T + point_part
+        return ids, points, covariances
+
+    def match_teammates(self) -> list[tuple[int, int]]:
+        """Find teammates' landmarks that are this robot's own and tie them in the graph
+        (``TeamSlam.add_landmark_correspondences``); returns the pairs (own id, teammate's
+        id) accepted now.
+
+        A candidate pairs a teammate's landmark with the nearest own landmark, each the
+        other's nearest, neither tied yet, within ``CORRESPONDENCE_RADIUS_M``: no gate on
+        the pair alone, since the two maps may be offset by drift that their marginals
+        (taken as independent) do not show. Two correspondences are consistent when their
+        offsets agree (``pairwise_consistency``: the common offset cancels). With each
+        teammate, the candidates consistent with every correspondence it holds, and the
+        largest set of them consistent with each other, are accepted (at least
+        ``FIRST_CORRESPONDENCES`` when it holds none)."""
+        estimates = self._slam.landmark_estimates()
+        by_owner: dict[int, dict[int, np.ndarray]] = {}
+        for landmark_id, point in estimates.items():
+            owner = landmark_owner(landmark_id)
+            if owner is not None:
+                by_owner.setdefault(owner, {})[landmark_id] = point
+        own = by_owner.pop(self._robot, {})
+        accepted: list[tuple[int, int]] = []
+        for teammate, theirs in sorted(by_owner.items()):
+            held = self._held.setdefault(teammate, [])
+            candidates = self._candidates(own, theirs, held)
+            if not candidates:
+                continue
+            pairs = held + candidates
+            covariance = {i: self._slam.landmark_covariance(i) for pair in pairs for i in pair}
+            consistent = pairwise_consistency(
+                np.array([estimates[a] for a, _ in pairs]),
+                np.array([covariance[a] for a, _ in pairs]),
+                np.array([estimates[b] for _, b in pairs]),
+                np.array([covariance[b] for _, b in pairs]), self._probability)
+            chosen = maximum_consistent_set(consistent, range(len(held)))
+            new = [pairs[i] for i in chosen if i >= len(held)]
+            if not held and len(new) < FIRST_CORRESPONDENCES:
+                continue
+            held.extend(new)
+            accepted.extend(new)
+        self._slam.add_landmark_correspondences(accepted)
+        return accepted
+
+    def _candidates(self, own: dict[int, np.ndarray], theirs: dict[int, np.ndarray],
+                    held: list[tuple[int, int]]) -> list[tuple[int, int]]:
+        """Mutually nearest pairs (own id, teammate's id), untied, within the radius."""
+        tied_own = {a for a, _ in held}
+        tied_theirs = {b for _, b in held}
+        free_own = {i: p for i, p in own.items() if i not in tied_own}
+        free_theirs = {i: p for i, p in theirs.items() if i not in tied_theirs}
+        if not free_own or not free_theirs:
+            return []
+        own_ids, own_points = list(free_own), np.array(list(free_own.values()))
+        their_ids, their_points = list(free_theirs), np.array(list(free_theirs.values()))
+        distances = np.linalg.norm(own_points[:, None] - their_points[None], axis=2)
+        candidates = []
+        for j, their_id in enumerate(their_ids):
+            i = int(np.argmin(distances[:, j]))
+            if distances[i, j] <= CORRESPONDENCE_RADIUS_M and int(np.argmin(distances[i])) == j:
+                candidates.append((own_ids[i], their_id))
+        return candidates

@@ -1,0 +1,255 @@
+"""Landmarks without identities (issue 38, points 2 and 3): a robot pairs its own detections
+(JCBB, tentative tracks) with landmark numbers of its own, ties teammates' landmarks to its
+own only when pairwise consistent (PCM), and the truth side counts the outcome."""
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from em_exploration_ros.core.evaluation.association_stats import (AssociationCounts,
+                                                                  association_line,
+                                                                  association_summary,
+                                                                  robot_association,
+                                                                  team_association)
+from em_exploration_ros.core.params import ExplorationParams, SlamParams
+from em_exploration_ros.core.records.readings import (UNIDENTIFIED, KeyframeMeasurements,
+                                                      LandmarkReading, TeammateReading)
+from em_exploration_ros.core.slam.association import (maximum_consistent_set,
+                                                      pairwise_consistency)
+from em_exploration_ros.core.slam.own_landmarks import OwnLandmarks
+from em_exploration_ros.core.slam.team_slam import (OWNED_LANDMARK_STRIDE, KeyframeBuilder,
+                                                    TeamSlam, landmark_owner,
+                                                    owned_landmark_id)
+from em_exploration_ros.core.world.sensors import CLUTTER, SensorSimulator
+from em_exploration_ros.core.world.world import (advance_robot, generate_world,
+                                                 run_seed_sequences)
+
+SENSING = {"landmark_ids": False, "detection_probability": 0.8, "clutter_rate": 1.5}
+
+
+def test_owned_landmark_ids_are_distinct_per_robot_and_fit_the_messages():
+    assert owned_landmark_id(0, 0) == OWNED_LANDMARK_STRIDE
+    assert landmark_owner(owned_landmark_id(25, 7)) == 25 and landmark_owner(19) is None
+    assert owned_landmark_id(25, OWNED_LANDMARK_STRIDE - 1) < 2 ** 31 - 1
+    with pytest.raises(ValueError):
+        owned_landmark_id(0, OWNED_LANDMARK_STRIDE)
+
+
+def _keyframe(robot, index, landmarks, teammates=(), previous=None, delta=(0.0, 0.0, 0.0)):
+    return KeyframeMeasurements(
+        robot_id=robot, index=index, stamp_s=float(index), is_first=previous is None,
+        previous_index=-1 if previous is None else previous, odom_delta=np.array(delta),
+        odom_covariance=np.eye(3) * 1e-6, landmarks=tuple(landmarks), teammates=teammates)
+
+
+def test_the_graph_keeps_each_robot_s_landmarks_apart_until_tied():
+    slam = TeamSlam(0, 2, SlamParams(), np.zeros(3), landmark_ids=False)
+    seen = LandmarkReading(0, 5.0, 0.0, 1e-2, 1e-3)  # loose: the tie decides
+    slam.add_keyframe(_keyframe(0, 0, [seen], [TeammateReading(
+        1, np.array([0.0, 1.0, 0.0]), np.eye(3) * 1e-6)]))
+    slam.add_keyframe(_keyframe(1, 0, [LandmarkReading(0, 5.3, -0.2, 1e-2, 1e-3)]))
+    slam.update()
+    own, theirs = owned_landmark_id(0, 0), owned_landmark_id(1, 0)
+    estimates = slam.landmark_estimates()
+    assert sorted(estimates) == [own, theirs]
+    assert np.linalg.norm(estimates[own] - estimates[theirs]) > 0.05
+    slam.add_landmark_correspondences([(own, theirs)])
+    estimates = slam.landmark_estimates()
+    assert np.linalg.norm(estimates[own] - estimates[theirs]) < 0.02
+    assert slam.landmark_correspondences == [(own, theirs)]
+    assert [r[:3] for r in slam.landmark_readings()] == [(0, 0, own), (1, 0, theirs)]
+
+
+@dataclass
+class _Run:
+    slams: list
+    associators: list
+    scans: dict
+    interval: int
+    num_landmarks: int
+
+
+def _explore(seed: int, steps: int, sensing=SENSING) -> _Run:
+    """A team driving circles, each robot associating its own detections and sharing its
+    keyframes with every teammate at once; the truth of every keyframe scan kept aside."""
+    params = ExplorationParams().replace(sensors=sensing)
+    world_sequence, sensor_sequence = run_seed_sequences(seed)
+    world = generate_world(params.world, params.sensors, world_sequence)
+    sensors = SensorSimulator(world, params.sensors, params.motion, sensor_sequence)
+    n = world.num_robots
+    slams = [TeamSlam(r, n, params.slam, world.start_poses[0], landmark_ids=False)
+             for r in range(n)]
+    associators = [OwnLandmarks(slam, params.sensors) for slam in slams]
+    builders = [KeyframeBuilder(r, params.slam, keep_unidentified=True) for r in range(n)]
+    poses = np.array(world.start_poses, dtype=float)
+    forward = params.motion.speed_mps * params.motion.time_step_s
+    interval = params.slam.keyframe_interval_steps
+    scans = {}
+    for step in range(steps + 1):
+        odometry = [None] * n
+        if step > 0:
+            previous = poses.copy()
+            for r in range(n):
+                poses[r], _ = advance_robot(world, previous[r], 0.015 if r % 2 else -0.015,
+                                            forward, params.motion)
+                odometry[r] = sensors.odometry(r, previous[r], poses[r])
+        for r in range(n):
+            sonar, mates = [], []
+            if step % interval == 0:
+                sonar, sources = sensors.sonar_scan(r, poses[r])
+                scans[r, step] = (tuple(sonar), sources)
+                mates = sensors.teammates(r, poses)
+            keyframe = builders[r].add_step(step, step * 0.2, odometry[r], sonar, mates)
+            if keyframe is None:
+                continue
+            keyframe = associators[r].associate(keyframe)
+            for slam in slams:
+                slam.add_keyframe(keyframe)
+        if step % interval == 0:
+            for r in range(n):
+                slams[r].update()
+                associators[r].match_teammates()
+    return _Run(slams, associators, scans, interval, world.num_landmarks)
+
+
+@pytest.fixture(scope="module")
+def explored() -> _Run:
+    return _explore(seed=3, steps=900)
+
+
+def test_own_detections_are_associated_rightly_despite_misses_and_clutter(explored):
+    summary = team_association(explored.slams, explored.scans, explored.interval)
+    print(association_line(summary))
+    assert summary["precision"] >= 0.99
+    assert summary["recall"] >= 0.6  # misses (p = 0.8) and the first sightings of a track
+    assert summary["spurious_landmarks"] == 0
+    for robot in summary["robots"]:
+        assert robot["correct"] > 20
+    assert summary["correspondences_correct"] >= 1 and summary["correspondences_wrong"] == 0
+
+
+def test_every_readings_id_is_the_robot_s_own(explored):
+    for slam in explored.slams:
+        for robot, _, landmark, _, _ in slam.landmark_readings():
+            assert landmark_owner(landmark) == robot
+
+
+def test_an_unanchored_robot_leaves_its_detections_out():
+    slam = TeamSlam(1, 2, SlamParams(), np.zeros(3), landmark_ids=False)
+    associator = OwnLandmarks(slam, ExplorationParams().sensors)
+    keyframe = _keyframe(1, 0, [LandmarkReading(UNIDENTIFIED, 3.0, 0.1, 1e-6, 1e-6)])
+    assert associator.associate(keyframe).landmarks == ()
+
+
+class _FakeSlam:
+    """The parts of TeamSlam that match_teammates uses, with landmarks placed by hand."""
+
+    def __init__(self, points: dict[int, tuple[float, float]], sigma_m: float) -> None:
+        self.robot_id = 0
+        self.slam_params = SlamParams()
+        self.points = {i: np.array(p, dtype=float) for i, p in points.items()}
+        self.sigma_m = sigma_m
+        self.landmark_correspondences: list[tuple[int, int]] = []
+
+    def landmark_estimates(self):
+        return dict(self.points)
+
+    def landmark_covariance(self, landmark_id):
+        return np.eye(2) * self.sigma_m ** 2
+
+    def add_landmark_correspondences(self, pairs):
+        self.landmark_correspondences.extend(pairs)
+
+
+def _own(n):
+    return owned_landmark_id(0, n)
+
+
+def _theirs(n):
+    return owned_landmark_id(1, n)
+
+
+def test_a_planted_wrong_correspondence_is_rejected_and_true_ones_kept():
+    """The teammate's map is offset by 0.6 m (drift); its landmark 3 is a wrong one 1.2 m
+    from own landmark 3 the other way: each pair alone is within the radius, only the
+    wrong one disagrees with the others' offset."""
+    offset = np.array([0.6, 0.0])
+    own = {_own(k): (10.0 * k, 20.0) for k in range(4)}
+    theirs = {_theirs(k): tuple(np.array(own[_own(k)]) + offset) for k in range(3)}
+    theirs[_theirs(3)] = tuple(np.array(own[_own(3)]) + [-0.6, 1.0])
+    slam = _FakeSlam({**own, **theirs}, sigma_m=0.05)
+    associator = OwnLandmarks(slam, ExplorationParams().sensors)
+    accepted = associator.match_teammates()
+    assert sorted(accepted) == [(_own(k), _theirs(k)) for k in range(3)]
+    # Later, a new wrong candidate is checked against the correspondences held: rejected;
+    # a new true one is kept.
+    slam.points[_own(4)] = np.array([40.0, 20.0])
+    slam.points[_theirs(4)] = np.array([40.0, 20.0]) + offset
+    slam.points[_own(5)] = np.array([50.0, 20.0])
+    slam.points[_theirs(5)] = np.array([50.0, 20.0]) - offset
+    assert associator.match_teammates() == [(_own(4), _theirs(4))]
+    assert (_own(3), _theirs(3)) not in slam.landmark_correspondences
+
+
+def test_a_single_candidate_waits_for_a_second_consistent_one():
+    slam = _FakeSlam({_own(0): (5.0, 5.0), _theirs(0): (5.2, 5.0)}, sigma_m=0.05)
+    associator = OwnLandmarks(slam, ExplorationParams().sensors)
+    assert associator.match_teammates() == []
+    slam.points[_own(1)] = np.array([15.0, 5.0])
+    slam.points[_theirs(1)] = np.array([15.2, 5.0])
+    assert sorted(associator.match_teammates()) == [(_own(0), _theirs(0)),
+                                                    (_own(1), _theirs(1))]
+
+
+def test_the_maximum_consistent_set_is_the_largest_clique():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        size = rng.integers(1, 9)
+        graph = rng.random((size, size)) < 0.6
+        graph = graph & graph.T
+        np.fill_diagonal(graph, True)
+        chosen = maximum_consistent_set(graph)
+        assert all(graph[i, j] for i in chosen for j in chosen)
+        largest = max(len(c) for k in range(1, size + 1)
+                      for c in itertools.combinations(range(size), k)
+                      if all(graph[i, j] for i in c for j in c))
+        assert len(chosen) == largest
+    graph = np.ones((3, 3), dtype=bool)
+    graph[0, 2] = graph[2, 0] = False
+    assert maximum_consistent_set(graph, required=[2]) == [1, 2]
+
+
+def test_pairwise_consistency_cancels_a_common_offset():
+    a = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
+    b = a + [1.0, -0.5]
+    covariances = np.repeat(np.eye(2)[None] * 0.01 ** 2, 3, axis=0)
+    assert pairwise_consistency(a, covariances, b, covariances, 0.99).all()
+    b[2] += [0.3, 0.0]
+    consistent = pairwise_consistency(a, covariances, b, covariances, 0.99)
+    assert consistent[0, 1] and not consistent[0, 2] and not consistent[1, 2]
+
+
+def test_association_counts_against_truth():
+    """Robot 0's graph: landmark A from true 4 (two readings right, one of clutter), B
+    from clutter (spurious, its two readings wrong), C from true 4 again (its reading right,
+    the landmark a spurious duplicate); a detection of true 9 left out (missed)."""
+    def reading(bearing):
+        return LandmarkReading(UNIDENTIFIED, 3.0, bearing, 1e-6, 1e-6)
+    scans = {(0, 0): ((reading(0.1), reading(0.2), reading(0.3)), (4, 9, CLUTTER)),
+             (0, 10): ((reading(0.4), reading(0.5)), (4, CLUTTER)),
+             (0, 20): ((reading(0.6), reading(0.7)), (4, CLUTTER))}
+    a, b, c, theirs = _own(0), _own(1), _own(2), _theirs(0)
+    readings = [(0, 0, a, 0.1, 3.0), (0, 0, a, 0.3, 3.0), (0, 1, a, 0.4, 3.0),
+                (0, 1, b, 0.5, 3.0), (0, 2, c, 0.6, 3.0), (0, 2, b, 0.7, 3.0),
+                (1, 0, theirs, 0.1, 3.0)]
+    scans[1, 0] = scans[0, 0]
+    counts = robot_association(0, readings, [0, 1, 2], [(a, theirs), (b, theirs)], scans,
+                               10)
+    assert counts == AssociationCounts(correct=3, wrong=3, missed=1, true_detections=4,
+                                       spurious_landmarks=2, correspondences_correct=1,
+                                       correspondences_wrong=1)
+    assert counts.precision == pytest.approx(4 / 8) and counts.recall == pytest.approx(3 / 4)
+    summary = association_summary([counts, AssociationCounts()])
+    assert summary["correct"] == 3 and len(summary["robots"]) == 2
+    assert 0.0 <= summary["precision"] <= 1.0 and 0.0 <= summary["recall"] <= 1.0
