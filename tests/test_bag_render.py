@@ -187,6 +187,14 @@ def test_final_team_map_of_the_sample() -> None:
             f.type in TARGET_TYPES for f in team_map.frontiers[robot])
 
 
+def test_the_samples_rendezvous_are_judged_from_the_team_updates() -> None:
+    # Robot 2 asked robot 0 twice (11 decisions, 2 rendezvous targets); both met.
+    rendezvous = read_team_map(SAMPLE).layers.rendezvous
+    assert [(r.requester_id, r.partner_id, r.outcome) for r in rendezvous] == [
+        (2, 0, "met"), (2, 0, "met")]
+    assert all(0.0 <= r.x <= 40.0 and 0.0 <= r.y <= 40.0 for r in rendezvous)
+
+
 def test_render_writes_a_png(tmp_path: Path) -> None:
     out = tmp_path / "maps" / "sample.png"
     # A separate process: rendering needs no ROS graph and no rclpy.init.

@@ -18,7 +18,8 @@ What is read, per robot ``i`` (topics absent from the recording are simply left 
   default parameters (the recording does not hold the run's parameters); the team's
   explored area is the union over robots;
 - ``/robot_i/team/updates`` (all): the targets it chose, in decision order (resent updates
-  are counted once);
+  are counted once), and the rendezvous events it sent, from which each requested
+  rendezvous is judged met or not as of the last message (``rendezvous_outcomes``);
 - ``/robot_i/markers`` (last): the virtual-map uncertainty ellipses as the robot drew them
   (namespace ``virtual_map_covariance``: 3-sigma flat cylinders, taken as they are, not
   recomputed) and the frontier candidates of its last decision by type
@@ -26,9 +27,10 @@ What is read, per robot ``i`` (topics absent from the recording are simply left 
 - ``/world/ground_truth/robot_i`` (all): its true trajectory;
 
 and ``/world/landmarks`` (last) for the true landmarks and their radius, ``/world/markers``
-(last) for the mission border. ``render_team_map`` draws the layers it supports (explored
-area, landmarks, paths, targets); the ellipses and frontiers are returned with the layers
-and summarized by ``describe``.
+(last) for the mission border. ``render_team_map`` draws the layers (the robots' ellipses
+fused into one per cell, the smallest); the ellipses and frontiers are also returned apart
+and summarized by ``describe``. Targets given up are not read (they travel in
+``motion_command``).
 """
 from __future__ import annotations
 
@@ -47,12 +49,15 @@ from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, Chann
 from em_exploration_ros.bag_format.mcap_ros2_schema import same_layout
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, UncertaintyEllipses
 from em_exploration_ros.core.evaluation.map_render import drawable_layers, render_team_map
+from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
 from em_exploration_ros.core.evaluation.summary import TARGET_TYPES, TargetEntry
 from em_exploration_ros.core.params import MapParams
-from em_exploration_ros.core.records.team_data import FrontierType
+from em_exploration_ros.core.records.team_data import (FrontierType, InvalidTeamUpdate,
+                                                       RendezvousEvent)
 from em_exploration_ros.core.records.wire_model import nanoseconds_to_seconds
 from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg, odometry_pose,
-                                                  path_from_msg, quaternion_to_yaw)
+                                                  path_from_msg, quaternion_to_yaw,
+                                                  rendezvous_from_msg)
 from em_exploration_ros.tools.bag_ros import MessageTypeError, message_type_support
 
 #: Message type of each topic kind this module reads.
@@ -245,6 +250,20 @@ def _targets(path: Path, updates: list[bytes], collected: _Collected) -> list[Ta
     return [by_decision[index] for index in sorted(by_decision)]
 
 
+def _rendezvous_events(path: Path, updates: list[bytes],
+                       collected: _Collected) -> list[RendezvousEvent]:
+    """The rendezvous events of a robot's team updates (a resent one repeats, which the
+    judging allows)."""
+    events = []
+    for data in updates:
+        for record in getattr(_decode(path, data, "team/updates", collected), "rendezvous", ()):
+            try:
+                events.append(rendezvous_from_msg(record))
+            except InvalidTeamUpdate as error:
+                raise BagError(f"{path}: a team update holds {error}") from None
+    return events
+
+
 def _mission_size(world_markers: Any, grids: dict[int, Any],
                   points: list[np.ndarray]) -> tuple[float, float]:
     """Mission rectangle [m]: the world's border marker, else the virtual map's extent,
@@ -314,11 +333,15 @@ def read_team_map(path: str | Path, map_params: MapParams | None = None) -> Reco
     width, height = _mission_size(last(None, "world_markers"), grids,
                                   [*paths.values(), *true_paths.values(), true_landmarks])
     end_s = nanoseconds_to_seconds(collected.last_log_ns)
+    events = [event for robot in robots if (robot, "team/updates") in collected.streams
+              for event in _rendezvous_events(path, collected.streams[(robot, "team/updates")],
+                                              collected)]
     layers = TeamMapLayers(
         width_m=width, height_m=height, cell_size_m=cell_size, explored=explored,
         true_landmarks=true_landmarks, landmark_radius_m=radius, true_paths=true_paths,
         estimated_paths=paths, estimated_landmarks=landmarks, targets=targets,
         uncertainty_ellipses=ellipses, frontiers=frontiers,
+        rendezvous=tuple(rendezvous_outcomes(events, np.nextafter(end_s, np.inf))),
         title=f"{path.name}: {len(robots)} robots, t = {end_s:.1f} s")
     try:
         layers, left_out = drawable_layers(layers)
