@@ -13,6 +13,7 @@ from nav_msgs.msg import OccupancyGrid
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
+from em_exploration_ros.core.evaluation.map_layers import covariance_ellipses
 from em_exploration_ros.core.planning.frontiers import Frontier
 from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid as CoreGrid
@@ -22,8 +23,6 @@ from em_exploration_ros.nodes.conversions import MAP_FRAME, seconds_to_time, yaw
 FRONTIER_COLOURS = {FrontierType.EXPLORATION: (0.1, 0.7, 0.1),
                     FrontierType.REVISITING: (0.1, 0.3, 0.9),
                     FrontierType.RENDEZVOUS: (0.6, 0.1, 0.7)}
-#: Ellipses are drawn at this many standard deviations.
-ELLIPSE_SIGMAS = 3.0
 
 
 def occupancy_grid_to_msg(grid: CoreGrid, stamp_s: float) -> OccupancyGrid:
@@ -53,12 +52,12 @@ def _marker(namespace: str, marker_id: int, marker_type: int, stamp_s: float,
 
 
 def ellipse_markers(centres: np.ndarray, covariances: np.ndarray, stamp_s: float) -> list[Marker]:
-    """Flat cylinders, one per cell: ``centres`` (K, 2) [m], ``covariances`` (K, 2, 2) [m^2]."""
+    """Flat cylinders, one per cell: ``centres`` (K, 2) [m], ``covariances`` (K, 2, 2) [m^2],
+    at ``map_layers.ELLIPSE_SIGMAS`` (``covariance_ellipses``, as the team map picture)."""
     markers = []
-    eigenvalues, eigenvectors = np.linalg.eigh(np.asarray(covariances).reshape(-1, 2, 2))
-    axes = ELLIPSE_SIGMAS * 2.0 * np.sqrt(np.clip(eigenvalues, 0.0, None))
-    angles = np.arctan2(eigenvectors[:, 1, 1], eigenvectors[:, 0, 1])
-    for index, (centre, (minor, major), angle) in enumerate(zip(centres, axes, angles)):
+    ellipses = covariance_ellipses(centres, covariances)
+    for index, (centre, (major, minor), angle) in enumerate(zip(ellipses.centres, ellipses.axes,
+                                                                  ellipses.angles)):
         marker = _marker("virtual_map_covariance", index, Marker.CYLINDER, stamp_s,
                          (0.5, 0.5, 0.5), 0.5)
         marker.pose.position.x, marker.pose.position.y = float(centre[0]), float(centre[1])

@@ -83,7 +83,8 @@ class TeamMapLayers:
 def covariance_ellipses(centres: np.ndarray, covariances: np.ndarray) -> UncertaintyEllipses:
     """Ellipses of 2x2 covariances ``(K, 2, 2)`` [m^2] centred at ``centres`` (K, 2) [m],
     at ``ELLIPSE_SIGMAS``."""
-    eigenvalues, eigenvectors = np.linalg.eigh(np.asarray(covariances, dtype=float).reshape(-1, 2, 2))
+    covariances = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
+    eigenvalues, eigenvectors = np.linalg.eigh(covariances)
     axes = ELLIPSE_SIGMAS * 2.0 * np.sqrt(np.clip(eigenvalues[:, ::-1], 0.0, None))
     angles = np.arctan2(eigenvectors[:, 1, 1], eigenvectors[:, 0, 1])
     return UncertaintyEllipses(np.asarray(centres, dtype=float).reshape(-1, 2), axes, angles)
