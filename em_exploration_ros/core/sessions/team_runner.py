@@ -2,14 +2,15 @@
 
 The runner plays the roles of the ROS system without ROS: ``WorldSession``
 (``world_session.py``, the protocol em-world drives, with its ``WorldSimulation`` and link
-relay) is the world node, one ``RobotAgent`` per robot is each robot process, and team
-updates travel
-through the link model (``core/links/link_model.py``, the relay) into one ``TeamUpdateInbox`` per
-robot. Message timing follows the lockstep protocol of the ROS system: an update a robot
-publishes while processing step k is applied by a teammate before it processes the step
-at which the link delivers it (k+1 over perfect links: the world's barrier), and commands
-and odometry go through the same wire conversions. A seeded em-sim run therefore chooses
-the same targets as the ROS system in lockstep mode.
+relay) is the world node, one ``RobotSession`` per robot (``robot_session.py``, the
+protocol the ROS robot node drives, with its ``RobotAgent``) is each robot process in
+relay mode, and team records and requests travel through the link model
+(``core/links/link_model.py``, the relay) into each robot's session, counted as the relay
+counts its deliveries. Message timing follows the lockstep protocol of the ROS system: an
+update a robot publishes while processing step k is applied by a teammate before it
+processes the step at which the link delivers it (k+1 over perfect links: the world's
+barrier), and commands and odometry go through the same wire conversions. A seeded em-sim
+run therefore chooses the same targets as the ROS system in lockstep mode.
 
 Gap repair is driven by steps (``core/links/link_sender.py``, shared with the ROS robot in
 relay mode): a robot whose inbox has gaps sends a request for one of them (through the
@@ -26,11 +27,12 @@ from typing import Callable
 
 import numpy as np
 
-from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
-from em_exploration_ros.core.links.link_sender import LinkSender
-from em_exploration_ros.core.node_settings import WorldNodeSettings
-from em_exploration_ros.core.records.team_data import (MissingRange, RendezvousEvent,
-                                                     TeamUpdate, TeamUpdateInbox)
+from em_exploration_ros.core.agent.robot_agent import StepInput
+from em_exploration_ros.core.node_settings import RobotNodeSettings, WorldNodeSettings
+from em_exploration_ros.core.records.team_data import MissingRange, RendezvousEvent, TeamUpdate
+from em_exploration_ros.core.sessions.robot_effects import SendCommand, SendFrame
+from em_exploration_ros.core.sessions.robot_session import (OdometryInput, RobotSession,
+                                                            ScanInput)
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, evaluation_layers
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
@@ -43,8 +45,9 @@ from em_exploration_ros.core.links.link_model import Delivery, FrameKind
 from em_exploration_ros.core.sessions.world_effects import PublishSensors
 from em_exploration_ros.core.sessions.world_session import WorldSession
 from em_exploration_ros.core.world.simulation import SensorFrame
-from em_exploration_ros.core.records.wire_model import (command_to_twist, pose_through_wire,
-                                                    twist_to_increment_covariance)
+from em_exploration_ros.core.records.wire_model import (pose_through_wire,
+                                                        seconds_to_nanoseconds,
+                                                        twist_to_increment_covariance)
 
 
 def step_input(frame: SensorFrame, time_step_s: float) -> StepInput:
@@ -73,10 +76,13 @@ class TeamRunner:
         self.simulation = self.world.sim
         world = self.simulation.world
         n = params.world.num_robots
-        self.agents = [RobotAgent(i, params, world.start_poses[0]) for i in range(n)]
+        settings = RobotNodeSettings()
+        self.sessions = [RobotSession(i, params, settings, relay_mode=True) for i in range(n)]
+        for session in self.sessions:
+            session.anchor(world.start_poses[0], 0.0, 0)
+        self.agents = [session.agent for session in self.sessions]
+        self._delivered = [[0, 0] for _ in range(n)]  # (records, requests) to each robot
         self.evaluator = TeamEvaluator(world, params)
-        self._inboxes = [TeamUpdateInbox(i, n) for i in range(n)]
-        self._senders = [LinkSender(i, params) for i in range(n)]
         self.monitor = RunMonitor(params)
         self.rendezvous_events: list[RendezvousEvent] = []
 
@@ -98,48 +104,58 @@ class TeamRunner:
         """One lockstep cycle: deliver what the links bring, sense, decide, send, move."""
         sim = self.simulation
         step = sim.step
-        time_step = self.params.motion.time_step_s
         sensors = []
         for effect in self.world.step_messages():
             kind = type(effect)
             if kind is Delivery:
-                self._deliver(effect)
+                self._deliver(effect, step)
             elif kind is PublishSensors:
                 sensors.append(effect)
         commands = []
-        for agent, inbox in zip(self.agents, self._inboxes):
-            frame = sensors[agent.robot_id].frame
-            self.evaluator.record_truth(agent.robot_id, frame.stamp_s,
-                                        sim.true_pose(agent.robot_id))
-            agent.apply_team_updates(inbox.pop_ready())
-            command = agent.step(step_input(frame, time_step))
-            self._send(agent, step)
-            commands.append(command_to_twist(command.turn_rad, command.forward_m, time_step))
+        for session in self.sessions:
+            robot = session.robot_id
+            frame = sensors[robot].frame
+            self.evaluator.record_truth(robot, frame.stamp_s, sim.true_pose(robot))
+            session.odometry(step, OdometryInput(pose_through_wire(frame.odom_pose),
+                                                 frame.twist_covariance), 0.0, step)
+            stamp = divmod(seconds_to_nanoseconds(frame.stamp_s), 1_000_000_000)
+            effects = session.scan(ScanInput(step, stamp, frame.landmarks, frame.teammates,
+                                             (), tuple(self._delivered[robot])), 0.0, step)
+            commands.append(self._send(robot, step, effects))
         self.world.advance(commands)
 
-    def _deliver(self, delivery: Delivery) -> None:
-        """Hand a frame the links bring to its receiver: a record into its inbox, a request
-        to its re-send scheduler."""
+    def _deliver(self, delivery: Delivery, step: int) -> None:
+        """Hand a frame the links bring before ``step`` to its receiver's session (a record,
+        or a request for records of its stream), counted as the relay counts them."""
         frame, receiver = delivery.frame, delivery.receiver
+        session, delivered = self.sessions[receiver], self._delivered[receiver]
         if frame.kind == FrameKind.REQUEST:
             gap: MissingRange = frame.payload
-            self._senders[receiver].file_request(
-                frame.sender, gap.first_sequence, gap.last_sequence,
-                self.agents[receiver].outbox.last_sequence)
+            delivered[1] += 1
+            session.delivered_request(frame.sender, gap.robot_id, gap.first_sequence,
+                                      gap.last_sequence, delivered[1], 0.0, step)
             return
         update: TeamUpdate = frame.payload
-        self._inboxes[receiver].receive(update)
+        delivered[0] += 1
+        session.delivered_update(update.robot_id, update, delivered[0], 0.0, step)
 
-    def _send(self, agent: RobotAgent, step: int) -> None:
-        """Offer what ``agent`` sends at ``step`` to its channel (``LinkSender``): a request
-        for a gap of its inbox, re-sends asked of it, then its new update."""
-        robot = agent.robot_id
-        update = agent.take_outgoing()
-        if update is not None:
-            self.rendezvous_events.extend(update.rendezvous)
-        for frame in self._senders[robot].frames(step, self._inboxes[robot], agent.outbox,
-                                                 update):
-            self.world.offer(frame)
+    def _send(self, robot: int, step: int, effects: list) -> tuple[float, float]:
+        """Perform what robot ``robot``'s session returned for ``step``: its frames (a gap
+        request, re-sends asked of it, its new update) offered to its channel; returns its
+        command's twist (linear [m/s], angular [rad/s]). The rest is the ROS node's."""
+        twist = None
+        for effect in effects:
+            kind = type(effect)
+            if kind is SendFrame:
+                frame = effect.frame
+                if frame.kind == FrameKind.UPDATE:
+                    self.rendezvous_events.extend(frame.payload.rendezvous)
+                self.world.offer(frame)
+            elif kind is SendCommand:
+                twist = effect.reply.linear_x, effect.reply.angular_z
+        if twist is None:
+            raise RuntimeError(f"robot {robot} did not answer step {step}")
+        return twist
 
     @property
     def num_decisions(self) -> int:
