@@ -43,7 +43,7 @@ from em_exploration_ros.core.records.team_data import TeamUpdate as TeamRecord
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.records.wire_model import nanoseconds_to_seconds
 from em_exploration_ros.core.sessions import robot_effects as fx
-from em_exploration_ros.core.sessions.effects import LogLine
+from em_exploration_ros.core.sessions.effects import Dropped, LogLine
 from em_exploration_ros.core.sessions.robot_session import (OdometryInput, RobotSession,
                                                             ScanInput)
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_reading_from_msg,
@@ -300,7 +300,7 @@ class RobotNode(LeanNode):
                 outputs.estimates(agent, effect.stamp_s)
             elif kind is fx.PublishDecision:
                 outputs.decision(agent, effect.stamp_s)
-            elif kind is fx.DropInput:
+            elif kind is Dropped:
                 self.inputs.drop(topic, effect.reason)
             elif kind is fx.Exit:
                 self.exit_code = effect.code

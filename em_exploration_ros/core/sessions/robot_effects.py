@@ -3,7 +3,7 @@
 The ROS robot node (``nodes/robot_node.py``) turns each effect into a publication, a journal
 write or its exit; em-sim (``team_runner.TeamRunner``) performs the ones that matter in one
 process (the command to the world, the frames onto the links) and ignores the rest. Besides
-these, a session returns ``effects.LogLine``.
+these, a session returns ``effects.LogLine`` and ``effects.Dropped`` (an input dropped).
 """
 from __future__ import annotations
 
@@ -138,13 +138,6 @@ class PublishDecision:
     """The target, virtual map and markers of a new decision (``stamp_s``: sim time)."""
 
     stamp_s: float
-
-
-@dataclass(frozen=True)
-class DropInput:
-    """Drop the input being handled, for ``reason`` (a throttled WARN, counted)."""
-
-    reason: str
 
 
 @dataclass(frozen=True)

@@ -71,9 +71,9 @@ from em_exploration_ros.core.records.team_data import (MAX_SEQUENCE_LEAD, Invali
                                                        TeamUpdate, TeamUpdateInbox)
 from em_exploration_ros.core.records.wire_model import (command_to_twist, sim_time_s,
                                                         twist_to_increment_covariance)
-from em_exploration_ros.core.sessions.effects import LogLine, error, info, warn
+from em_exploration_ros.core.sessions.effects import Dropped, LogLine, error, info, warn
 from em_exploration_ros.core.sessions.robot_effects import (
-    AppendJournal, CommandReply, DropInput, Exit, Journal, PublishDecision, PublishEstimates,
+    AppendJournal, CommandReply, Exit, Journal, PublishDecision, PublishEstimates,
     PublishHistory, PublishRequest, PublishTransforms, PublishUpdate, ReadJournals,
     SendCommand, SendFrame, StartJournal)
 
@@ -282,7 +282,7 @@ class RobotSession:
                                                      self.robot_id, self.num_robots,
                                                      OBSERVER_ID)
             if problem:
-                self._out.append(DropInput(problem))
+                self._out.append(Dropped(problem))
             elif self.agent is not None:
                 self.link_sender.file_request(asker, first_sequence, last_sequence,
                                               self.agent.outbox.last_sequence)
@@ -305,7 +305,7 @@ class RobotSession:
         problem = request_problem(asker, first_sequence, last_sequence, self.robot_id,
                                   self.num_robots, OBSERVER_ID)
         if problem:
-            return [DropInput(problem)]
+            return [Dropped(problem)]
         if self.agent is None:
             return []
         if self.relay_mode:  # re-sent at a coming step, through the links
@@ -624,7 +624,7 @@ class RobotSession:
             self.inbox.receive(record, sender)
         except InvalidTeamUpdate as problem:
             self.rejected_updates += 1
-            self._out.append(DropInput(f"rejected a team update: {problem}"))
+            self._out.append(Dropped(f"rejected a team update: {problem}"))
 
     def _receive_own(self, record: TeamUpdate | InvalidTeamUpdate) -> None:
         """A copy of one of this robot's earlier records, while it recovers its stream."""
@@ -650,7 +650,7 @@ class RobotSession:
         problem = history_request_problem(requester, first_sequence, last_sequence,
                                           self.robot_id, self.num_robots)
         if problem:
-            self._out.append(DropInput(problem))
+            self._out.append(Dropped(problem))
             return
         last = self._served_history.get(requester, -float("inf"))
         if now_s - last < self.settings.request_period_s:
