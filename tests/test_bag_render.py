@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 from matplotlib.image import imread
+from PIL import Image
 from mcap.records import Chunk, Footer, Header, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
@@ -37,7 +38,8 @@ from em_exploration_ros.bag_format.mcap_ros2_schema import build_message_definit
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.evaluation.summary import TARGET_TYPES
 from em_exploration_ros.tools.bag_ros import import_message_class
-from em_exploration_ros.tools.bag_render import read_team_map
+from em_exploration_ros.core.evaluation.run_animation import render_animation
+from em_exploration_ros.tools.bag_render import read_team_frames, read_team_map
 from em_bag_cli import run_em_bag
 
 REPO = Path(__file__).resolve().parents[1]
@@ -193,6 +195,23 @@ def test_the_samples_rendezvous_are_judged_from_the_team_updates() -> None:
     assert [(r.requester_id, r.partner_id, r.outcome) for r in rendezvous] == [
         (2, 0, "met"), (2, 0, "met")]
     assert all(0.0 <= r.x <= 40.0 and 0.0 <= r.y <= 40.0 for r in rendezvous)
+
+
+def test_the_samples_frames_follow_the_run_to_its_final_map(tmp_path: Path) -> None:
+    frames = read_team_frames(SAMPLE, max_frames=5)
+    final = read_team_map(SAMPLE).layers
+    assert len(frames) == 5 and frames[-1].title == final.title
+    times = [float(re.search(r"t = ([0-9.]+) s", f.title).group(1)) for f in frames]
+    assert times == sorted(set(times)) and times[-1] == 31.8  # strictly increasing
+    for robot in ROBOTS:
+        lengths = [len(f.true_paths.get(robot, ())) for f in frames]
+        chosen = [len(f.targets.get(robot, ())) for f in frames]
+        assert lengths == sorted(lengths) and lengths[-1] == len(final.true_paths[robot])
+        assert chosen == sorted(chosen) and chosen[-1] == len(final.targets[robot])
+    assert all(not f.uncertainty_ellipses for f in frames[:-1]) and frames[-1].uncertainty_ellipses
+    gif = render_animation(frames, tmp_path / "sample.gif", dpi=40)
+    with Image.open(gif) as image:
+        assert image.n_frames == 5
 
 
 def test_render_writes_a_png(tmp_path: Path) -> None:

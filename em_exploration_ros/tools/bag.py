@@ -8,9 +8,10 @@ A recording BAG is a bag directory (metadata.yaml and one .mcap file, as em-reco
                             recorder was killed) as a complete, valid one: a bag directory
                             OUT for a directory IN, an .mcap file OUT for a file IN (OUT
                             must not exist; its folder must)
-    em-bag render BAG --out PNG
+    em-bag render BAG --out PNG [--animate GIF]
                             draw the final team map of a recorded run (tools/bag_render.py;
-                            needs the ROS message packages, not a ROS graph)
+                            needs the ROS message packages, not a ROS graph), and with
+                            --animate the run as an animation (.gif; .mp4 with ffmpeg)
 
 A recording that cannot be read gives a one-line error and exit status 2.
 """
@@ -192,14 +193,29 @@ def _repair_command(args: argparse.Namespace) -> None:
 
 def _render_command(args: argparse.Namespace) -> None:
     # Imported here: the other commands need no ROS message packages.
-    from em_exploration_ros.tools.bag_render import render_recording
+    from em_exploration_ros.core.evaluation.run_animation import ANIMATION_SUFFIXES
+    from em_exploration_ros.tools.bag_render import animate_recording, render_recording
     if args.out.suffix.lower() != ".png":
         raise BagError(f"{args.out}: the picture is written as PNG; name it *.png")
+    animation = args.animate
+    if animation is not None and animation.suffix.lower() not in ANIMATION_SUFFIXES:
+        raise BagError(f"{animation}: the animation is written as "
+                       f"{' or '.join(ANIMATION_SUFFIXES)}; name it so")
+    if animation is not None and animation.suffix.lower() == ".mp4" and not shutil.which(
+            "ffmpeg"):
+        raise BagError(f"{animation}: an MP4 needs ffmpeg, which is not installed (use .gif)")
     try:
         team_map = render_recording(args.file, args.out)
     except OSError as error:
         raise BagError(f"{args.out}: cannot write the picture: {error.strerror}") from None
     sys.stdout.write(f"wrote {args.out}: {team_map.describe()}\n")
+    if animation is not None:
+        try:
+            frames = animate_recording(args.file, animation)
+        except OSError as error:
+            raise BagError(f"{animation}: cannot write the animation: {error.strerror}"
+                           ) from None
+        sys.stdout.write(f"wrote {animation}: {frames} frames\n")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -218,6 +234,8 @@ def main(argv: list[str] | None = None) -> None:
     draw.add_argument("file", type=Path, metavar="BAG")
     draw.add_argument("--out", type=Path, required=True, metavar="PNG",
                       help="the picture to write (PNG)")
+    draw.add_argument("--animate", type=Path, metavar="GIF",
+                      help="also draw the run as an animation into this .gif (.mp4 with ffmpeg)")
     draw.set_defaults(run=_render_command)
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     try:

@@ -1,4 +1,5 @@
-"""The ROS side of ``em-bag render``: the final team map of a recorded run, as a PNG.
+"""The ROS side of ``em-bag render``: the final team map of a recorded run, as a PNG, and
+its animation (``--animate``: the map at up to ``MAX_FRAMES`` moments of the run).
 
 One validating pass over the recording (``BagScanner``) keeps the last message of every
 state topic and every message of the stream topics; only those are deserialized, with
@@ -34,6 +35,7 @@ and summarized by ``describe``. Targets given up are not read (they travel in
 """
 from __future__ import annotations
 
+import bisect
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +52,7 @@ from em_exploration_ros.bag_format.mcap_ros2_schema import same_layout
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, UncertaintyEllipses
 from em_exploration_ros.core.evaluation.map_render import drawable_layers, render_team_map
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
+from em_exploration_ros.core.evaluation.run_animation import render_animation
 from em_exploration_ros.core.evaluation.summary import TARGET_TYPES, TargetEntry
 from em_exploration_ros.core.params import MapParams
 from em_exploration_ros.core.records.team_data import (FrontierType, InvalidTeamUpdate,
@@ -141,14 +144,39 @@ def _topic_kind(topic: str) -> tuple[int | None, str] | None:
     return None if kind is None else (None, kind)
 
 
+#: ``em-bag render --animate``: at most this many frames.
+MAX_FRAMES = 60
+#: Log time between the walk's snapshots at first [ns] (doubled whenever they are thinned).
+FIRST_SNAPSHOT_INTERVAL_NS = 1_000_000_000
+
+_Key = tuple[int | None, str]
+
+
 @dataclass
 class _Collected:
-    """Raw CDR of the messages kept by the walk, keyed by (robot or None, kind)."""
+    """Raw CDR of the messages kept by the walk, keyed by (robot or None, kind): the last of
+    each state topic, every message of each stream topic with its log time [ns], and, for an
+    animation, snapshots of the last messages (log time [ns], ``last`` as it was then), at
+    most ``max_snapshots`` evenly spread (thinned as ``run_animation.FrameRecorder`` does)."""
 
-    last: dict[tuple[int | None, str], bytes] = field(default_factory=dict)
-    streams: dict[tuple[int | None, str], list[bytes]] = field(default_factory=dict)
+    last: dict[_Key, bytes] = field(default_factory=dict)
+    streams: dict[_Key, list[bytes]] = field(default_factory=dict)
+    stream_log_ns: dict[_Key, list[int]] = field(default_factory=dict)
     decoders: dict[str, Callable[[bytes], Any]] = field(default_factory=dict)
     last_log_ns: int = 0
+    max_snapshots: int = 0
+    snapshot_interval_ns: int = FIRST_SNAPSHOT_INTERVAL_NS
+    snapshots: list[tuple[int, dict[_Key, bytes]]] = field(default_factory=list)
+    decoded: dict[_Key, list[Any]] = field(default_factory=dict)
+
+    def snapshot(self) -> None:
+        """Keep the state as of now when the interval since the last snapshot has passed."""
+        if self.snapshots and self.last_log_ns < self.snapshots[-1][0] + self.snapshot_interval_ns:
+            return
+        self.snapshots.append((self.last_log_ns, dict(self.last)))
+        if len(self.snapshots) > self.max_snapshots:
+            self.snapshots = self.snapshots[::2]
+            self.snapshot_interval_ns *= 2
 
 
 def _register_decoder(path: Path, channel: ChannelInfo, schema: SchemaInfo, kind: str,
@@ -182,10 +210,11 @@ def _register_decoder(path: Path, channel: ChannelInfo, schema: SchemaInfo, kind
     decoders[expected] = decoder
 
 
-def _collect(path: Path) -> _Collected:
-    """Walk the recording once (validating it) and keep the messages this module reads."""
+def _collect(path: Path, snapshots: int = 0) -> _Collected:
+    """Walk the recording once (validating it) and keep the messages this module reads, and
+    up to ``snapshots`` snapshots of the state topics."""
     scanner = BagScanner(path)
-    collected = _Collected()
+    collected = _Collected(max_snapshots=snapshots)
     kinds: dict[int, tuple[int | None, str] | None] = {}
     for channel, message in scanner.messages():
         if channel.id not in kinds:
@@ -196,12 +225,24 @@ def _collect(path: Path) -> _Collected:
         key = kinds[channel.id]
         if key is None:
             continue
+        collected.last_log_ns = max(collected.last_log_ns, message.log_time_ns)
         if key[1] in ("team/updates", "ground_truth"):
             collected.streams.setdefault(key, []).append(message.data)
+            collected.stream_log_ns.setdefault(key, []).append(collected.last_log_ns)
         else:
             collected.last[key] = message.data
-        collected.last_log_ns = max(collected.last_log_ns, message.log_time_ns)
+        if snapshots and key[0] is not None:
+            collected.snapshot()
     return collected
+
+
+def _stream(path: Path, collected: _Collected, key: _Key, until_ns: int) -> list[Any]:
+    """The messages of a stream topic logged by ``until_ns``, decoded (once per walk)."""
+    if key not in collected.decoded:
+        collected.decoded[key] = [_decode(path, data, key[1], collected)
+                                  for data in collected.streams.get(key, ())]
+    count = bisect.bisect_right(collected.stream_log_ns.get(key, []), until_ns)
+    return collected.decoded[key][:count]
 
 
 def _decode(path: Path, data: bytes, kind: str, collected: _Collected) -> Any:
@@ -234,12 +275,13 @@ def _marker_arrays(markers: list[Marker]) -> tuple[UncertaintyEllipses, list[Tar
     return ellipses, frontiers
 
 
-def _targets(path: Path, updates: list[bytes], collected: _Collected) -> list[TargetEntry]:
-    """A robot's chosen targets in decision order; a resent update counts once. Reads the
-    fields every TargetRecord schema has had (decision_index, x, y, frontier_type)."""
+def _targets(path: Path, updates: list[Any]) -> list[TargetEntry]:
+    """A robot's chosen targets in decision order, from its decoded team updates; a resent
+    update counts once. Reads the fields every TargetRecord schema has had (decision_index,
+    x, y, frontier_type)."""
     by_decision = {}
-    for data in updates:
-        for record in _decode(path, data, "team/updates", collected).targets:
+    for update in updates:
+        for record in update.targets:
             try:
                 kind = FrontierType(record.frontier_type)
             except ValueError:
@@ -250,13 +292,12 @@ def _targets(path: Path, updates: list[bytes], collected: _Collected) -> list[Ta
     return [by_decision[index] for index in sorted(by_decision)]
 
 
-def _rendezvous_events(path: Path, updates: list[bytes],
-                       collected: _Collected) -> list[RendezvousEvent]:
-    """The rendezvous events of a robot's team updates (a resent one repeats, which the
-    judging allows)."""
+def _rendezvous_events(path: Path, updates: list[Any]) -> list[RendezvousEvent]:
+    """The rendezvous events of a robot's decoded team updates (a resent one repeats, which
+    the judging allows)."""
     events = []
-    for data in updates:
-        for record in getattr(_decode(path, data, "team/updates", collected), "rendezvous", ()):
+    for update in updates:
+        for record in getattr(update, "rendezvous", ()):
             try:
                 events.append(rendezvous_from_msg(record))
             except InvalidTeamUpdate as error:
@@ -288,19 +329,42 @@ def read_team_map(path: str | Path, map_params: MapParams | None = None) -> Reco
     unexpected type or does not deserialize, or the file holds no robot estimate topic.
     """
     path = Path(path)
-    map_params = map_params or MapParams()
     collected = _collect(path)
-    robots = sorted({robot for (robot, kind) in [*collected.last, *collected.streams]
+    return _team_map(path, collected, collected.last, collected.last_log_ns,
+                     map_params or MapParams())
+
+
+def read_team_frames(path: str | Path, max_frames: int = MAX_FRAMES,
+                     map_params: MapParams | None = None) -> list[TeamMapLayers]:
+    """The team map of the recording at ``path`` at up to ``max_frames`` moments evenly
+    spread over its log time, the final map last (with its ellipses and frontiers; the
+    other frames without, which would cost most of the decoding). Raises BagError as
+    ``read_team_map``."""
+    path = Path(path)
+    map_params = map_params or MapParams()
+    collected = _collect(path, max(max_frames - 1, 1))
+    frames = [_team_map(path, collected, last, until_ns, map_params, markers=False).layers
+              for until_ns, last in collected.snapshots if until_ns < collected.last_log_ns]
+    return frames + [_team_map(path, collected, collected.last, collected.last_log_ns,
+                               map_params).layers]
+
+
+def _team_map(path: Path, collected: _Collected, last_messages: dict[_Key, bytes],
+              until_ns: int, map_params: MapParams, markers: bool = True) -> RecordedTeamMap:
+    """The team map as of log time ``until_ns`` [ns]: ``last_messages`` of the state
+    topics, the streams' messages logged by then; the robots' markers read if ``markers``."""
+    robots = sorted({robot for (robot, kind) in [*last_messages, *collected.streams]
                      if robot is not None and kind != "ground_truth"})
     if not robots:
         raise BagError(f"{path}: no robot topics (/robot_<i>/estimated_path, landmarks, "
                        "virtual_map, markers or team/updates) with messages in the file")
 
     def last(robot: int | None, kind: str) -> Any:
-        data = collected.last.get((robot, kind))
+        data = last_messages.get((robot, kind))
         return None if data is None else _decode(path, data, kind, collected)
 
     paths, landmarks, grids, ellipses, frontiers, targets = {}, {}, {}, {}, {}, {}
+    events: list[RendezvousEvent] = []
     for robot in robots:
         if (message := last(robot, "estimated_path")) is not None:
             paths[robot] = path_from_msg(message)[1]
@@ -309,14 +373,16 @@ def read_team_map(path: str | Path, map_params: MapParams | None = None) -> Reco
             landmarks[robot] = np.array([positions[k] for k in sorted(positions)]).reshape(-1, 2)
         if (message := last(robot, "virtual_map")) is not None:
             grids[robot] = message
-        if (message := last(robot, "markers")) is not None:
+        if markers and (message := last(robot, "markers")) is not None:
             ellipses[robot], frontiers[robot] = _marker_arrays(list(message.markers))
         if (robot, "team/updates") in collected.streams:
-            targets[robot] = _targets(path, collected.streams[(robot, "team/updates")],
-                                      collected)
-    true_paths = {robot: np.array([odometry_pose(_decode(path, data, kind, collected))
-                                   for data in stream]).reshape(-1, 3)
-                  for (robot, kind), stream in collected.streams.items() if kind == "ground_truth"}
+            updates = _stream(path, collected, (robot, "team/updates"), until_ns)
+            targets[robot] = _targets(path, updates)
+            events += _rendezvous_events(path, updates)
+    true_paths = {robot: np.array([odometry_pose(message) for message in
+                                   _stream(path, collected, (robot, kind), until_ns)]
+                                  ).reshape(-1, 3)
+                  for (robot, kind) in collected.streams if kind == "ground_truth"}
     world_landmarks = last(None, "world_landmarks")
     true_landmarks = np.zeros((0, 2)) if world_landmarks is None else np.array(
         [[lm.x, lm.y] for lm in world_landmarks.landmarks]).reshape(-1, 2)
@@ -332,10 +398,7 @@ def read_team_map(path: str | Path, map_params: MapParams | None = None) -> Reco
         explored, cell_size = np.zeros((1, 1), dtype=bool), 1.0
     width, height = _mission_size(last(None, "world_markers"), grids,
                                   [*paths.values(), *true_paths.values(), true_landmarks])
-    end_s = nanoseconds_to_seconds(collected.last_log_ns)
-    events = [event for robot in robots if (robot, "team/updates") in collected.streams
-              for event in _rendezvous_events(path, collected.streams[(robot, "team/updates")],
-                                              collected)]
+    end_s = nanoseconds_to_seconds(until_ns)
     layers = TeamMapLayers(
         width_m=width, height_m=height, cell_size_m=cell_size, explored=explored,
         true_landmarks=true_landmarks, landmark_radius_m=radius, true_paths=true_paths,
@@ -355,3 +418,11 @@ def render_recording(path: str | Path, png: str | Path) -> RecordedTeamMap:
     team_map = read_team_map(path)
     render_team_map(team_map.layers, png)
     return team_map
+
+
+def animate_recording(path: str | Path, animation: str | Path) -> int:
+    """Draw the recording at ``path`` as an animation (``read_team_frames``) into
+    ``animation`` (.gif, or .mp4 with ffmpeg); returns the number of frames."""
+    frames = read_team_frames(path)
+    render_animation(frames, animation)
+    return len(frames)
