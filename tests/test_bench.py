@@ -17,6 +17,7 @@ import pytest
 
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.tools import bench, bench_plots, bench_trials, math_platform
+from openblas_cores import other_core_type
 from process_tree import alive, children, command_line, interruptible
 from ros_process import wait_until
 
@@ -160,20 +161,27 @@ def test_records_name_the_numerical_kernels_they_ran_on(bench_out):
     assert f"Their numerical kernels: {here}." in (bench_out / "results.md").read_text()
 
 
+@pytest.mark.skipif(other_core_type() is None,
+                    reason="the OpenBLAS core types forced here exist on x86_64 only")
 def test_a_trial_rerun_on_other_kernels_is_flagged(bench_out, tmp_path):
     """A resumed run (or a cluster) whose trials ran on other SIMD kernels: every record
-    keeps its own, and em-bench warns that the setting mixes them."""
+    keeps its own, and em-bench warns that the setting mixes them. The rerun forces an
+    OpenBLAS core other than this process's (its preset OPENBLAS_CORETYPE, if any, and the
+    core its OpenBLAS reports), whatever the host presets."""
+    host_core = math_platform.openblas_core()
+    core_type, core_name = other_core_type(os.environ.get("OPENBLAS_CORETYPE"), host_core)
     out = tmp_path / "out"
     shutil.copytree(bench_out, out)
     (out / "trials/40m_cell2m/CE/seed_0.json").unlink()
     result = run_cli(*SHORT_RUN, *GOOD, "--out", str(out),
-                     env={**os.environ, "OPENBLAS_CORETYPE": "Haswell"})
+                     env={**os.environ, "OPENBLAS_CORETYPE": core_type})
     assert result.returncode == 0, result.stderr
     assert "4 trials: 3 finished earlier, 1 to run" in result.stderr
     rerun = json.loads((out / "trials/40m_cell2m/CE/seed_0.json").read_text())
     assert rerun["status"] == "done"
-    assert rerun["math_platform"].endswith("; OPENBLAS_CORETYPE=Haswell")
-    assert "OpenBLAS core Haswell" in rerun["math_platform"]
+    assert rerun["math_platform"].endswith(f"; OPENBLAS_CORETYPE={core_type}")
+    assert f"OpenBLAS core {core_name};" in rerun["math_platform"]
+    assert f"OpenBLAS core {host_core};" not in rerun["math_platform"]
     summary = json.loads((out / "summary.json").read_text())
     planners = summary["settings"]["40m_cell2m"]["planners"]
     assert planners["CE"]["math_platforms"] == sorted([math_platform.describe(),

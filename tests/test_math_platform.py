@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.tools import math_platform
+from openblas_cores import other_core_type
 
 DESCRIBE = "from em_exploration_ros.tools import math_platform; print(math_platform.describe())"
 
@@ -30,9 +31,12 @@ def test_the_description_names_numpy_simd_openblas_core_and_gtsam():
 
 
 @pytest.mark.skipif(platform.machine() != "x86_64",
-                    reason="OpenBLAS's Haswell kernels exist on x86_64 only")
+                    reason="the OpenBLAS core types forced here exist on x86_64 only")
 def test_a_forced_openblas_core_is_named_with_its_override():
-    forced = describe_in_child(OPENBLAS_CORETYPE="Haswell")
-    assert "OpenBLAS core Haswell" in forced
-    assert forced.endswith("; OPENBLAS_CORETYPE=Haswell")
-    assert "OPENBLAS_CORETYPE" not in describe_in_child()
+    natural = describe_in_child()  # no override, whatever this process's environment has
+    assert "OPENBLAS_CORETYPE" not in natural
+    natural_core = natural.split("OpenBLAS core ", 1)[1].split(";", 1)[0]
+    core_type, core_name = other_core_type(natural_core)  # another core than the host's
+    forced = describe_in_child(OPENBLAS_CORETYPE=core_type)
+    assert f"OpenBLAS core {core_name};" in forced
+    assert forced.endswith(f"; OPENBLAS_CORETYPE={core_type}")
