@@ -20,8 +20,8 @@ plus ``seed``,
 uncertainty ``robot_pose_sigma_m`` where the writer knows it); ``decisions_by_type``
 (decisions per frontier type), ``planner_failures`` (decisions where the planner failed and
 the nearest frontier rule chose), ``rendezvous`` (requested / met / timed_out / open, see
-``rendezvous_stats``) and ``meetings`` (em-sim only: per rendezvous with an inter-robot
-factor, the requester's pose-covariance trace just before and after it), ``team_updates``
+``rendezvous_stats``) and ``meetings`` (per rendezvous with an inter-robot factor, the
+requester's pose-covariance trace just before and after it), ``team_updates``
 (em-sim and the benchmark: how many teammate updates the links delivered on time, late or
 never), ``association`` (em-sim, when the sonar is not the paper's ideal one: the robots'
 data association against ground truth, ``precision``, ``recall`` and the counts of

@@ -12,6 +12,11 @@ processes the step at which the link delivers it (k+1 over perfect links: the wo
 barrier), and commands and odometry go through the same wire conversions. A seeded em-sim
 run therefore chooses the same targets as the ROS system in lockstep mode.
 
+The outside observer is em-evaluator's own protocol, ``EvaluatorSession``
+(``evaluator_session.py``), shown every step's ground truth and, at its evaluation steps,
+each robot's estimates, answer and stream as em-evaluator sees them (``TeamRunner.observe``):
+it evaluates, applies the stop rules and writes the summary and the map layers for both.
+
 Gap repair is driven by steps (``core/links/link_sender.py``, shared with the ROS robot in
 relay mode): a robot whose inbox has gaps sends a request for one of them (through the
 link, to the stream's owner) at most every ``links.repair_interval_s``; the owner
@@ -20,33 +25,31 @@ re-sends the records, as broadcasts, through the link.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from dataclasses import dataclass
 from typing import Callable
 
-import numpy as np
-
-from em_exploration_ros.core.agent.robot_agent import StepInput
-from em_exploration_ros.core.node_settings import RobotNodeSettings, WorldNodeSettings
-from em_exploration_ros.core.records.team_data import MissingRange, RendezvousEvent, TeamUpdate
+from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
+from em_exploration_ros.core.node_settings import (EvaluatorNodeSettings, RobotNodeSettings,
+                                                   WorldNodeSettings)
+from em_exploration_ros.core.records.team_data import MissingRange, TeamUpdate
 from em_exploration_ros.core.sessions.robot_effects import SendCommand, SendFrame
 from em_exploration_ros.core.sessions.robot_session import (OdometryInput, RobotSession,
                                                             ScanInput)
+from em_exploration_ros.core.sessions.world_effects import PublishSensors
+from em_exploration_ros.core.sessions.world_session import WorldSession
+from em_exploration_ros.core.sessions.evaluator_session import (CommandReport,
+                                                                EvaluatorSession, Effect,
+                                                                PublishMetrics)
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
-from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, evaluation_layers
-from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
-from em_exploration_ros.core.evaluation.run_monitor import (METRICS_INTERVAL_STEPS,
-                                                            DecisionEntry,
-                                                            RobotProgressRecord, RunMonitor)
+from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers
+from em_exploration_ros.core.evaluation.run_monitor import METRICS_INTERVAL_STEPS, RunMonitor
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, RunSummary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.links.link_model import Delivery, FrameKind
-from em_exploration_ros.core.sessions.world_effects import PublishSensors
-from em_exploration_ros.core.sessions.world_session import WorldSession
 from em_exploration_ros.core.world.simulation import SensorFrame
 from em_exploration_ros.core.records.wire_model import (pose_through_wire,
-                                                        seconds_to_nanoseconds,
+                                                        seconds_to_nanoseconds, sim_time_s,
                                                         twist_to_increment_covariance)
 
 
@@ -82,28 +85,38 @@ class TeamRunner:
             session.anchor(world.start_poses[0], 0.0, 0)
         self.agents = [session.agent for session in self.sessions]
         self._delivered = [[0, 0] for _ in range(n)]  # (records, requests) to each robot
-        self.evaluator = TeamEvaluator(world, params)
-        self.monitor = RunMonitor(params)
-        self.rendezvous_events: list[RendezvousEvent] = []
+        # The outside observer, as em-evaluator: truth, estimates, commands, team records.
+        self.observer = EvaluatorSession(params, EvaluatorNodeSettings(
+            metrics_interval_s=METRICS_INTERVAL_STEPS * params.motion.time_step_s),
+            time.perf_counter(), 0.0)
+        self.observer.true_world(world, time.perf_counter())
+        self._reported = [(0, 0)] * n  # (targets given up, meetings) reported of each robot
+
+    @property
+    def evaluator(self) -> TeamEvaluator:
+        """The observer's metrics from ground truth (never seen by an agent)."""
+        return self.observer.evaluator
+
+    @property
+    def monitor(self) -> RunMonitor:
+        """The observer's stop rules and history."""
+        return self.observer.monitor
 
     def run(self, progress: Callable[[Progress], None] | None = None) -> RunSummary:
         """Explore until the stop rule; report progress every metrics evaluation."""
-        started = time.perf_counter()
         monitor = self.monitor
+        self.observe(time.perf_counter())
         while not monitor.stopped and self.simulation.step < monitor.final_step:
             self.step_once()
-            step = self.simulation.step
-            if step % METRICS_INTERVAL_STEPS == 0 or step >= monitor.final_step:
-                metrics = self.evaluate()
-                if progress is not None:
-                    progress(Progress(step, metrics, self.num_decisions))
-                monitor.observe(step, metrics, all(agent.finished for agent in self.agents))
-        return self.summary(time.perf_counter() - started)
+            for effect in self.observe(time.perf_counter()):
+                if isinstance(effect, PublishMetrics) and progress is not None:
+                    progress(Progress(self.simulation.step, effect.metrics,
+                                      self.num_decisions))
+        return self.summary(time.perf_counter())
 
     def step_once(self) -> None:
         """One lockstep cycle: deliver what the links bring, sense, decide, send, move."""
-        sim = self.simulation
-        step = sim.step
+        step = self.simulation.step
         sensors = []
         for effect in self.world.step_messages():
             kind = type(effect)
@@ -115,7 +128,6 @@ class TeamRunner:
         for session in self.sessions:
             robot = session.robot_id
             frame = sensors[robot].frame
-            self.evaluator.record_truth(robot, frame.stamp_s, sim.true_pose(robot))
             session.odometry(step, OdometryInput(pose_through_wire(frame.odom_pose),
                                                  frame.twist_covariance), 0.0, step)
             stamp = divmod(seconds_to_nanoseconds(frame.stamp_s), 1_000_000_000)
@@ -149,7 +161,7 @@ class TeamRunner:
             if kind is SendFrame:
                 frame = effect.frame
                 if frame.kind == FrameKind.UPDATE:
-                    self.rendezvous_events.extend(frame.payload.rendezvous)
+                    self.observer.team_update(robot, frame.payload, time.perf_counter())
                 self.world.offer(frame)
             elif kind is SendCommand:
                 twist = effect.reply.linear_x, effect.reply.angular_z
@@ -162,61 +174,59 @@ class TeamRunner:
         """Decisions made by the whole team so far."""
         return sum(len(agent.decisions) for agent in self.agents)
 
-    def evaluate(self) -> TeamMetrics:
-        """Team metrics now (the truth of this step recorded first)."""
-        interval = self.params.slam.keyframe_interval_steps
-        time_step = self.params.motion.time_step_s
-        for agent in self.agents:  # the truth of this step (distance up to now)
-            self.evaluator.record_truth(agent.robot_id, self.simulation.stamp_s,
-                                        self.simulation.true_pose(agent.robot_id))
-        trajectories, landmarks = {}, {}
-        for agent in self.agents:
-            indices, poses = agent.slam.trajectory(agent.robot_id)
-            trajectories[agent.robot_id] = (indices * interval * time_step, poses)
-            landmarks[agent.robot_id] = agent.slam.landmark_estimates()
-        return self.evaluator.evaluate(self.simulation.stamp_s, trajectories, landmarks)
+    def observe(self, wall_s: float) -> list[Effect]:
+        """Show the observer the step the world is at (wall time ``wall_s`` [s]) as
+        em-evaluator sees it: before an evaluation step k, each robot's estimates as of step
+        k - 1 (stamped at the latest keyframe step, as a robot publishes them); the true
+        poses of step k; then each robot's answer to step k - 1 (its progress bookkeeping).
+        Returns the observer's effects (``PublishMetrics`` at an evaluation)."""
+        observer, step = self.observer, self.simulation.step
+        evaluating = observer.evaluates_at(step)
+        effects: list[Effect] = []
+        if evaluating:
+            interval = self.params.slam.keyframe_interval_steps
+            time_step = self.params.motion.time_step_s
+            stamp_ns = seconds_to_nanoseconds(
+                sim_time_s((step - 1) // interval * interval, time_step))
+            for agent in self.agents:
+                indices, poses = agent.slam.trajectory(agent.robot_id)
+                effects += observer.path_estimate(agent.robot_id, stamp_ns,
+                                                  indices * interval * time_step, poses, wall_s)
+                effects += observer.landmark_estimate(
+                    agent.robot_id, stamp_ns, agent.slam.landmark_estimates(), wall_s)
+        for robot in range(self.params.world.num_robots):
+            effects += observer.true_pose(robot, step, self.simulation.true_pose(robot), wall_s)
+        if evaluating:
+            for agent in self.agents:
+                effects += observer.command(agent.robot_id, self._command_report(agent, step - 1),
+                                            wall_s)
+        return effects
+
+    def _command_report(self, agent: RobotAgent, step: int) -> CommandReport:
+        """What ``agent``'s answer to ``step`` tells the observer, with the targets it gave
+        up and the meetings it measured since its previous report."""
+        given_up, meetings = self._reported[agent.robot_id]
+        self._reported[agent.robot_id] = len(agent.given_up), len(agent.meeting_effects)
+        stamp_ns = seconds_to_nanoseconds(sim_time_s(step, self.params.motion.time_step_s))
+        return CommandReport(
+            agent.robot_id, step, stamp_ns, agent.finished, agent.outbox.last_sequence,
+            agent.blocked_s, len(agent.given_up),
+            tuple(GivenUpEntry(float(g.position[0]), float(g.position[1]), g.stamp_s,
+                               g.reason.value) for g in agent.given_up[given_up:]),
+            tuple(MeetingEntry(agent.robot_id, e.partner_id, e.rendezvous_id,
+                               e.requested_at_s, e.stamp_s, e.trace_before_m2,
+                               e.trace_after_m2) for e in agent.meeting_effects[meetings:]),
+            len(agent.slam.recoveries))
 
     def map_layers(self) -> TeamMapLayers:
-        """The picture of the run so far: truth, each robot's own estimate of its path and
-        of the landmarks, the targets counted in the summary and the rendezvous."""
-        final = self.monitor.final_metrics
-        end_s = math.inf if final is None else final.stamp_s
-        counted = {agent.robot_id: self.monitor.decisions_counted(entries)
-                   for agent, entries in zip(self.agents, self._decision_entries())}
-        targets = {robot: [d.target_entry() for d in chosen] for robot, chosen in counted.items()}
-        params = self.params
-        return evaluation_layers(
-            self.evaluator,
-            {agent.robot_id: agent.slam.trajectory(agent.robot_id)[1] for agent in self.agents},
-            {agent.robot_id: np.array(list(agent.slam.landmark_estimates().values())
-                                      ).reshape(-1, 2) for agent in self.agents},
-            targets, rendezvous_outcomes(self.rendezvous_events, end_s),
-            f"{params.planner.name}, {params.world.num_robots} robots, seed {params.run.seed}: "
-            f"{self.monitor.stop_reason or 'running'}")
-
-    def _decision_entries(self) -> list[list[DecisionEntry]]:
-        """Each robot's decisions as the run monitor counts them."""
-        return [[DecisionEntry(d.stamp_s, (float(d.target.position[0]),
-                                           float(d.target.position[1])),
-                               d.target.kind, d.planning_time_s, d.planner_failed)
-                 for d in agent.decisions]
-                for agent in self.agents]
+        """The picture of the run: truth, each robot's estimate of its path and of the
+        landmarks at the last evaluation, the targets counted in the summary and the
+        rendezvous (``EvaluatorSession.map_layers``)."""
+        return self.observer.map_layers(self.monitor.stop_reason or "running")
 
     def summary(self, wall_s: float) -> RunSummary:
-        """The run's summary in the shared JSON schema (the run monitor's)."""
-        decisions = self._decision_entries()
-        progress = [RobotProgressRecord(
-            tuple(GivenUpEntry(float(g.position[0]), float(g.position[1]), g.stamp_s,
-                               g.reason.value) for g in agent.given_up), agent.blocked_s,
-            len(agent.slam.recoveries))
-            for agent in self.agents]
-        meetings = sorted((MeetingEntry(agent.robot_id, e.partner_id, e.rendezvous_id,
-                                        e.requested_at_s, e.stamp_s, e.trace_before_m2,
-                                        e.trace_after_m2)
-                           for agent in self.agents for e in agent.meeting_effects),
-                          key=lambda m: (m.stamp_s, m.requester_id))
-        summary = self.monitor.summary(decisions, wall_s, progress=progress,
-                                       rendezvous_events=self.rendezvous_events,
-                                       meetings=meetings)
+        """The run's summary in the shared JSON schema (``EvaluatorSession``'s, as
+        em-evaluator's), at wall time ``wall_s`` [s], with what the links delivered."""
+        summary = self.observer.summary(wall_s)
         summary.team_updates = dataclasses.asdict(self.world.update_counts())
         return summary
