@@ -492,10 +492,14 @@ report_results() {
     [[ -f $SUMMARY ]] && echo "$PROG: summary: $SUMMARY" && "$PYTHON" - "$SUMMARY" <<'PY' \
         | sed "s/^/$PROG: /"
 import json, sys
+from em_exploration_ros.core.evaluation.association_stats import association_line
 from em_exploration_ros.core.evaluation.summary import activity_line
 try:
-    print(activity_line(json.loads(open(sys.argv[1], encoding="utf-8").read())))
-except (OSError, ValueError) as error:
+    data = json.loads(open(sys.argv[1], encoding="utf-8").read())
+    print(activity_line(data))
+    if data.get("association"):
+        print(association_line(data["association"]))
+except (OSError, ValueError, KeyError, TypeError) as error:
     print(f"summary unreadable: {error}")
 PY
     [[ -f $MAP_PNG ]] && echo "$PROG: map:     $MAP_PNG"

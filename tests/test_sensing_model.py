@@ -125,6 +125,9 @@ def test_a_keyframe_keeps_only_named_detections():
     unnamed = LandmarkReading(UNIDENTIFIED, 2.0, -0.4, 1e-6, 1e-6)
     keyframe = builder.add_step(0, 0.0, None, [unnamed, named], [])
     assert keyframe.landmarks == (named,)
+    # Without identities the robot's association names them next: all are kept.
+    keeping = KeyframeBuilder(0, SlamParams(), keep_unidentified=True)
+    assert keeping.add_step(0, 0.0, None, [unnamed, named], []).landmarks == (unnamed, named)
 
 
 @pytest.mark.parametrize("sensing, message", [
