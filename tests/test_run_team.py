@@ -20,6 +20,7 @@ from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, finish_team_r
                          processes_in_domain, robot_pid, start_team_run, wait_for_liveliness)
 from rosbags.rosbag2 import Reader as RosbagsReader
 from small_disk import small_disk
+from summary_keys import key_paths
 from tf_chains import assert_frame_chains
 from websockets.sync.client import connect
 
@@ -189,6 +190,7 @@ def test_three_robots_explore_end_to_end(tmp_path):
     assert (summary["stop_reason"], summary["sim_time_s"]) == (reference["stop_reason"],
                                                                reference["sim_time_s"])
     assert summary["distance_m"] == pytest.approx(reference["distance_m"], abs=1e-6)
+    assert_same_summary(summary, reference)
 
     picture = summary_path.with_name("summary_map.png")
     assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -240,6 +242,61 @@ def test_a_recording_onto_a_full_disk_does_not_stop_the_mission(tmp_path):
             assert reader.message_count == info.message_count
         assert read_metadata_yaml(bag).message_count == info.message_count
         assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+
+
+#: Keys of the summary a ROS run and em-sim may differ in, and why.
+SUMMARY_KEYS_APART = {
+    # Wall-clock measurements of different processes.
+    "wall_s", "decision_time_median_s", "decision_time_max_s",
+    # The metrics from estimates: em-evaluator reads those each robot published at its
+    # latest keyframe step, em-sim the agents' own at the step before the evaluation (with
+    # the teammates' records applied since): the last digits may differ. The team distance
+    # is compared above (to 1e-6: sums in another order).
+    "explored_ratio", "loc_rmse_m", "landmark_rmse_m", "history", "distance_m",
+    # Over perfect links no relay counts the ROS team's deliveries (null); em-sim's link
+    # model does.
+    "team_updates",
+    # run_team.sh adds the recording's entry (--record) to the evaluator's summary.
+    "recording",
+    # Compared robot by robot (ROBOT_KEYS_APART), and meeting by meeting (MEETING_TRACES).
+    "robots", "meetings",
+}
+#: A meeting's covariance traces come from each process's own iSAM2 solve of the same
+#: graph: they agree to about 1e-8 relative, not to the bit.
+MEETING_TRACES = ("trace_before_m2", "trace_after_m2")
+#: Keys of each robot's entry a ROS run and em-sim may differ in, and why.
+ROBOT_KEYS_APART = {
+    # Wall-clock measurements.
+    "decision_times_s", "downtime_wall_s",
+    # The times of status changes: em-evaluator sees every command as it comes (the
+    # commands after the stop step too, until the world stops), em-sim reports each robot's
+    # state at the evaluation steps: a robot that finished is "finished" at a later step.
+    "status", "status_changes",
+    # The distance from ground truth, compared to 1e-6 (sums in another order).
+    "distance_m",
+}
+
+
+def assert_same_summary(summary: dict, reference: dict) -> None:
+    """em-evaluator wrote em-sim's summary (both built by EvaluatorSession): the same keys
+    at every level (but the run's recording), the same values but where they may differ."""
+    assert reference["meetings"]  # seed 2 has meetings: their comparison is not vacuous
+    assert key_paths(summary) - key_paths(reference) <= {
+        ".recording", ".recording.path", ".recording.complete", ".recording.problem"}
+    assert key_paths(reference) - key_paths(summary) <= {
+        ".team_updates.sent", ".team_updates.on_time", ".team_updates.late",
+        ".team_updates.never"}
+    for key in set(reference) - SUMMARY_KEYS_APART:
+        assert summary[key] == reference[key], key
+    for ours, em_sim in zip(summary["meetings"], reference["meetings"], strict=True):
+        assert {k: v for k, v in ours.items() if k not in MEETING_TRACES} == {
+            k: v for k, v in em_sim.items() if k not in MEETING_TRACES}
+        assert [ours[k] for k in MEETING_TRACES] == pytest.approx(
+            [em_sim[k] for k in MEETING_TRACES], rel=1e-6)
+    for ours, em_sim in zip(summary["robots"], reference["robots"], strict=True):
+        for key in set(em_sim) - ROBOT_KEYS_APART:
+            assert ours[key] == em_sim[key], (ours["id"], key)
+        assert ours["distance_m"] == pytest.approx(em_sim["distance_m"], abs=1e-6)
 
 
 def test_a_run_whose_robots_all_finish_at_an_evaluation_step_ends_there(tmp_path):
