@@ -158,11 +158,25 @@ def build_parser() -> argparse.ArgumentParser:
                         "beside it, <stem>_map.png, with <stem>_timeline.png")
     add_picture_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    parser.add_argument("--restart", type=_restart, action="append", default=[],
+                        metavar="ROBOT:STEP",
+                        help="restart robot ROBOT's process before step STEP: it rejoins from "
+                        "its journals as a restarted em-robot does (repeatable; "
+                        "docs/robustness.md, what a restart costs)")
     parser.add_argument("--save-world", type=Path, metavar="FILE",
                         help="write the run's world (the one the seed generates, or --world's) "
                         "to this YAML file and exit, to edit it and run it with --world and "
                         "the same --seed")
     return parser
+
+
+def _restart(text: str) -> tuple[int, int]:
+    """ROBOT:STEP of ``--restart``."""
+    try:
+        robot, step = (int(part) for part in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not ROBOT:STEP") from None
+    return robot, step
 
 
 def _format_progress(progress: Progress) -> str:
@@ -198,7 +212,8 @@ def main(argv: Sequence[str] | None = None,
     if args.save_world:
         return _save_world(params, args.save_world)
     try:
-        runner = make_runner(params)
+        runner = (make_runner(params, args.restart) if args.restart
+                  else make_runner(params))
     except ValueError as error:
         log.error("cannot build the world: %s", error)
         return 2

@@ -21,11 +21,18 @@ Gap repair is driven by steps (``core/links/link_sender.py``, shared with the RO
 relay mode): a robot whose inbox has gaps sends a request for one of them (through the
 link, to the stream's owner) at most every ``links.repair_interval_s``; the owner
 re-sends the records, as broadcasts, through the link.
+
+Restarts (``restarts``, em-sim's ``--restart ROBOT:STEP``): robot r's session is replaced,
+before step k's deliveries, by a new one that rejoins as a restarted em-robot process with a
+``state_dir`` does: its first scan is step k, it reads back the journals its earlier session
+kept (held here in memory) and resumes (``RobotSession.journals_read``, ``_resume``). The
+runner keeps journals only when restarts are asked for.
 """
 from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Callable
 
@@ -33,9 +40,11 @@ from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.node_settings import (EvaluatorNodeSettings, RobotNodeSettings,
                                                    WorldNodeSettings)
 from em_exploration_ros.core.records.team_data import MissingRange, TeamUpdate
-from em_exploration_ros.core.sessions.robot_effects import SendCommand, SendFrame
-from em_exploration_ros.core.sessions.robot_session import (OdometryInput, RobotSession,
-                                                            ScanInput)
+from em_exploration_ros.core.sessions.robot_effects import (AppendJournal, Journal,
+                                                            ReadJournals, SendCommand,
+                                                            SendFrame, StartJournal)
+from em_exploration_ros.core.sessions.robot_session import (JournalRecords, OdometryInput,
+                                                            RobotSession, ScanInput)
 from em_exploration_ros.core.sessions.world_effects import PublishSensors
 from em_exploration_ros.core.sessions.world_session import WorldSession
 from em_exploration_ros.core.sessions.evaluator_session import (CommandReport,
@@ -70,17 +79,29 @@ class Progress:
 
 
 class TeamRunner:
-    """Runs one seeded exploration; ``run()`` returns its ``RunSummary``."""
+    """Runs one seeded exploration; ``run()`` returns its ``RunSummary``. ``restarts``:
+    (robot, step) pairs, each a restart of that robot's process before that step (module
+    docstring)."""
 
-    def __init__(self, params: ExplorationParams) -> None:
+    def __init__(self, params: ExplorationParams,
+                 restarts: Iterable[tuple[int, int]] = ()) -> None:
         self.params = params
+        self._restarts: dict[int, list[int]] = {}
+        for robot, step in restarts:
+            if not 0 <= robot < params.world.num_robots or step < 1:
+                raise ValueError(f"restart {robot}:{step}: no such robot, or not after step 0")
+            self._restarts.setdefault(step, []).append(robot)
+        journaled = bool(self._restarts)
         # The world as em-world runs it, always with the links (perfect ones deliver at k+1).
         self.world = WorldSession(params, WorldNodeSettings(), 0.0, relayed=True)
         self.simulation = self.world.sim
         world = self.simulation.world
         n = params.world.num_robots
         settings = RobotNodeSettings()
-        self.sessions = [RobotSession(i, params, settings, relay_mode=True) for i in range(n)]
+        self.sessions = [RobotSession(i, params, settings, relay_mode=True, journaled=journaled)
+                         for i in range(n)]
+        #: Each robot's journals (own stream, teammates' records applied), with restarts only.
+        self.journals = {Journal.OWN: [[] for _ in range(n)], Journal.TEAM: [[] for _ in range(n)]}
         for session in self.sessions:
             session.anchor(world.start_poses[0], 0.0, 0)
         self.agents = [session.agent for session in self.sessions]
@@ -117,6 +138,9 @@ class TeamRunner:
     def step_once(self) -> None:
         """One lockstep cycle: deliver what the links bring, sense, decide, send, move."""
         step = self.simulation.step
+        if self._restarts:
+            for robot in self._restarts.get(step, ()):
+                self._restart(robot)
         sensors = []
         for effect in self.world.step_messages():
             kind = type(effect)
@@ -135,6 +159,19 @@ class TeamRunner:
                                              (), tuple(self._delivered[robot])), 0.0, step)
             commands.append(self._send(robot, step, effects))
         self.world.advance(commands)
+
+    def _restart(self, robot: int) -> None:
+        """Robot ``robot``'s process restarts: a new session, anchored as every robot's is,
+        that rejoins at its first scan from the journals its earlier session kept. It holds
+        its whole stream at once from its journal, so it does not wait for teammates' copies
+        (``rejoin_settle_s`` 0: em-sim's clock does not run)."""
+        old = self.sessions[robot]
+        session = RobotSession(robot, self.params,
+                               dataclasses.replace(old.settings, rejoin_settle_s=0.0),
+                               relay_mode=True, journaled=True)
+        session.anchor(self.simulation.world.start_poses[0], 0.0, self.simulation.step)
+        self.sessions[robot] = session
+        self.agents[robot] = session.agent
 
     def _deliver(self, delivery: Delivery, step: int) -> None:
         """Hand a frame the links bring before ``step`` to its receiver's session (a record,
@@ -156,7 +193,8 @@ class TeamRunner:
         request, re-sends asked of it, its new update) offered to its channel; returns its
         command's twist (linear [m/s], angular [rad/s]). The rest is the ROS node's."""
         twist = None
-        for effect in effects:
+        effects = list(effects)
+        for effect in effects:  # grows with what a restarted session does with its journals
             kind = type(effect)
             if kind is SendFrame:
                 frame = effect.frame
@@ -165,6 +203,15 @@ class TeamRunner:
                 self.world.offer(frame)
             elif kind is SendCommand:
                 twist = effect.reply.linear_x, effect.reply.angular_z
+            elif kind is AppendJournal:
+                self.journals[effect.journal][robot].append(effect.record)
+            elif kind is StartJournal:
+                self.journals[effect.journal][robot] = list(effect.records)
+            elif kind is ReadJournals:
+                own, team = (JournalRecords(f"{journal.value} journal", f"<em-sim robot {robot}>",
+                                            None, list(self.journals[journal][robot]))
+                             for journal in (Journal.OWN, Journal.TEAM))
+                effects += self.sessions[robot].journals_read(own, team, 0.0, step)
         if twist is None:
             raise RuntimeError(f"robot {robot} did not answer step {step}")
         return twist
