@@ -29,9 +29,19 @@ em_activate() {
     export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
     # The distribution of the venv's ROS 2 wheels (ros2 doctor reports a missing one).
     export ROS_DISTRO=jazzy
-    # Writers' heartbeat every 100 ms instead of 3 s: see the file. A profile the caller
-    # chose is kept.
+    # Writers' heartbeat every 100 ms instead of 3 s, and sample buffers freed once taken:
+    # see the file, whose memory policy rmw_fastrtps takes only with
+    # RMW_FASTRTPS_USE_QOS_FROM_XML=1. A profile the caller chose is kept.
     export FASTRTPS_DEFAULT_PROFILES_FILE="${FASTRTPS_DEFAULT_PROFILES_FILE:-$EM_REPO_ROOT/config/fastdds_profiles.xml}"
+    export RMW_FASTRTPS_USE_QOS_FROM_XML="${RMW_FASTRTPS_USE_QOS_FROM_XML:-1}"
+    # glibc gives memory freed after a flood back to the system (docs/results.md "Memory
+    # under a flood"): two malloc arenas instead of 8 per core (the middleware's threads each
+    # kept freed buffers in their own), buffers of 128 kB and more always mapped apart (the
+    # default threshold rises to the largest buffer freed, up to 32 MB, after which such
+    # buffers stay in the heap) and the heap's free top returned above 128 kB.
+    export MALLOC_ARENA_MAX="${MALLOC_ARENA_MAX:-2}" \
+        MALLOC_MMAP_THRESHOLD_="${MALLOC_MMAP_THRESHOLD_:-131072}" \
+        MALLOC_TRIM_THRESHOLD_="${MALLOC_TRIM_THRESHOLD_:-131072}"
     unset PYTHONPATH PYTHONHOME LD_LIBRARY_PATH COLCON_PREFIX_PATH _ROS_WHEELS_BOOTSTRAP_COMPLETE
     # Planner plugins installed apart (pip install --target DIR; docs/plugins.md): the
     # folders of EM_PLUGIN_PATH (':'-separated) are the processes' PYTHONPATH.

@@ -61,6 +61,11 @@ def launcher_text(prefix: Path, python: Path, target: str) -> str:
             "# the team's Fast DDS profile (config/fastdds_profiles.xml) unless one is chosen\n"
             f"[ -n \"$FASTRTPS_DEFAULT_PROFILES_FILE\" ] || FASTRTPS_DEFAULT_PROFILES_FILE={profiles}\n"
             "export FASTRTPS_DEFAULT_PROFILES_FILE\n"
+            "# its memory policy taken, and freed memory given back (launch_scripts/_common.sh)\n"
+            ": \"${RMW_FASTRTPS_USE_QOS_FROM_XML:=1}\" \"${MALLOC_ARENA_MAX:=2}\" "
+            "\"${MALLOC_MMAP_THRESHOLD_:=131072}\" \"${MALLOC_TRIM_THRESHOLD_:=131072}\"\n"
+            "export RMW_FASTRTPS_USE_QOS_FROM_XML MALLOC_ARENA_MAX MALLOC_MMAP_THRESHOLD_ "
+            "MALLOC_TRIM_THRESHOLD_\n"
             "unset PYTHONPATH PYTHONHOME LD_LIBRARY_PATH COLCON_PREFIX_PATH "
             "_ROS_WHEELS_BOOTSTRAP_COMPLETE\n"
             f"exec {shlex.quote(str(python))} -c {shlex.quote(code)} \"$@\"\n")
