@@ -1,0 +1,104 @@
+"""Memory stays bounded under a flood (issue 40, point 6).
+
+em-fuzz floods the team updates of every robot (read by the robots and the evaluator, who
+deserialize each one; keep all before the fix; em-fuzz's are up to 250 kB; docs/results.md
+"Memory under a flood") at the highest rate it reaches, mid-run, for ``FLOOD_S`` wall
+seconds; the team runs on after it. At the run's end every process's VmRSS is within
+``END_MARGIN_MB`` of the same run's without the flood: every reader's and writer's queue is
+bounded (nodes/qos.py), the middleware frees each sample's buffer once it is taken
+(config/fastdds_profiles.xml) and glibc gives the freed memory back
+(launch_scripts/_common.sh). The targets may differ: a flood this fast pushes teammates'
+records out of the bounded queues, and one asked for again can come after the barrier's
+timeout (as it could before, behind thousands of queued ones).
+"""
+from __future__ import annotations
+
+import json
+import re
+import sys
+import time
+from pathlib import Path
+
+from ros_process import NodeProcess, start_team_run
+from test_fuzz import RUN_PROCESSES, MemoryWatch
+
+#: Bound of one team run [s]; the flood's length [s] and rate [messages/s] (more than em-fuzz
+#: reaches on this machine: it sends as fast as it can).
+RUN_TIMEOUT_S = 240.0
+FLOOD_S = 6.0
+FLOOD_RATE_HZ = 5000.0
+FLOODED_TOPICS = [f"/robot_{r}/team/updates" for r in range(3)]
+#: Memory a process may hold at the run's end over the same run without the flood [MB].
+END_MARGIN_MB = 30.0
+#: Simulated seconds the flooded team must run on after the flood, for the memory to come back.
+RUN_ON_AFTER_S = 20.0
+TEAM = ("--robots", "3", "--map-size", "60", "--landmarks", "6", "--seed", "2",
+        "--planner", "CE", "--until-explored", "0.9", "--max-sim-time", "600")
+
+
+def sim_time_s(output: str) -> float:
+    """The latest simulated time of the run's progress lines [s] (0 before any)."""
+    times = re.findall(r"t=\s*([0-9.]+) s", output)
+    return float(times[-1]) if times else 0.0
+
+
+def run(tmp_path: Path, name: str, flood: bool) -> dict:
+    """One team run, flooded or not: each process's last VmRSS [MB] before it exited, the
+    fuzzer's report and the simulated times the flood ended and the run ended at."""
+    summary_path = tmp_path / name / "summary.json"
+    team, domain = start_team_run(tmp_path / name, *TEAM, "--summary", str(summary_path))
+    memory, last_mb = MemoryWatch(domain), {}
+    report, flood_end_s = None, 0.0
+
+    def sample() -> None:
+        last_mb.update(memory.sample())
+        time.sleep(0.2)
+
+    with team:
+        if flood:
+            report_path, go_file = tmp_path / name / "fuzz.json", tmp_path / name / "fuzz.go"
+            fuzzer = NodeProcess([sys.executable, "-m", "em_exploration_ros.tools.fuzz",
+                                  "--topics", *FLOODED_TOPICS, "--duration", str(FLOOD_S),
+                                  "--rate", str(FLOOD_RATE_HZ), "--seed", "1",
+                                  "--report", str(report_path), "--start-file", str(go_file),
+                                  "--start-timeout", str(RUN_TIMEOUT_S)],
+                                 tmp_path / name / "fuzz.out")
+            with fuzzer:
+                started = time.monotonic()
+                while sim_time_s(team.output()) < 20.0 and team.running():
+                    assert time.monotonic() - started < RUN_TIMEOUT_S, team.output()[-3000:]
+                    sample()
+                go_file.touch()
+                while fuzzer.running():
+                    sample()
+                assert fuzzer.wait(10.0) == 0, fuzzer.output()[-3000:]
+            flood_end_s = sim_time_s(team.output())
+            report = json.loads(report_path.read_text())
+        deadline = time.monotonic() + RUN_TIMEOUT_S
+        while team.running() and time.monotonic() < deadline:
+            sample()
+        code = team.wait(10.0)
+    output = team.output()
+    assert code == 0, output[-3000:]
+    summary = json.loads(summary_path.read_text())
+    return dict(last_mb=last_mb, report=report, flood_end_s=flood_end_s,
+                end_s=summary["sim_time_s"])
+
+
+def test_memory_comes_back_after_a_flood_of_team_updates(tmp_path):
+    clean = run(tmp_path, "clean", flood=False)
+    flooded = run(tmp_path, "flooded", flood=True)
+
+    sent = flooded["report"]["messages"]
+    assert set(flooded["report"]["topics"]) == set(FLOODED_TOPICS)
+    assert flooded["end_s"] >= flooded["flood_end_s"] + RUN_ON_AFTER_S, (
+        "the team ended too soon after the flood", flooded["flood_end_s"], flooded["end_s"])
+    assert set(flooded["last_mb"]) == set(clean["last_mb"]) == RUN_PROCESSES
+    print(f"\nflood: {sent} messages in {FLOOD_S:g} s on {', '.join(FLOODED_TOPICS)}, "
+          f"ended at t = {flooded['flood_end_s']:.0f} s of {flooded['end_s']:.0f} s")
+    for name in sorted(clean["last_mb"]):
+        print(f"{name}: VmRSS at the end {clean['last_mb'][name]:.0f} MB clean, "
+              f"{flooded['last_mb'][name]:.0f} MB flooded")
+    for name, end_mb in flooded["last_mb"].items():
+        assert end_mb <= clean["last_mb"][name] + END_MARGIN_MB, (name, end_mb,
+                                                                 clean["last_mb"])
