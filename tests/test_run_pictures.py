@@ -12,9 +12,10 @@ from matplotlib.patches import Circle
 from PIL import Image
 
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, landmark_truth
-from em_exploration_ros.core.evaluation.map_layers import (TeamMapLayers, UncertaintyEllipses,
-                                                           evaluation_layers, fused_ellipses)
+from em_exploration_ros.core.evaluation.map_layers import (TeamMapLayers, evaluation_layers,
+                                                           fused_ellipses)
 from em_exploration_ros.core.evaluation.map_render import Z, team_map_figure
+from em_exploration_ros.core.virtual_map.ellipses import UncertaintyEllipses
 from em_exploration_ros.core.evaluation.rendezvous_stats import RendezvousOutcome
 from em_exploration_ros.core.evaluation.run_animation import FrameRecorder, render_animation
 from em_exploration_ros.core.evaluation.run_timeline import timeline_figure

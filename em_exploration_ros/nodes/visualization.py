@@ -13,9 +13,9 @@ from nav_msgs.msg import OccupancyGrid
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from em_exploration_ros.core.evaluation.map_layers import covariance_ellipses
 from em_exploration_ros.core.planning.frontiers import Frontier
 from em_exploration_ros.core.records.team_data import FrontierType
+from em_exploration_ros.core.virtual_map.ellipses import covariance_ellipses
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid as CoreGrid
 from em_exploration_ros.nodes.conversions import MAP_FRAME, seconds_to_time, yaw_to_quaternion
 
@@ -53,7 +53,7 @@ def _marker(namespace: str, marker_id: int, marker_type: int, stamp_s: float,
 
 def ellipse_markers(centres: np.ndarray, covariances: np.ndarray, stamp_s: float) -> list[Marker]:
     """Flat cylinders, one per cell: ``centres`` (K, 2) [m], ``covariances`` (K, 2, 2) [m^2],
-    at ``map_layers.ELLIPSE_SIGMAS`` (``covariance_ellipses``, as the team map picture)."""
+    at ``ellipses.ELLIPSE_SIGMAS`` (``covariance_ellipses``, as the team map picture)."""
     markers = []
     ellipses = covariance_ellipses(centres, covariances)
     for index, (centre, (major, minor), angle) in enumerate(zip(ellipses.centres, ellipses.axes,

@@ -49,7 +49,7 @@ from visualization_msgs.msg import Marker
 
 from em_exploration_ros.bag_format.bag_reader import BagError, BagScanner, ChannelInfo, SchemaInfo
 from em_exploration_ros.bag_format.mcap_ros2_schema import same_layout
-from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, UncertaintyEllipses
+from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers
 from em_exploration_ros.core.evaluation.map_render import drawable_layers, render_team_map
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
 from em_exploration_ros.core.evaluation.run_animation import render_animation
@@ -58,6 +58,7 @@ from em_exploration_ros.core.params import MapParams
 from em_exploration_ros.core.records.team_data import (FrontierType, InvalidTeamUpdate,
                                                        RendezvousEvent)
 from em_exploration_ros.core.records.wire_model import nanoseconds_to_seconds
+from em_exploration_ros.core.virtual_map.ellipses import UncertaintyEllipses
 from em_exploration_ros.nodes.conversions import (landmark_positions_from_msg, odometry_pose,
                                                   path_from_msg, quaternion_to_yaw,
                                                   rendezvous_from_msg)

@@ -30,26 +30,9 @@ from em_exploration_ros.core.evaluation.rendezvous_stats import RendezvousOutcom
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, TargetEntry
 from em_exploration_ros.core.params import MapParams, SensorParams
 from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariances_from_poses
+from em_exploration_ros.core.virtual_map.ellipses import UncertaintyEllipses, covariance_ellipses
 from em_exploration_ros.core.virtual_map.occupancy import GridGeometry
 
-#: Ellipses are stored at this many standard deviations (as the robots' markers).
-ELLIPSE_SIGMAS = 3.0
-
-
-@dataclass(frozen=True)
-class UncertaintyEllipses:
-    """Virtual-map cell uncertainty ellipses: ``centres`` (K, 2) [m]; ``axes`` (K, 2) full
-    lengths (major, minor) [m] at ``ELLIPSE_SIGMAS`` standard deviations; ``angles`` (K,)
-    [rad] of the major axis from map x."""
-
-    centres: np.ndarray
-    axes: np.ndarray
-    angles: np.ndarray
-
-    @property
-    def count(self) -> int:
-        """Number of ellipses."""
-        return len(self.centres)
 
 
 @dataclass(frozen=True)
@@ -78,16 +61,6 @@ class TeamMapLayers:
     given_up: Mapping[int, Sequence[GivenUpEntry]] = field(default_factory=dict)
     team_uncertainty: UncertaintyEllipses | None = None
     title: str = ""
-
-
-def covariance_ellipses(centres: np.ndarray, covariances: np.ndarray) -> UncertaintyEllipses:
-    """Ellipses of 2x2 covariances ``(K, 2, 2)`` [m^2] centred at ``centres`` (K, 2) [m],
-    at ``ELLIPSE_SIGMAS``."""
-    covariances = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
-    eigenvalues, eigenvectors = np.linalg.eigh(covariances)
-    axes = ELLIPSE_SIGMAS * 2.0 * np.sqrt(np.clip(eigenvalues[:, ::-1], 0.0, None))
-    angles = np.arctan2(eigenvectors[:, 1, 1], eigenvectors[:, 0, 1])
-    return UncertaintyEllipses(np.asarray(centres, dtype=float).reshape(-1, 2), axes, angles)
 
 
 def team_virtual_map(geometry: GridGeometry, poses: Mapping[int, np.ndarray],

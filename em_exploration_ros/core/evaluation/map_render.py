@@ -45,9 +45,9 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Ellipse
 from matplotlib.transforms import Bbox
 
-from em_exploration_ros.core.evaluation.map_layers import (ELLIPSE_SIGMAS, TeamMapLayers,
-                                                           UncertaintyEllipses, fused_ellipses)
+from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, fused_ellipses
 from em_exploration_ros.core.evaluation.summary import TARGET_TYPES
+from em_exploration_ros.core.virtual_map.ellipses import ELLIPSE_SIGMAS, UncertaintyEllipses
 
 #: Marker of each target type.
 TARGET_MARKERS = {"exploration": "^", "revisiting": "s", "rendezvous": "*"}
