@@ -11,6 +11,7 @@ prediction (``ScanPrediction``) and turns the answers into graph landmarks.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -26,6 +27,7 @@ FloatArray = NDArray[np.float64]
 Pairing = int | None
 
 
+@functools.lru_cache(maxsize=256)
 def chi2_quantile(dof: int, probability: float) -> float:
     """The ``probability`` quantile of the chi-square distribution with an even number
     ``dof`` of degrees of freedom (every innovation here has two per detection), by

@@ -85,6 +85,8 @@ class OwnLandmarks:
         self._last_seen: dict[int, int] = {}
         #: Accepted correspondences with each teammate: (own id, teammate's id).
         self._held: dict[int, list[tuple[int, int]]] = {}
+        #: Landmarks in the graph at the last :meth:`match_teammates` that looked.
+        self._landmarks_matched = 0
 
     @property
     def num_tentative(self) -> int:
@@ -208,8 +210,12 @@ class OwnLandmarks:
         offsets agree (``pairwise_consistency``: the common offset cancels). With each
         teammate, the candidates consistent with every correspondence it holds, and the
         largest set of them consistent with each other, are accepted (at least
-        ``FIRST_CORRESPONDENCES`` when it holds none)."""
+        ``FIRST_CORRESPONDENCES`` when it holds none). It looks again only once the graph
+        holds more landmarks than when it last looked."""
         estimates = self._slam.landmark_estimates()
+        if len(estimates) == self._landmarks_matched:
+            return []
+        self._landmarks_matched = len(estimates)
         by_owner: dict[int, dict[int, np.ndarray]] = {}
         for landmark_id, point in estimates.items():
             owner = landmark_owner(landmark_id)
