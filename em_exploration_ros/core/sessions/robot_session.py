@@ -50,6 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from em_exploration_ros.core.agent.clock_watch import ClockWatch
 from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, RejectionLog,
                                                         barrier_problem,
                                                         history_request_problem,
@@ -166,6 +167,7 @@ class RobotSession:
         self._last_request = 0.0
         self._barrier: dict[int, int] = {}
         self._world_watch = WorldWatch(settings.world_lost_timeout_s)
+        self._clock = ClockWatch()  # the world's steps (from the first scan on)
         self._next_world_check_s = 0.0
         self._recorder_wait_since: float | None = None
         self._recorder_listens = not settings.wait_for_recorder
@@ -236,6 +238,7 @@ class RobotSession:
         self._scans[scan.step] = scan
         self._drop_stale_while_recovering(scan.step)
         self._world_heard(now_s)
+        self._step_seen(scan.step, now_s)
         return self._process(now_s, world_step)
 
     def odometry(self, step: int, odometry: OdometryInput, now_s: float,
@@ -365,6 +368,7 @@ class RobotSession:
         if world_present is not None:
             self._next_world_check_s = now_s + 1.0
             self._world_event(self._world_watch.update(world_present, now_s))
+        self._watch_the_clock(world_step, now_s)
         if self._recorder_wait_since is not None and not self._recorder_listens:
             self._process(now_s, world_step, take=False)
         elif self._next_step is not None and any(step > self._next_step
@@ -684,6 +688,48 @@ class RobotSession:
             self._out.append(error(f"the world has been gone for {timeout:g} s; exiting "
                                    f"(code {EXIT_WORLD_GONE})"))
             self._out.append(Exit(EXIT_WORLD_GONE))
+
+    def _step_seen(self, step: int, now_s: float) -> None:
+        """A step of the world seen (a scan, or /clock once a scan came): say so when the
+        world's steps come again after ``ClockWatch`` said they stopped."""
+        stood_s = self._clock.seen(step, now_s)
+        if stood_s is not None:
+            self._out.append(info(f"the world's steps come again: step {step} after "
+                                  f"{stood_s:.1f} s without a new one"))
+
+    def _watch_the_clock(self, world_step: int, now_s: float) -> None:
+        """Warn when no new step came from the world for ``CLOCK_STOPPED_S`` wall seconds
+        (then every ``CLOCK_STOPPED_REPEAT_S``) while the run is not over, saying what this
+        robot knows of who holds the step (in lockstep the world waits for every answer)."""
+        if self._clock.step is None:
+            return  # not started: the world waits for its team
+        self._step_seen(world_step, now_s)
+        if self._run_over():
+            return
+        stood_s = self._clock.stopped(now_s)
+        if stood_s is None:
+            return
+        step = self._clock.step
+        if self._recovery is not None:
+            known = "this robot recovers its stream after a restart"
+        elif self._waiting_since is not None:
+            known = (f"this robot waits for teammates' records before it answers step "
+                     f"{self._next_step}")
+        elif self._last_reply is not None and self._last_reply.step == step:
+            known = "this robot answered it"
+        else:
+            known = "this robot has not answered it"
+        self._out.append(warn(f"no new step from the world for {stood_s:.1f} s (last step "
+                              f"{step}; {known})"))
+
+    def _run_over(self) -> bool:
+        """True once no further step is due: the run's last step processed, or this robot
+        and every teammate finished (the world then stops stepping)."""
+        if self._next_step is not None and self._next_step > self.params.run.max_steps:
+            return True
+        agent = self.agent
+        return (agent is not None and agent.finished
+                and len(agent.finished_teammates) >= self.num_robots - 1)
 
     # -- rejoin --------------------------------------------------------------------------
 

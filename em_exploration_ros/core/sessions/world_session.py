@@ -63,6 +63,8 @@ from em_exploration_ros.core.world.simulation import WorldSimulation
 
 #: A progress line every this many steps.
 LOG_EVERY_STEPS = 500
+#: Wall seconds [s] between two lines about the robots the world steps without.
+ABSENT_LINE_PERIOD_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -111,6 +113,9 @@ class WorldSession:
         self._ready_since_s: float | None = None
         self._frames_wait_since_s: float | None = None
         self._team_lost_since_s: float | None = None
+        self._absent: tuple[int, ...] = ()  # robots the last step was taken without
+        self._absent_steps = 0
+        self._absent_line_s = 0.0
 
     def greeting(self) -> LogLine:
         """The line of a world ready to start."""
@@ -334,8 +339,40 @@ class WorldSession:
                and self._relay_heard_step(now_s, effects)
                and self._lost_team_waited_for(now_s, effects)):
             answers = self.barrier.close()
+            effects.extend(self._note_absent(now_s))
             effects.extend(self._advance(answers, self.barrier.all_done, now_s))
         return effects
+
+    def _note_absent(self, now_s: float) -> list[LogLine]:
+        """Lockstep, at the close of a step: name the unfinished robots it is taken without
+        (lost, or restarting, not answering): a line when that set changes, then one every
+        ``ABSENT_LINE_PERIOD_S`` wall seconds with the count of steps taken without them.
+        INFO: the robot's loss is the WARN line (``_lost``); these say what the world did."""
+        barrier, step = self.barrier, self.barrier.step
+        absent = tuple(r for r in range(self.num_robots)
+                       if r in barrier.stopped and not barrier.finished[r])
+        names = ", ".join(f"{r}" + (" (restarting)" if r in barrier.rejoining else "")
+                          for r in absent)
+        if absent != self._absent:
+            before, count = self._absent, self._absent_steps
+            self._absent, self._absent_steps = absent, int(bool(absent))
+            self._absent_line_s = now_s + ABSENT_LINE_PERIOD_S
+            lines = []
+            if before:
+                lines.append(info(f"step {step}: {count} steps were taken without robots "
+                                  f"{', '.join(map(str, before))}"))
+            if absent:
+                lines.append(info(f"step {step} taken without robots {names}: not answering, "
+                                  f"their vehicles stand still"))
+            return lines
+        if not absent:
+            return []
+        self._absent_steps += 1
+        if now_s < self._absent_line_s:
+            return []
+        self._absent_line_s = now_s + ABSENT_LINE_PERIOD_S
+        return [info(f"step {step} taken without robots {names}: {self._absent_steps} steps "
+                     f"without them so far")]
 
     def _lost_team_waited_for(self, now_s: float, effects: list[Any]) -> bool:
         """False while the world still waits for a team whose every unfinished robot is lost
