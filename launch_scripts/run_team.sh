@@ -9,7 +9,8 @@
 # Run with --help for the options. Exit code: the evaluator's (0 done, 3 the robots or the world
 # stopped publishing, 4 stalled: the team neither travelled nor explored new area for
 # run.stall_timeout_s, 5 every live robot finished below the explored goal while other robots
-# were lost), 1 if a process failed, 2 for bad arguments, 130 on Ctrl-C, 143 on SIGTERM,
+# were lost), 7 the evaluator died before the run ended (its summary so far is kept), 1 if a
+# process failed, 2 for bad arguments, 130 on Ctrl-C, 143 on SIGTERM,
 # 129 on SIGHUP (the terminal closed, the SSH connection lost).
 #
 # Environment: EM_EVALUATOR_END_GRACE_S (default 60) wall seconds the evaluator has, after the
@@ -57,8 +58,9 @@ Exit code: 0 done, 3 the world or the robots stopped publishing, 4 stalled (no t
 progress for run.stall_timeout_s), 5 robots lost (every live robot finished below the
 explored goal), 6 done but the recording (--record) is incomplete (em-record stopped
 early, e.g. on a full disk: the bag holds the run up to then, and the summary's
-"recording" says why), 1 a process failed, 2 bad arguments, 130 Ctrl-C,
-143 SIGTERM, 129 SIGHUP (terminal closed).
+"recording" says why), 7 the evaluator died before the run ended (the team is stopped;
+the summary so far is kept, stop reason "evaluator lost: ..."), 1 a process failed,
+2 bad arguments, 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP (terminal closed).
 
 options:
   --robots N              number of robots, 1..26 (file default: 3)
@@ -616,7 +618,7 @@ TAIL_PID=$!
 # The Foxglove bridge is only a viewer, and the recorder only records: the team goes on
 # without either (a recorder that stopped early is reported: exit code 6 and the summary's
 # "recording"). The world dying ends the run.
-FAILED="" RECORDING_PROBLEM=""
+FAILED="" RECORDING_PROBLEM="" EVALUATOR_LOST=""
 # The world's log line when it steps over for good, and when this script saw it [s].
 STEPPED_OVER_LINE="stepping over at step" STEPPED_OVER_AT=""
 declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=() SEEN_BEFORE=() REJOINED_BEFORE=()
@@ -744,13 +746,21 @@ if [[ -z $FAILED ]]; then
     wait "$TAIL_PID" 2>/dev/null
     # 0 done, 3 the world or the robots stopped publishing, 4 stalled, 5 every live robot
     # finished below the goal while robots were lost: the run's outcomes.
-    [[ $CODE == [0345] ]] \
-        || FAILED="the evaluator $(exit_status_text "$CODE") (see $LOG_DIR/evaluator.log)"
+    if [[ $CODE != [0345] ]]; then
+        FAILED="the evaluator $(exit_status_text "$CODE") (see $LOG_DIR/evaluator.log)"
+        # While the run goes on, em-evaluator keeps the summary so far (stop reason
+        # "evaluator lost: ..."); it is what is left of a run whose evaluator died (exit 7).
+        if grep -q '"stop_reason": "evaluator lost: ' "$SUMMARY" 2>/dev/null; then
+            FAILED+="; the team is stopped and the summary so far kept"
+            EVALUATOR_LOST=1
+        fi
+    fi
 fi
 arm_kill_all_now
 if [[ -n $FAILED ]]; then
     echo "$PROG: error: $FAILED" >&2
     CODE=1
+    [[ -n $EVALUATOR_LOST ]] && CODE=7
 fi
 stop_all
 if [[ -n $RECORD && -f $SUMMARY ]]; then

@@ -15,16 +15,19 @@ import numpy as np
 from summary_keys import key_paths
 
 from em_exploration_ros.core.evaluation.run_monitor import EXIT_ROBOTS_LOST
-from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry
+from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, check_summary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.records.team_data import (FrontierType, MissingRange,
                                                      TargetRecord, TeamUpdate)
 from em_exploration_ros.core.records.wire_model import seconds_to_nanoseconds, sim_time_s
 from em_exploration_ros.core.sessions.effects import Dropped, LogLine
-from em_exploration_ros.core.sessions.evaluator_session import (EXIT_SILENCE, CommandReport,
+from em_exploration_ros.core.sessions.evaluator_session import (EVALUATOR_LOST_PREFIX,
+                                                                EXIT_SILENCE,
+                                                                SO_FAR_INTERVAL_S, CommandReport,
                                                                 EvaluatorSession, Finished,
-                                                                PublishMetrics, RequestUpdates)
+                                                                KeepSoFar, PublishMetrics,
+                                                                RequestUpdates)
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
 
 PARAMS = ExplorationParams().replace(
@@ -193,6 +196,35 @@ def test_the_worlds_silence_ends_the_run_with_exit_3_and_the_summary_so_far():
     summary = finished[0].summary
     assert summary.stop_reason == "no ground truth for 60 s (world or robots stopped)"
     assert summary.sim_time_s == sim_time_s(2, STEP_S)  # the last complete step, evaluated
+
+
+def test_the_summary_so_far_is_kept_at_evaluations_every_few_wall_seconds():
+    """What an evaluator killed mid-run leaves (issue 40, point 3): the summary of its latest
+    evaluations, marked "evaluator lost: ...", at most every SO_FAR_INTERVAL_S wall seconds;
+    em-sim's observer (``keep_so_far`` False) keeps none."""
+    session = EvaluatorSession(PARAMS, SETTINGS, 0.0, 3.0, WORLD_NODE, keep_so_far=True)
+    session.true_landmarks([7, 3], np.array([[10.0, 10.0], [30.0, 30.0]]), 0.5, 0.0)
+    kept, published = [], []
+    for step in range(13):
+        wall_s = 0.15 * step * SO_FAR_INTERVAL_S  # evaluations at steps 4, 8, 12
+        effects = truth(session, step, wall_s)
+        if step % KEYFRAME_STEPS == 0:
+            effects += estimates(session, step, wall_s)
+        kept += of(effects, KeepSoFar)
+        published += of(effects, PublishMetrics)
+    assert len(published) == 3
+    # The first evaluation (at 0.6 intervals of wall time) and the third (1.8) are kept.
+    assert [k.summary.sim_time_s for k in kept] == [sim_time_s(4, STEP_S),
+                                                    sim_time_s(12, STEP_S)]
+    latest = kept[-1].summary
+    assert latest.stop_reason == (f"{EVALUATOR_LOST_PREFIX}the run so far, to t = "
+                                  f"{sim_time_s(12, STEP_S):g} s (the evaluator ended before "
+                                  f"the run)")
+    assert len(latest.history) == 3 and check_summary(latest.to_dict()) == []
+    assert session.exit_code is None and not session.monitor.stop_reason
+    without = started()
+    for step in range(5):
+        assert of(truth(without, step) + estimates(without, 0), KeepSoFar) == []
 
 
 def test_a_world_that_stepped_over_ends_the_run_once_only_it_says_so():

@@ -474,10 +474,22 @@ def test_a_stopped_evaluator_fails_the_run_once_the_world_has_stepped_over(tmp_p
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
 
 
-def test_a_killed_evaluator_fails_the_run_with_a_message(tmp_path):
-    """The evaluator SIGKILLed: exit code 1 (a process failed) and an error line naming it and
-    the signal, not its raw status 137 without a word."""
+def test_a_killed_evaluator_stops_the_run_and_keeps_the_summary_so_far(tmp_path):
+    """The evaluator SIGKILLed: an error line naming it and the signal, not its raw status
+    137 without a word; the team is stopped and exit code 7 (issue 40, point 3: it used to
+    be 1 with no summary at all). The summary so far, kept by the evaluator while the run
+    went on, is left: valid, with the run up to the evaluator's last evaluations."""
     code, output, domain = _run_with_the_evaluator_signalled(tmp_path, signal.SIGKILL)
-    assert code == 1, output[-3000:]
-    assert "error: the evaluator exited with code 137 (signal KILL)" in output
+    assert code == 7, output[-3000:]
+    assert ("error: the evaluator exited with code 137 (signal KILL) (see "
+            in output), output[-3000:]
+    assert "; the team is stopped and the summary so far kept" in output
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert check_summary(summary) == []
+    assert summary["stop_reason"] == (f"evaluator lost: the run so far, to t = "
+                                      f"{summary['sim_time_s']:g} s (the evaluator ended "
+                                      f"before the run)")
+    assert summary["sim_time_s"] > 0.0 and summary["history"]
+    assert summary["history"][-1]["explored_ratio"] == summary["explored_ratio"] > 0.0
+    assert f"summary: {tmp_path / 'summary.json'}" in output

@@ -9,8 +9,8 @@ the ground truth (``/world/ground_truth/robot_i``, ``/world/landmarks``, ``/worl
 ``/robot_i/motion_command``, its liveliness), checks each message's header and numbers,
 hands it to the session as core values (wall times from the steady clock), and performs the
 effects: ``/evaluation/metrics``, ``/team/update_requests`` (it never publishes anything a
-robot uses for its estimates or decisions), log lines, the summary JSON and the final map
-PNG, the exit code.
+robot uses for its estimates or decisions), log lines, the summary JSON (the summary so far
+while the run goes on, ``KeepSoFar``) and the final map PNG, the exit code.
 
 Run (with the simulation clock): ``python -m em_exploration_ros.nodes.evaluator_node
 --ros-args -p use_sim_time:=true -p summary_path:=runs/x/summary.json``
@@ -33,17 +33,19 @@ from std_msgs.msg import Header
 from em_exploration_ros.core.agent.input_checks import frame_problem, size_problem
 from em_exploration_ros.core.evaluation.map_render import render_team_map
 from em_exploration_ros.core.links.link_model import perfect_links
+from em_exploration_ros.core.evaluation.summary import RunSummary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
-from em_exploration_ros.core.output_paths import output_path_problem
+from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
 from em_exploration_ros.core.records.team_data import (MAX_LANDMARKS_PER_UPDATE,
                                                      InvalidTeamUpdate, LandmarkEstimate)
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.records.wire_model import sim_time_s
-from em_exploration_ros.core.sessions.effects import Dropped, LogLine
+from em_exploration_ros.core.sessions.effects import Dropped, LogLine, warn
 from em_exploration_ros.core.sessions.evaluator_session import (EXIT_INTERRUPTED,
                                                                 CommandReport, Effect,
                                                                 EvaluatorSession, Finished,
-                                                                PublishMetrics, RequestUpdates)
+                                                                KeepSoFar, PublishMetrics,
+                                                                RequestUpdates)
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_NODE_NAME,
                                                   WORLD_STATUS_TOPIC, given_up_from_msg,
                                                   landmark_array_to_msg,
@@ -114,7 +116,8 @@ class EvaluatorNode(LeanNode):
         refuse_unknown_overrides(self)
         self.num_robots = self.params.world.num_robots
         self.session = EvaluatorSession(self.params, settings, time.monotonic(),
-                                        LIVELINESS_LEASE_S, WORLD_NODE_NAME)
+                                        LIVELINESS_LEASE_S, WORLD_NODE_NAME,
+                                        keep_so_far=True)
         self.done = Future()
         self._lines = LineWriter(self)
         self._create_interfaces()
@@ -288,6 +291,8 @@ class EvaluatorNode(LeanNode):
                                                 last_sequence=gap.last_sequence)
                     request.header.stamp = self.get_clock().now().to_msg()
                     publish_or_log(self.request_pub, request, self, "a request for updates")
+            elif isinstance(effect, KeepSoFar):
+                self._keep_so_far(effect)
             elif isinstance(effect, Finished):
                 self._write(effect)
 
@@ -302,9 +307,25 @@ class EvaluatorNode(LeanNode):
         message.header.frame_id = WORLD_FRAME
         self.metrics_pub.publish(message)
 
+    def _replace_summary(self, summary: RunSummary) -> None:
+        """Write ``summary`` over the summary file at once (renamed over it: a process killed
+        meanwhile leaves the previous one whole)."""
+        self.summary_path.parent.mkdir(parents=True, exist_ok=True)
+        write_replacing(self.summary_path, summary.write)
+
+    def _keep_so_far(self, effect: KeepSoFar) -> None:
+        """The summary so far replaces the summary file (a full disk: the previous one is
+        kept, and said at most every few seconds)."""
+        try:
+            self._replace_summary(effect.summary)
+        except OSError as error:
+            self._lines.write(warn(f"could not keep the summary so far: {error}",
+                                   "summary so far"))
+
     def _write(self, finished: Finished) -> None:
-        """The summary JSON and the map PNG; then ``done`` completes."""
-        finished.summary.write(self.summary_path)
+        """The summary JSON (replacing the summary so far) and the map PNG; then ``done``
+        completes."""
+        self._replace_summary(finished.summary)
         log = self.get_logger()
         log.info(f"summary: {self.summary_path}")
         if self.session.evaluator is not None:

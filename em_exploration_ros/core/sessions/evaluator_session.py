@@ -47,6 +47,11 @@ step. The run ends (``Finished``: the driver writes the summary JSON and the fin
 - the team neither travelled nor explored new area for ``run.stall_timeout_s`` of
   simulation time: stop reason "stalled: ...", exit code 4 (``EXIT_STALLED``).
 
+While the run goes on, em-evaluator keeps the summary so far on disk (``KeepSoFar``, at
+evaluations, at most every ``SO_FAR_INTERVAL_S`` wall seconds), its stop reason starting with
+``EVALUATOR_LOST_PREFIX``: an evaluator killed before the run ended (SIGKILL, a crash) leaves
+the run up to its last evaluations, not nothing (run_team.sh exits 7 then).
+
 Each robot's motion command carries its own progress bookkeeping (``CommandReport``): the
 time its odometry showed it blocked so far, the targets it gave up and the meetings it
 requested that added an inter-robot factor (``MeetingEntry``) at that step, and how many of
@@ -99,6 +104,12 @@ EXIT_INTERRUPTED = 130
 _LINK_COUNTS_KEPT = 100
 #: Throttle key of the warning about an untrusted world status.
 _UNTRUSTED_STATUS_KEY = "untrusted world status"
+#: Stop reason's start of the summary so far (``KeepSoFar``): what is left on disk when the
+#: evaluator dies before the run ended.
+EVALUATOR_LOST_PREFIX = "evaluator lost: "
+#: Wall seconds [s] at least between two summaries so far (written at evaluations: each one
+#: holds the whole history, so a long run must not write one per evaluation).
+SO_FAR_INTERVAL_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -125,7 +136,17 @@ class Finished:
     exit_code: int
 
 
-Effect = Union[Dropped, PublishMetrics, RequestUpdates, Finished, LogLine]
+@dataclass(frozen=True)
+class KeepSoFar:
+    """Replace the summary file with ``summary``, the run so far, whose stop reason starts
+    with ``EVALUATOR_LOST_PREFIX`` (the final summary replaces it; it stays when the
+    evaluator dies before the run ended). Replaced atomically: a process killed while it
+    writes leaves the previous one."""
+
+    summary: RunSummary
+
+
+Effect = Union[Dropped, PublishMetrics, RequestUpdates, Finished, KeepSoFar, LogLine]
 
 
 @dataclass(frozen=True)
@@ -190,10 +211,11 @@ class EvaluatorSession:
 
     def __init__(self, params: ExplorationParams, settings: EvaluatorNodeSettings,
                  started_wall_s: float, liveliness_lease_s: float,
-                 world_node_name: str = "") -> None:
+                 world_node_name: str = "", keep_so_far: bool = False) -> None:
         """Args: the run's parameters; the observer's settings; the wall time [s] it
         started at; the lease [s] of the robots' liveliness; the name of the node that alone
-        may publish the world's status."""
+        may publish the world's status; whether to keep the summary so far on disk
+        (``KeepSoFar`` at evaluations, at most every ``SO_FAR_INTERVAL_S`` wall seconds)."""
         self.params = params
         self.settings = settings
         self.num_robots = params.world.num_robots
@@ -233,6 +255,8 @@ class EvaluatorSession:
         self._unseen = UnseenLiveliness(self.num_robots, liveliness_lease_s)
         #: (step, reason) once the world said it stepped over.
         self._world_over: tuple[int, str] | None = None
+        #: Wall time [s] of the next summary so far (never without ``keep_so_far``).
+        self._next_so_far_wall_s = -math.inf if keep_so_far else math.inf
 
     @property
     def max_keyframes(self) -> int:
@@ -579,9 +603,14 @@ class EvaluatorSession:
                     f"for again until they publish)"))
             self._pending = None
             metrics, more = self._evaluate(step)
+            stopped = self.monitor.observe(step, metrics, self._finished_by(step),
+                                           self._lost_unfinished())
+            if not stopped and wall_s >= self._next_so_far_wall_s:
+                self._next_so_far_wall_s = wall_s + SO_FAR_INTERVAL_S
+                # Before the progress line: what the log showed is on disk.
+                effects.append(KeepSoFar(self._summary_so_far(wall_s)))
             effects += more
-            if self.monitor.observe(step, metrics, self._finished_by(step),
-                                    self._lost_unfinished()):
+            if stopped:
                 effects += self._stopping(wall_s)
         return effects
 
@@ -798,6 +827,14 @@ class EvaluatorSession:
             entry.downtime_s, entry.downtime_wall_s = self.liveness.downtime_s(entry.id,
                                                                                *until_s)
         return summary, notes
+
+    def _summary_so_far(self, wall_s: float) -> RunSummary:
+        """The summary as of the latest evaluation, its stop reason saying that the run went
+        on (``KeepSoFar``); what it lacks is not logged (the final summary says it)."""
+        summary = self._summary(wall_s)[0]
+        summary.stop_reason = (f"{EVALUATOR_LOST_PREFIX}the run so far, to t = "
+                               f"{summary.sim_time_s:g} s (the evaluator ended before the run)")
+        return summary
 
     def _progress(self) -> tuple[list[RobotProgressRecord] | None, list[Effect]]:
         """Each robot's progress bookkeeping as of the step before the final evaluation
