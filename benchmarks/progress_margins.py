@@ -55,11 +55,9 @@ class _RecordingMonitor(ProgressMonitor):
 def _recording_runner(params: ExplorationParams) -> tuple[TeamRunner, list[_RecordingMonitor]]:
     """em-sim's engine whose agents judge progress with recording monitors (one per robot,
     in robot order)."""
-    runner = TeamRunner(params)
-    anchor = runner.simulation.world.start_poses[0]
-    monitors = [_RecordingMonitor(params.progress) for _ in runner.agents]
-    runner.agents = [RobotAgent(robot, params, anchor, progress_monitor=monitor)
-                     for robot, monitor in enumerate(monitors)]
+    monitors = [_RecordingMonitor(params.progress) for _ in range(params.world.num_robots)]
+    runner = TeamRunner(params, make_agent=lambda robot, params, anchor: RobotAgent(
+        robot, params, anchor, progress_monitor=monitors[robot]))
     return runner, monitors
 
 

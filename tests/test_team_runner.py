@@ -10,6 +10,8 @@ from em_exploration_ros.core.agent.robot_agent import RobotAgent
 from em_exploration_ros.core.evaluation.summary import check_summary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
+from em_exploration_ros.core.slam.team_slam import TeamSlam
+from em_exploration_ros.core.world.simulation import WorldSimulation
 
 SMALL = dict(world={"width_m": 50.0, "height_m": 50.0, "num_landmarks": 5},
              run={"seed": 3, "max_steps": 1500})
@@ -95,15 +97,16 @@ def test_em_sim_refuses_bad_arguments(args, message, tmp_path):
     assert not absent.exists()
 
 
-def _motors_dead(robot_id: int, linear_x: float, angular_z: float) -> None:
+class MotorsDead(WorldSimulation):
     """A world in which no robot moves or turns, whatever it commands."""
 
+    def apply_command(self, robot_id: int, linear_x: float, angular_z: float) -> None:
+        pass
 
-def test_stall_rule_ends_a_run_whose_robots_cannot_move(monkeypatch):
+
+def test_stall_rule_ends_a_run_whose_robots_cannot_move():
     params = small_params().replace(run={"seed": 3, "max_steps": 1500, "stall_timeout_s": 20.0})
-    runner = TeamRunner(params)
-    monkeypatch.setattr(runner.simulation, "apply_command", _motors_dead)
-    summary = runner.run()
+    summary = TeamRunner(params, simulation=MotorsDead(params)).run()
     assert summary.stop_reason.startswith("stalled: no distance and no newly explored area")
     assert summary.distance_m == 0.0
     # Metrics are evaluated every 2 s: the first at 2 s, the stall 20 s later.
@@ -111,50 +114,55 @@ def test_stall_rule_ends_a_run_whose_robots_cannot_move(monkeypatch):
     assert all(r.blocked_s > 15.0 for r in summary.robots)  # each robot's odometry knew it
 
 
-def test_em_sim_exits_with_status_4_when_the_run_stalls(monkeypatch, tmp_path):
-    from em_exploration_ros.core.world.simulation import WorldSimulation
+def test_em_sim_exits_with_status_4_when_the_run_stalls(tmp_path):
     from em_exploration_ros.tools import sim_cli
-    monkeypatch.setattr(WorldSimulation, "apply_command",
-                        lambda self, robot_id, linear_x, angular_z: None)
     params = tmp_path / "params.yaml"
     params.write_text("/**:\n  ros__parameters:\n    run:\n      stall_timeout_s: 10.0\n")
     out = tmp_path / "run.json"
     code = sim_cli.main(["--planner", "NEAREST", "--map-size", "50", "--landmarks", "5", "--seed",
-                         "2", "--params", str(params), "--summary", str(out), "--quiet"])
+                         "2", "--params", str(params), "--summary", str(out), "--quiet"],
+                        make_runner=lambda params: TeamRunner(params,
+                                                              simulation=MotorsDead(params)))
     assert code == 4
     data = json.loads(out.read_text())
     assert data["stop_reason"].startswith("stalled: ") and data["sim_time_s"] == 12.0
 
 
-def test_a_failing_slam_update_mid_mission_is_resolved_and_reported(monkeypatch, tmp_path,
-                                                                     caplog):
+def test_a_failing_slam_update_mid_mission_is_resolved_and_reported(tmp_path, caplog):
     """iSAM2 raising in robot 1's 40th update (as GTSAM's IndeterminateSystemException did
     at the end of a divergence, BSP seed 44 at 200 m) costs neither the robot nor the run:
     the update is re-solved in batch, the mission ends as usual, the summary counts it and
     em-sim's log names it."""
-    from em_exploration_ros.core.slam.team_slam import TeamSlam
     from em_exploration_ros.tools import sim_cli
 
     class FailingIsam:
         def update(self, *args: object) -> None:
             raise RuntimeError("Indeterminate linear system detected near variable 9")
 
-    robot_1_updates = 0
-    original_update = TeamSlam.update
+    class FailingAt40th(TeamSlam):
+        """A team graph whose iSAM2 raises in its 40th update."""
 
-    def update(self: TeamSlam) -> int:
-        nonlocal robot_1_updates
-        if self.robot_id == 1:
-            robot_1_updates += 1
-            if robot_1_updates == 40:
+        updates = 0
+
+        def update(self, *args: int) -> int:
+            self.updates += 1
+            if self.updates == 40:
                 self._isam = FailingIsam()
-        return original_update(self)
+            return super().update(*args)
 
-    monkeypatch.setattr(TeamSlam, "update", update)
+    slams = {}
+
+    def make_agent(robot, params, anchor):
+        if robot != 1:
+            return RobotAgent(robot, params, anchor)
+        slams[robot] = FailingAt40th(robot, params.world.num_robots, params.slam, anchor)
+        return RobotAgent(robot, params, anchor, slam=slams[robot])
+
     out = tmp_path / "run.json"
     code = sim_cli.main(["--planner", "NEAREST", "--map-size", "50", "--landmarks", "5", "--seed",
-                         "2", "--summary", str(out), "--quiet"])
-    assert code == 0 and robot_1_updates > 40
+                         "2", "--summary", str(out), "--quiet"],
+                        make_runner=lambda params: TeamRunner(params, make_agent=make_agent))
+    assert code == 0 and slams[1].updates > 40
     data = json.loads(out.read_text())
     assert data["explored_ratio"] >= 0.85
     assert [robot["slam_recoveries"] for robot in data["robots"]] == [0, 1, 0]

@@ -134,12 +134,17 @@ class RobotSession:
     """One robot's team protocol (see module docstring). Every input method returns the
     effects to perform, in order. ``relay_mode``: None for the links' own
     (``links.*`` not perfect); ``journaled``: whether the driver keeps journals
-    (``state_dir``); ``log_period_s``: the driver's period of throttled lines."""
+    (``state_dir``); ``log_period_s``: the driver's period of throttled lines;
+    ``make_agent``: makes the robot's brain from its id, the parameters and the anchor (a
+    benchmark or test gives its own collaborators, ``RobotAgent``'s keyword arguments)."""
 
     def __init__(self, robot_id: int, params: ExplorationParams, settings: RobotNodeSettings,
                  relay_mode: bool | None = None, journaled: bool = False,
-                 log_period_s: float = 5.0) -> None:
+                 log_period_s: float = 5.0,
+                 make_agent: Callable[[int, ExplorationParams, np.ndarray], RobotAgent] = RobotAgent
+                 ) -> None:
         self.robot_id = robot_id
+        self._make_agent = make_agent
         self.params = params
         self.settings = settings
         self.num_robots = params.world.num_robots
@@ -219,7 +224,7 @@ class RobotSession:
         The anchor is the world's, so the world is there."""
         if self.agent is not None:
             return []
-        self.agent = RobotAgent(self.robot_id, self.params, pose)
+        self.agent = self._make_agent(self.robot_id, self.params, pose)
         self._world_heard(now_s)
         self._out.append(info(f"map anchored at robot 0's launch pose "
                               f"{np.round(pose, 3).tolist()}"))

@@ -36,6 +36,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
+
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.node_settings import (EvaluatorNodeSettings, RobotNodeSettings,
                                                    WorldNodeSettings)
@@ -56,7 +58,7 @@ from em_exploration_ros.core.evaluation.run_monitor import METRICS_INTERVAL_STEP
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, RunSummary
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.links.link_model import Delivery, FrameKind
-from em_exploration_ros.core.world.simulation import SensorFrame
+from em_exploration_ros.core.world.simulation import SensorFrame, WorldSimulation
 from em_exploration_ros.core.records.wire_model import (pose_through_wire,
                                                         seconds_to_nanoseconds, sim_time_s,
                                                         twist_to_increment_covariance)
@@ -81,10 +83,15 @@ class Progress:
 class TeamRunner:
     """Runs one seeded exploration; ``run()`` returns its ``RunSummary``. ``restarts``:
     (robot, step) pairs, each a restart of that robot's process before that step (module
-    docstring)."""
+    docstring). ``simulation``: the world to run (default: the one ``params`` describe; a
+    test gives one whose physics it changes); ``make_agent``: makes each robot's brain
+    (``RobotSession``'s, for a benchmark or test that gives its own collaborators)."""
 
     def __init__(self, params: ExplorationParams,
-                 restarts: Iterable[tuple[int, int]] = ()) -> None:
+                 restarts: Iterable[tuple[int, int]] = (), *,
+                 simulation: WorldSimulation | None = None,
+                 make_agent: Callable[[int, ExplorationParams, np.ndarray],
+                                      RobotAgent] = RobotAgent) -> None:
         self.params = params
         self._restarts: dict[int, list[int]] = {}
         for robot, step in restarts:
@@ -93,12 +100,15 @@ class TeamRunner:
             self._restarts.setdefault(step, []).append(robot)
         journaled = bool(self._restarts)
         # The world as em-world runs it, always with the links (perfect ones deliver at k+1).
-        self.world = WorldSession(params, WorldNodeSettings(), 0.0, relayed=True)
+        self.world = WorldSession(params, WorldNodeSettings(), 0.0, relayed=True,
+                                  simulation=simulation)
+        self._make_agent = make_agent
         self.simulation = self.world.sim
         world = self.simulation.world
         n = params.world.num_robots
         settings = RobotNodeSettings()
-        self.sessions = [RobotSession(i, params, settings, relay_mode=True, journaled=journaled)
+        self.sessions = [RobotSession(i, params, settings, relay_mode=True, journaled=journaled,
+                                      make_agent=make_agent)
                          for i in range(n)]
         #: Each robot's journals (own stream, teammates' records applied), with restarts only.
         self.journals = {Journal.OWN: [[] for _ in range(n)], Journal.TEAM: [[] for _ in range(n)]}
@@ -168,7 +178,7 @@ class TeamRunner:
         old = self.sessions[robot]
         session = RobotSession(robot, self.params,
                                dataclasses.replace(old.settings, rejoin_settle_s=0.0),
-                               relay_mode=True, journaled=True)
+                               relay_mode=True, journaled=True, make_agent=self._make_agent)
         session.anchor(self.simulation.world.start_poses[0], 0.0, self.simulation.step)
         self.sessions[robot] = session
         self.agents[robot] = session.agent

@@ -91,13 +91,14 @@ class WorldSession:
     not perfect); ``lease_s``: the robots' liveliness lease [s] (inf: none)."""
 
     def __init__(self, params: ExplorationParams, settings: WorldNodeSettings, now_s: float,
-                 lease_s: float = math.inf, relayed: bool | None = None) -> None:
+                 lease_s: float = math.inf, relayed: bool | None = None,
+                 simulation: WorldSimulation | None = None) -> None:
         self.params = params
         self.settings = settings
         self.num_robots = params.world.num_robots
         self.lockstep = settings.clock_mode == LOCKSTEP
         self.final_step = final_step(params, settings.max_sim_time_s)
-        self.sim = WorldSimulation(params)
+        self.sim = WorldSimulation(params) if simulation is None else simulation
         self.barrier = LockstepBarrier(self.num_robots, settings.robot_timeout_s,
                                        settings.step_resend_s, settings.liveliness_grace_s)
         if relayed is None:
