@@ -6,6 +6,9 @@ import dataclasses
 
 from em_exploration_ros.core.agent.clock_watch import ClockWatch
 from em_exploration_ros.core.sessions.effects import Level, LogLine
+from test_evaluator_session import WORLD_NODE
+from test_evaluator_session import started as evaluator_started
+from test_evaluator_session import truth as evaluator_truth
 from test_robot_session import SETTINGS, commands, feed, started
 from test_world_session import move as world_move
 from test_world_session import session as world_session
@@ -53,6 +56,28 @@ def test_a_robot_waiting_for_teammates_says_so_rather_than_blaming_the_world():
     [warning] = lines(session.tick(5.1, 1, None), Level.WARN)
     assert warning == ("no new step from the world for 5.0 s (last step 1; this robot waits "
                        "for teammates' records before it answers step 1)")
+
+
+def test_the_evaluator_warns_when_no_ground_truth_step_came_for_5_s():
+    session = evaluator_started()
+    publishers = frozenset({WORLD_NODE})
+    for robot in range(2):
+        session.liveliness(robot, True, False, 0.0)
+    assert lines(session.tick(30.0, True, publishers), Level.WARN) == []  # no step
+    for step in range(3):
+        evaluator_truth(session, step, wall_s=31.0)
+    assert lines(session.tick(35.9, True, publishers), Level.WARN) == []
+    [warning] = lines(session.tick(36.0, True, publishers), Level.WARN)
+    assert warning == ("no new step from the world for 5.0 s (last ground truth of step 2); "
+                       "the run ends by silence after 60 s without one")
+    assert lines(session.tick(40.0, True, publishers), Level.WARN) == []
+    assert len(lines(session.tick(66.0, True, publishers), Level.WARN)) == 1
+    moved = evaluator_truth(session, 3, wall_s=70.0)
+    assert "the world's steps come again: step 3 after 39.0 s without a new one" in \
+        lines(moved, Level.INFO)
+    # Once the world stepped over, its clock stands still by design.
+    session.world_status(3, 3, True, "every robot finished or stopped")
+    assert lines(session.tick(80.0, True, publishers), Level.WARN) == []
 
 
 def test_the_world_names_the_robots_it_steps_without_then_a_line_every_5_s():

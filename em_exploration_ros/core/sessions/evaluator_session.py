@@ -71,6 +71,7 @@ from typing import Any, Union
 
 import numpy as np
 
+from em_exploration_ros.core.agent.clock_watch import ClockWatch
 from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD,
                                                         command_sequence_problem, id_problem,
                                                         first_problem, size_problem,
@@ -252,6 +253,7 @@ class EvaluatorSession:
         self._started_wall_s = started_wall_s
         self._last_data_wall_s = started_wall_s
         self._world_watch = WorldWatch(settings.silence_timeout_s)
+        self._clock = ClockWatch()  # the steps of the ground truth
         self._unseen = UnseenLiveliness(self.num_robots, liveliness_lease_s)
         #: (step, reason) once the world said it stepped over.
         self._world_over: tuple[int, str] | None = None
@@ -327,15 +329,19 @@ class EvaluatorSession:
         if problem:
             return [Dropped(problem)]
         self._last_data_wall_s = wall_s
+        stood_s = self._clock.seen(step, wall_s)
+        moved = [] if stood_s is None else [info(
+            f"the world's steps come again: step {step} after {stood_s:.1f} s without a new "
+            f"one")]
         poses = self._truth.setdefault(step, {})
         poses[robot] = pose
         if len(poses) < self.num_robots:
-            return []
+            return moved
         self._complete_steps.append(step)
         if self._first_step_wall_s is None:
             self._first_step_wall_s = wall_s
             self._unseen.first_step(wall_s)
-        return self._process(wall_s)
+        return moved + self._process(wall_s)
 
     def world_status(self, step: int, stamp_step: int, stepping_over: bool, reason: str
                      ) -> list[Effect]:
@@ -493,6 +499,7 @@ class EvaluatorSession:
             effects.append(warn(f"robot {robot} lost: no liveliness for "
                                 f"{self.liveness.grace_s:g} s{never}"))
             effects += self._check_all_finished(wall_s)
+        effects += self._watch_the_clock(wall_s)
         effects += self._request_missing_updates()
         effects += self._process(wall_s)
         silent_s = wall_s - self._last_data_wall_s
@@ -514,6 +521,20 @@ class EvaluatorSession:
         if event == WorldEvent.BACK:
             return [info("the world is back on the ROS graph")]
         return []
+
+    def _watch_the_clock(self, wall_s: float) -> list[Effect]:
+        """Warn when no new step of ground truth came for ``CLOCK_STOPPED_S`` wall seconds
+        (then every ``CLOCK_STOPPED_REPEAT_S``) while the run is not over: a world stopped
+        (SIGSTOP) or waiting for a robot's answer stays on the graph and says nothing."""
+        if (self._world_over is not None or self.monitor.stopped
+                or self._team_finished is not None):
+            return []
+        stood_s = self._clock.stopped(wall_s)
+        if stood_s is None:
+            return []
+        return [warn(f"no new step from the world for {stood_s:.1f} s (last ground truth of "
+                     f"step {self._clock.step}); the run ends by silence after "
+                     f"{self.settings.silence_timeout_s:g} s without one")]
 
     def _end_with_the_world(self, wall_s: float, status_publishers: frozenset[str]
                             ) -> list[Effect]:
