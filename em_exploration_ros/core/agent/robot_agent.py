@@ -55,6 +55,7 @@ from em_exploration_ros.core.planning.progress import (GivenUpTarget, GiveUpReas
 from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
 from em_exploration_ros.core.records.readings import (LandmarkReading, OdometryReading,
                                                       TeammateReading)
+from em_exploration_ros.core.slam.own_landmarks import OwnLandmarks
 from em_exploration_ros.core.slam.team_slam import KeyframeBuilder, TeamSlam
 from em_exploration_ros.core.records.readings import KeyframeMeasurements
 from em_exploration_ros.core.records.team_data import (RendezvousEvent, RendezvousState,
@@ -168,7 +169,8 @@ class RobotAgent:
         self.params = params
         self.num_robots = params.world.num_robots
         self.slam = slam if slam is not None else TeamSlam(
-            robot_id, self.num_robots, params.slam, np.asarray(anchor_pose))
+            robot_id, self.num_robots, params.slam, np.asarray(anchor_pose),
+            landmark_ids=params.sensors.landmark_ids)
         self.grid = OccupancyGrid(params.world.width_m, params.world.height_m, params.map,
                                   params.sensors.sonar_max_range_m)
         self.planner = planner if planner is not None else make_planner(params)
@@ -187,7 +189,11 @@ class RobotAgent:
         #: The planner's latest decision with every candidate's utility terms (diagnostics).
         self.last_decision: Decision | None = None
         self.team_targets: dict[int, list[TargetRecord]] = {r: [] for r in range(self.num_robots)}
-        self._keyframes = KeyframeBuilder(robot_id, params.slam)
+        self._keyframes = KeyframeBuilder(robot_id, params.slam,
+                                          keep_unidentified=not params.sensors.landmark_ids)
+        #: Without landmark identities, this robot's own data association (else None).
+        self.own_landmarks = (None if params.sensors.landmark_ids
+                              else OwnLandmarks(self.slam, params.sensors))
         self._dead_reckoning = DeadReckoningDifferencer()
         self._since_keyframe = np.zeros(3)
         self._pending = _Pending()
@@ -331,6 +337,8 @@ class RobotAgent:
         keyframe = self._keyframes.add_step(sensed.step, sensed.stamp_s, odometry,
                                             sensed.landmarks, sensed.teammates)
         if keyframe is not None:
+            if self.own_landmarks is not None:
+                keyframe = self.own_landmarks.associate(keyframe)
             keyframe = self.wire.keyframe(keyframe)  # what the teammates will receive
             self._since_keyframe = np.zeros(3)
             self.slam.add_keyframe(keyframe)
@@ -633,6 +641,7 @@ class RobotAgent:
         meeting = self._watched_meeting
         if meeting is None:
             self.slam.update()
+            self._match_teammates_landmarks()
             return
         factors_before = self.slam.inter_robot_factors(self.robot_id, meeting.partner_id)
         trace_before = self._latest_pose_trace()
@@ -642,6 +651,13 @@ class RobotAgent:
                 meeting.rendezvous_id, meeting.partner_id, meeting.requested_at_s,
                 self._stamp_s, trace_before, self._latest_pose_trace()))
             self._watched_meeting = None
+        self._match_teammates_landmarks()
+
+    def _match_teammates_landmarks(self) -> None:
+        """Without landmark identities: tie the teammates' landmarks that are this robot's
+        own in the graph (``OwnLandmarks.match_teammates``)."""
+        if self.own_landmarks is not None:
+            self.own_landmarks.match_teammates()
 
     def _latest_pose_trace(self) -> float:
         """Trace of the marginal covariance of this robot's latest keyframe pose."""
