@@ -102,7 +102,9 @@ options:
                           (alive but wedged or silent: SIGKILL, then the same command line),
                           or whose restart the world has not seen alive within
                           EM_RESPAWN_CONFIRM_S seconds (default 60); it rejoins the team
-                          where it stopped
+                          where it stopped. An evaluator that dies before the run ended is
+                          restarted too: it reads the run back from the world's ground
+                          truth and the robots' estimates, answers and streams
   --trace-steps DIR       record every publish and subscription callback of the world, the
                           robots and the evaluator into DIR/<name>.trace (DIR must not hold
                           traces yet); python -m em_exploration_ros.tools.step_trace report
@@ -584,9 +586,13 @@ if [[ -n $FOXGLOVE_PORT ]]; then
     echo "$PROG: Foxglove: open a Foxglove WebSocket connection to ws://127.0.0.1:$FOXGLOVE_PORT" \
          "(layout: config/foxglove_layout.json)"
 fi
-start evaluator -m "$NODES.evaluator_node" "${COMMON[@]}" -p use_sim_time:=true \
-    -p "summary_path:=$(as_string "$SUMMARY")" -p "map_png_path:=$(as_string "$MAP_PNG")" \
-    "${SIM_LIMIT[@]}"
+# start_evaluator: the evaluator's process; a restart (--respawn) uses the same command line.
+start_evaluator() {
+    start evaluator -m "$NODES.evaluator_node" "${COMMON[@]}" -p use_sim_time:=true \
+        -p "summary_path:=$(as_string "$SUMMARY")" -p "map_png_path:=$(as_string "$MAP_PNG")" \
+        "${SIM_LIMIT[@]}"
+}
+start_evaluator
 EVALUATOR_PID=${PIDS[-1]}
 WAIT_FOR=(-p wait_for_evaluator:=true)
 # The robots wait for the recorder too: volatile topics keep nothing for a late subscriber.
@@ -665,7 +671,37 @@ lost_before_rejoining() {
         END { exit !(first_back == 0 || last_lost < first_back) }' "$LOG_DIR/world.log"
 }
 
-while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
+# evaluator_ended_the_run: whether the evaluator, which has exited, ended the run (its code
+# in EVALUATOR_CODE: 0, 3, 4 or 5); if not (killed, crashed) and --respawn is given, it is
+# restarted with the same command line (at most MAX_RESPAWNS times): it reads back what the
+# run needs (the world's ground truth from step 0, the robots' estimates and answers from
+# their transient-local writers, their streams by asking for them) and ends the run as the
+# first process would have.
+evaluator_ended_the_run() {
+    local index
+    wait "$EVALUATOR_PID"
+    EVALUATOR_CODE=$?
+    [[ $EVALUATOR_CODE == [0345] || -z $RESPAWN ]] && return 0
+    (( ${RESPAWNS[evaluator]:-0} < MAX_RESPAWNS )) || return 0
+    RESPAWNS[evaluator]=$(( ${RESPAWNS[evaluator]:-0} + 1 ))
+    echo "$PROG: warning: the evaluator $(exit_status_text "$EVALUATOR_CODE"); restarting it" \
+        "(respawn ${RESPAWNS[evaluator]})" >&2
+    wait "$TAIL_PID" 2>/dev/null
+    start_evaluator
+    for index in "${!PIDS[@]}"; do  # the new process takes the old one's place in the lists
+        [[ ${PIDS[$index]} == "$EVALUATOR_PID" ]] || continue
+        PIDS[$index]=${PIDS[-1]}
+        unset 'PIDS[-1]' 'NAMES[-1]'
+        break
+    done
+    EVALUATOR_PID=${PIDS[$index]} EVALUATOR_CODE=""
+    tail -n 0 -F --pid="$EVALUATOR_PID" "$LOG_DIR/evaluator.log" 2>/dev/null &
+    TAIL_PID=$!
+    return 1
+}
+
+EVALUATOR_CODE=""
+while kill -0 "$EVALUATOR_PID" 2>/dev/null || ! evaluator_ended_the_run; do
     for index in "${!PIDS[@]}"; do
         pid=${PIDS[$index]}
         [[ $pid == "$EVALUATOR_PID" || -n ${REPORTED[$pid]:-} ]] && continue
@@ -741,8 +777,12 @@ while kill -0 "$EVALUATOR_PID" 2>/dev/null; do
 done
 
 if [[ -z $FAILED ]]; then
-    wait "$EVALUATOR_PID"
-    CODE=$?
+    if [[ -n $EVALUATOR_CODE ]]; then
+        CODE=$EVALUATOR_CODE
+    else
+        wait "$EVALUATOR_PID"
+        CODE=$?
+    fi
     wait "$TAIL_PID" 2>/dev/null
     # 0 done, 3 the world or the robots stopped publishing, 4 stalled, 5 every live robot
     # finished below the goal while robots were lost: the run's outcomes.

@@ -134,18 +134,33 @@ def test_help_lists_the_options():
 PROGRESS_WINDOW_S = 2.0
 
 
-def test_three_robots_explore_end_to_end(tmp_path):
-    summary_path = tmp_path / "run" / "summary.json"
-    bag = tmp_path / "run_bag"
-    until = 0.85
+def _short_progress_window(tmp_path) -> str:
+    """The default parameter file with ``PROGRESS_WINDOW_S``, written under ``tmp_path``."""
     default = (REPO_ROOT / "config" / "exploration.yaml").read_text()
     assert default.count("window_s: 20.0") == 1
     params = tmp_path / "params.yaml"
     params.write_text(default.replace("window_s: 20.0", f"window_s: {PROGRESS_WINDOW_S}"))
+    return str(params)
+
+
+def _em_sim_summary(seed: int, until: float) -> dict:
+    """em-sim's summary of the three-robot NEAREST run on the 40 m map with 4 landmarks and
+    ``PROGRESS_WINDOW_S`` (the end-to-end run's mission)."""
+    return TeamRunner(load_params(REPO_ROOT / "config" / "exploration.yaml").replace(
+        world={"num_robots": 3, "width_m": 40.0, "height_m": 40.0, "num_landmarks": 4},
+        planner={"name": "NEAREST"}, run={"seed": seed, "until_explored": until},
+        progress={"window_s": PROGRESS_WINDOW_S})).run().to_dict()
+
+
+def test_three_robots_explore_end_to_end(tmp_path):
+    summary_path = tmp_path / "run" / "summary.json"
+    bag = tmp_path / "run_bag"
+    until = 0.85
+    params = _short_progress_window(tmp_path)
     run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
                             "--map-size", "40", "--landmarks", "4", "--seed", "2",
                             "--until-explored", str(until), "--max-sim-time", "600",
-                            "--params", str(params),
+                            "--params", params,
                             "--summary", str(summary_path), "--record", str(bag))
     # A second mission (another seed) given the same domain id is refused at start, naming
     # the first; before, both ran and took each other's messages. The first equals em-sim's
@@ -177,10 +192,7 @@ def test_three_robots_explore_end_to_end(tmp_path):
         summary["explored_ratio"]
 
     # The ROS system in lockstep makes em-sim's decisions (same seed, same parameters).
-    reference = TeamRunner(load_params(REPO_ROOT / "config" / "exploration.yaml").replace(
-        world={"num_robots": 3, "width_m": 40.0, "height_m": 40.0, "num_landmarks": 4},
-        planner={"name": "NEAREST"}, run={"seed": 2, "until_explored": until},
-        progress={"window_s": PROGRESS_WINDOW_S})).run().to_dict()
+    reference = _em_sim_summary(2, until)
     assert [r["targets"] for r in summary["robots"]] == [r["targets"] for r in
                                                          reference["robots"]]
     # Each robot's own progress bookkeeping reaches the evaluator through its commands.
@@ -446,18 +458,20 @@ def test_an_unexpected_end_of_the_script_stops_every_process(tmp_path):
     assert "ended unexpectedly with nodes running; stopping them" in run.output()
 
 
-def _run_with_the_evaluator_signalled(tmp_path, signum: int) -> tuple[int, str, str]:
-    """A small NEAREST run whose evaluator gets ``signum`` once progress shows; the exit
-    code, output and ROS domain of run_team.sh."""
+def _run_with_the_evaluator_signalled(tmp_path, signum: int, *options: str,
+                                      timeout_s: float = 60.0) -> tuple[int, str, str]:
+    """A small NEAREST run (``options``; by default seed 0 until every robot finished) whose
+    evaluator gets ``signum`` once progress shows; the exit code, output and ROS domain of
+    run_team.sh."""
     run, domain = start_team_run(tmp_path, "--planner", "NEAREST", "--map-size", "40",
-                                 "--landmarks", "4", "--until-explored", "1",
+                                 "--landmarks", "4", *(options or ("--until-explored", "1")),
                                  "--summary", str(tmp_path / "summary.json"))
 
     def signal_the_evaluator() -> None:
         run.wait_for_output("  explored ", RUN_TIMEOUT_S)
         os.kill(_evaluator_pid(domain), signum)
 
-    code = finish_team_run(run, 60.0, meanwhile=signal_the_evaluator)
+    code = finish_team_run(run, timeout_s, meanwhile=signal_the_evaluator)
     return code, run.output(), domain
 
 
@@ -493,3 +507,33 @@ def test_a_killed_evaluator_stops_the_run_and_keeps_the_summary_so_far(tmp_path)
     assert summary["sim_time_s"] > 0.0 and summary["history"]
     assert summary["history"][-1]["explored_ratio"] == summary["explored_ratio"] > 0.0
     assert f"summary: {tmp_path / 'summary.json'}" in output
+
+
+def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_summary(
+        tmp_path):
+    """The evaluator SIGKILLed with --respawn (issue 40, point 3): run_team.sh restarts it,
+    and the new process reads the run back (the world's ground truth from step 0, the robots'
+    estimates and answers from their transient-local writers, their streams by asking for
+    them): the run ends as the clean one, exit 0, and its summary is em-sim's for the same
+    mission at every level, as the end-to-end run's is (targets, decisions, the targets given
+    up and the meetings the robots reported in their answers, some while no evaluator ran,
+    the metrics)."""
+    code, output, domain = _run_with_the_evaluator_signalled(
+        tmp_path, signal.SIGKILL, "--seed", "2", "--until-explored", "0.85",
+        "--max-sim-time", "600", "--params", _short_progress_window(tmp_path), "--respawn",
+        timeout_s=RUN_TIMEOUT_S)
+    assert code == 0, output[-3000:]
+    assert ("warning: the evaluator exited with code 137 (signal KILL); restarting it "
+            "(respawn 1)") in output
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert check_summary(summary) == []
+    reference = _em_sim_summary(2, 0.85)
+    assert summary["stop_reason"] == reference["stop_reason"]
+    assert [r["targets"] for r in summary["robots"]] == [r["targets"] for r in
+                                                         reference["robots"]]
+    assert [(r["given_up"], r["blocked_s"]) for r in summary["robots"]] == [
+        (r["given_up"], r["blocked_s"]) for r in reference["robots"]]
+    assert summary["distance_m"] == pytest.approx(reference["distance_m"], abs=1e-6)
+    assert len(summary["history"]) == len(reference["history"])
+    assert_same_summary(summary, reference)

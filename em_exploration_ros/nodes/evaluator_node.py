@@ -63,8 +63,9 @@ from em_exploration_ros.nodes.log_lines import LineWriter
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.odometry_cdr import OdometryCodec
 from em_exploration_ros.nodes.path_cdr import PathDecodeError, decode_path
-from em_exploration_ros.nodes.qos import (ESTIMATE_READER_QOS, GROUND_TRUTH_QOS, LATCHED_QOS,
-                                          LIVELINESS_LEASE_S, SENSOR_QOS, STREAM_QOS, TEAM_QOS)
+from em_exploration_ros.nodes.qos import (COMMAND_QOS, ESTIMATE_READER_QOS, GROUND_TRUTH_QOS,
+                                          LATCHED_QOS, LIVELINESS_LEASE_S, STREAM_QOS,
+                                          TEAM_QOS)
 from em_exploration_ros.nodes.ros_params import (declare_exploration_params,
                                                  declare_node_settings, refuse_unknown_overrides)
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
@@ -166,7 +167,7 @@ class EvaluatorNode(LeanNode):
             self.create_subscription(TeamUpdate, f"/{ns}/team/updates",
                                      lambda m, r=robot: self._on_team_update(r, m), TEAM_QOS)
             self.create_subscription(MotionCommand, f"/{ns}/motion_command",
-                                     lambda m, r=robot: self._on_command(r, m), SENSOR_QOS)
+                                     lambda m, r=robot: self._on_command(r, m), COMMAND_QOS)
         watch_liveliness(self, list(range(self.num_robots)), lambda robot, alive, restarted:
                          self._perform(self.session.liveliness(robot, alive, restarted,
                                                                time.monotonic())))

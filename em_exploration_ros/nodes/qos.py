@@ -2,7 +2,8 @@
 
 | profile | used for | why |
 |---|---|---|
-| ``SENSOR_QOS`` (reliable, keep last 50, volatile) | /robot_<i>/sonar, /robot_<i>/odom, /robot_<i>/motion_command | lockstep needs every step; a small queue absorbs bursts; old steps are useless to a late joiner |
+| ``SENSOR_QOS`` (reliable, keep last 50, volatile) | /robot_<i>/sonar, /robot_<i>/odom, the world's reader of /robot_<i>/motion_command | lockstep needs every step; a small queue absorbs bursts; old steps are useless to a late joiner |
+| ``COMMAND_QOS`` (reliable, keep last ``GROUND_TRUTH_DEPTH`` = 3000, transient local) | the robots' writers and the evaluator's readers of /robot_<i>/motion_command | as ``SENSOR_QOS`` for the world (a volatile reader of a transient-local writer), and a restarted evaluator (``run_team.sh --respawn``) still gets each robot's answers since it died (their finished flags, the targets given up, the meetings: its summary's bookkeeping), as far back as the ground truth it gets |
 | ``TEAM_QOS`` (reliable, keep last ``TEAM_DEPTH`` = 1000, volatile) | /robot_<i>/team/updates, /team/update_requests, /robot_<i>/team/history, the link relay's topics | team data must arrive; losses and late joins are repaired by the sequence-number resend protocol, so durability is not needed. The depth holds the largest burst one writer sends at once, a teammate's copy of a restarted robot's whole stream (one record per keyframe: 1000 records are 10000 steps at a keyframe every 10, 2000 simulated seconds; the default mission's stream is under 200 records, the 200 m one's under 600), and bounds what a flood leaves queued in each reader and writer (a flood that fills a reader's queue pushes its oldest records out; they are asked for again). Keep all was bounded only by Fast DDS's default resource limits (5000 samples): under em-fuzz on every topic (3000-3400 messages/s, team updates of up to 250 kB) the robots grew to 282-443 MB and the evaluator to 641 MB (docs/results.md, "Memory under a flood"), and a full writer refused publishes ("could not publish re-sent update" under a flood of well-formed requests) |
 | ``LATCHED_QOS`` (reliable, keep last 1, transient local) | /world/landmarks, /robot_<i>/virtual_map, /robot_<i>/markers, /robot_<i>/target | state whose last value a late subscriber (RViz, Foxglove) needs at once |
 | ``ESTIMATE_QOS`` (reliable, keep last ``ESTIMATE_DEPTH`` = 100, transient local) | /robot_<i>/estimated_path, /robot_<i>/landmarks | as latched, and a reader that matched late (the evaluator, when discovery packets were lost) still gets the estimates of the last 100 keyframes (200 simulated seconds), so its evaluations as of each keyframe are the same whatever the network did. 20 keyframes were too few once the lockstep team ran at 25x: when Fast DDS misses a participant's first announcements, the evaluator discovers the robots about 3 s (75 simulated seconds) late, and its first evaluation found no estimate of its keyframe left |
@@ -52,6 +53,11 @@ STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
                         durability=DurabilityPolicy.VOLATILE)
 #: Steps of ground truth the world keeps for a late or lagging reader.
 GROUND_TRUTH_DEPTH = 3000
+#: A robot's answers (MotionCommand) its writer keeps for a late reader (a restarted
+#: evaluator), as many steps as the ground truth.
+COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=GROUND_TRUTH_DEPTH,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 GROUND_TRUTH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=GROUND_TRUTH_DEPTH,
                               reliability=ReliabilityPolicy.RELIABLE,
                               durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -32,7 +32,7 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, given_up_to_msg,
                                                   serialized_path,
                                                   team_update_to_msg)
 from em_exploration_ros.nodes.input_guard import listened, publish_or_log
-from em_exploration_ros.nodes.qos import ESTIMATE_QOS, LATCHED_QOS, SENSOR_QOS, TEAM_QOS
+from em_exploration_ros.nodes.qos import COMMAND_QOS, ESTIMATE_QOS, LATCHED_QOS, TEAM_QOS
 from em_exploration_ros.nodes.team_topics import history_copies_topic
 
 
@@ -48,7 +48,7 @@ class RobotOutputs:
         self._params = params
         self._wire = wire
         self.command_pub = node.create_publisher(MotionCommand, f"/{ns}/motion_command",
-                                                 SENSOR_QOS)
+                                                 COMMAND_QOS)
         self.update_pub = node.create_publisher(TeamUpdate, f"/{ns}/team/updates", TEAM_QOS)
         self.request_pub = node.create_publisher(TeamUpdateRequest, "/team/update_requests",
                                                  TEAM_QOS)
