@@ -345,6 +345,12 @@ case $? in
 esac
 { read -r NUM_ROBOTS RUN_SEED RUN_PLANNER; mapfile -t WORLD_SETTINGS; } <<<"$RESOLVED"
 for setting in "${WORLD_SETTINGS[@]}"; do OVERRIDES+=(-p "$setting"); done
+# The run's identity, carried by every project message its nodes publish: a node drops, with
+# a WARN naming the other run, what another run on the same domain publishes (a domain held
+# by a live run is refused below; a run started by hand, or a stale process, is not held).
+# Unique per run: the start time [ns] mixed with this shell's pid, as a positive int64.
+RUN_ID=$(( ($(date +%s%N) ^ ($$ << 40)) & 0x7fffffffffffffff ))
+OVERRIDES+=(-p "run_id:=$RUN_ID")
 if [[ -n $NETNS ]]; then
     for host in world $(seq -f "robot_%g" 0 $(( NUM_ROBOTS - 1 ))); do
         ip netns exec "$NETNS$host" true 2>/dev/null \

@@ -449,3 +449,38 @@ def test_a_robot_process_loads_neither_the_relay_nor_the_simulator_runner_nor_pl
     assert not loaded & {"em_exploration_ros.nodes.team_relay",
                          "em_exploration_ros.core.sessions.team_runner",
                          "em_exploration_ros.core.evaluation.evaluator", "matplotlib"}
+
+
+def test_nodes_drop_what_another_run_publishes_with_a_line_naming_it(tmp_path):
+    """A world and a robot of run 7 are given run 42's command and scan (two missions on
+    one domain, issue 40 point 1): each drops them with the throttled line naming both
+    runs, and the robot's command of another run does not reach the world's barrier."""
+    run = dict(ONE_ROBOT, run_id=7)
+    world = NodeProcess.start_module(WORLD, ros_args(params=run),
+                                     log_path=tmp_path / "world.log")
+    robot = NodeProcess.start_module(ROBOT, ros_args(params=dict(run, robot_id=0),
+                                                     namespace="/robot_0"),
+                                     log_path=tmp_path / "robot.log")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("other_run", context=context)
+    line = "of run 42, not of this node's run 7 (another run on the domain)"
+    try:
+        with world, robot:
+            commands = node.create_publisher(MotionCommand, "/robot_0/motion_command",
+                                             SENSOR_QOS)
+            scans = node.create_publisher(SonarScan, "/robot_0/sonar", SENSOR_QOS)
+            header = Header(frame_id="robot_0/base_link")
+            deadline = time.monotonic() + 2 * START_S
+            while not (line in world.output() and line in robot.output()):
+                assert time.monotonic() < deadline, (world.output(), robot.output())
+                commands.publish(MotionCommand(header=header, run_id=42, step=462))
+                scans.publish(SonarScan(header=header, run_id=42, step=3))
+                time.sleep(0.2)
+            assert world.running() and robot.running()
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert (f"dropped a message on /robot_0/motion_command: {line}" in world.output())
+    assert f"dropped a message on /robot_0/sonar: {line}" in robot.output()
+    assert "ignored a future command" not in world.output()

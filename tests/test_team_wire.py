@@ -119,8 +119,8 @@ def test_an_agent_uses_what_it_sends():
 
 def test_cdr_size_of_a_keyframe_update():
     """The layout the bandwidth figures rest on: an update with one keyframe without
-    readings is 80 bytes of CDR (encapsulation 4, update 24, keyframe 52); each landmark
-    reading adds 12, each teammate reading 16."""
+    readings is 88 bytes of CDR (encapsulation 4, update 32 with its run_id, keyframe 52);
+    each landmark reading adds 12, each teammate reading 16."""
     kf = WIRE.keyframe(raw_keyframe())
     bare = KeyframeMeasurements(1, kf.index, kf.stamp_s, False, kf.index - 1, kf.odom_delta,
                                 kf.odom_covariance, (), ())
@@ -130,8 +130,8 @@ def test_cdr_size_of_a_keyframe_update():
         message: TeamUpdateMsg = team_update_to_msg(TeamUpdate(1, 9, stamp, (keyframe,)), WIRE)
         return len(serialize_message(message))
 
-    assert size(bare) == 80
-    assert size(kf) == 80 + 12 + 16
+    assert size(bare) == 88
+    assert size(kf) == 88 + 12 + 16
 
 
 def test_cdr_size_without_ros_equals_the_serialized_size():

@@ -17,10 +17,20 @@ from em_exploration_ros.core.params import param_field, replace_checked
 LOCKSTEP, REALTIME = "lockstep", "realtime"
 
 
+def run_id_field() -> Any:
+    """The ``run_id`` setting every node has (the same value for every node of a run)."""
+    return param_field(
+        0, "Identity of the run this node belongs to, carried by every project message it "
+        "publishes: a message of another run_id is dropped with a WARN naming that run "
+        "(run_team.sh gives each run a new one; nodes started by hand share 0 unless given "
+        "one).", 0, 2**63 - 1)
+
+
 @dataclass(frozen=True)
 class WorldNodeSettings:
     """em-world (node name ``em_world``)."""
 
+    run_id: int = run_id_field()
     clock_mode: str = param_field(
         LOCKSTEP, "lockstep: a step waits for every robot's command (deterministic); "
         "realtime: steps at a fixed wall rate with the latest commands.",
@@ -65,6 +75,7 @@ class WorldNodeSettings:
 class RobotNodeSettings:
     """em-robot (node name ``em_robot``)."""
 
+    run_id: int = run_id_field()
     robot_id: int = param_field(0, "Id of this robot (0-based).", 0, 25)
     barrier_timeout_s: float = param_field(
         10.0, "Lockstep: wall seconds to wait for teammates' updates named by the world's "
@@ -102,6 +113,7 @@ class RobotNodeSettings:
 class EvaluatorNodeSettings:
     """em-evaluator (node name ``em_evaluator``)."""
 
+    run_id: int = run_id_field()
     summary_path: str = param_field("summary.json", "Where the run summary JSON is written.")
     map_png_path: str = param_field(
         "", "Where the final map PNG is written (empty: next to the summary, <stem>_map.png).")

@@ -234,20 +234,25 @@ class EvaluatorNode(LeanNode):
                 time.monotonic()), topic)
 
     def _on_link_counts(self, message: TeamLinkCounts) -> None:
+        if not self.inputs.check(LINK_COUNTS_TOPIC,
+                                 self.session.run_problem(int(message.run_id))):
+            return
         counts = {"sent": int(message.sent), "on_time": int(message.on_time),
                   "late": int(message.late), "never": int(message.never)}
         self._perform(self.session.link_counts(int(message.step), counts), LINK_COUNTS_TOPIC)
 
     def _on_world_status(self, message: WorldStatus) -> None:
         stamp_step, problem = self.session.step_of(_stamp_ns(message.header.stamp))
-        if self.inputs.check(WORLD_STATUS_TOPIC, header_problem(message.header, WORLD_FRAME),
-                             problem):
+        if self.inputs.check(WORLD_STATUS_TOPIC, self.session.run_problem(int(message.run_id)),
+                             header_problem(message.header, WORLD_FRAME), problem):
             self._perform(self.session.world_status(int(message.step), stamp_step,
                                                     message.stepping_over, message.reason),
                           WORLD_STATUS_TOPIC)
 
     def _on_team_update(self, robot: int, message: TeamUpdate) -> None:
         topic = f"/{robot_namespace(robot)}/team/updates"
+        if not self.inputs.check(topic, self.session.run_problem(int(message.run_id))):
+            return
         try:
             update = checked_team_update(message, self.wire)
         except InvalidTeamUpdate as error:
@@ -261,8 +266,8 @@ class EvaluatorNode(LeanNode):
             report, problem = command_report_from_msg(message, self.session.time_step_s), None
         except ValueError as error:
             report, problem = None, str(error)
-        if self.inputs.check(topic, header_problem(message.header,
-                                                   f"{robot_namespace(robot)}/base_link"),
+        if self.inputs.check(topic, self.session.run_problem(int(message.run_id)),
+                             header_problem(message.header, f"{robot_namespace(robot)}/base_link"),
                              content_problem(message), problem):
             self._perform(self.session.command(robot, report, time.monotonic()), topic)
 
@@ -286,7 +291,8 @@ class EvaluatorNode(LeanNode):
                 self._publish_metrics(effect)
             elif isinstance(effect, RequestUpdates):
                 for gap in effect.gaps:
-                    request = TeamUpdateRequest(requester_id=TeamUpdateRequest.OBSERVER,
+                    request = TeamUpdateRequest(run_id=self.session.settings.run_id,
+                                                requester_id=TeamUpdateRequest.OBSERVER,
                                                 robot_id=gap.robot_id,
                                                 first_sequence=gap.first_sequence,
                                                 last_sequence=gap.last_sequence)

@@ -105,7 +105,8 @@ class RobotNode(LeanNode):
 
     def _create_interfaces(self) -> None:
         ns = self._ns
-        self.outputs = RobotOutputs(self, self.robot_id, self.params, self.wire, self.relay_mode)
+        self.outputs = RobotOutputs(self, self.robot_id, self.params, self.wire, self.relay_mode,
+                                    self.settings.run_id)
         self.create_subscription(PoseStamped, "/mission/anchor_pose", self._on_anchor,
                                  LATCHED_QOS)
         self.create_subscription(SonarScan, f"/{ns}/sonar", self._on_scan, SENSOR_QOS)
@@ -182,8 +183,15 @@ class RobotNode(LeanNode):
                                  if not 0 <= r.robot_id < self.num_robots
                                  or r.robot_id == robot))
 
+    def _of_this_run(self, topic: str, message: SonarScan | TeamUpdate | TeamUpdateRequest
+                     ) -> bool:
+        """False for a message of another run (dropped, with the throttled WARN)."""
+        return self.inputs.check(topic, self.session.run_problem(int(message.run_id)))
+
     def _on_scan(self, message: SonarScan) -> None:
         step = int(message.step)
+        if not self._of_this_run(f"/{self._ns}/sonar", message):
+            return
         if message.robot_id == self.robot_id and self.session.processed(step):
             self._perform(self.session.scan_again(step))  # our answer did not arrive
         elif self.inputs.check(f"/{self._ns}/sonar", self.scan_problem(message)):
@@ -232,27 +240,36 @@ class RobotNode(LeanNode):
             return error
 
     def _on_team_update(self, sender: int, message: TeamUpdate) -> None:
-        self._perform(self.session.team_update(self._record(message), sender, *self._times()),
-                      f"/{robot_namespace(sender)}/team/updates")
+        topic = f"/{robot_namespace(sender)}/team/updates"
+        if self._of_this_run(topic, message):
+            self._perform(self.session.team_update(self._record(message), sender,
+                                                   *self._times()), topic)
 
     def _on_delivered_update(self, message: TeamUpdate, info: MessageInfo) -> None:
+        if not self._of_this_run(delivered_updates_topic(self.robot_id), message):
+            return
         self._perform(self.session.delivered_update(
             int(message.robot_id), self._record(message), publication_sequence(info),
             *self._times()), delivered_updates_topic(self.robot_id))
 
     def _on_delivered_request(self, message: TeamUpdateRequest, info: MessageInfo) -> None:
+        if not self._of_this_run(delivered_requests_topic(self.robot_id), message):
+            return
         self._perform(self.session.delivered_request(
             int(message.requester_id), int(message.robot_id), int(message.first_sequence),
             int(message.last_sequence), publication_sequence(info), *self._times()),
             delivered_requests_topic(self.robot_id))
 
     def _on_update_request(self, message: TeamUpdateRequest) -> None:
+        if not self._of_this_run("/team/update_requests", message):
+            return
         self._perform(self.session.update_request(
             int(message.requester_id), int(message.robot_id), int(message.first_sequence),
             int(message.last_sequence), time.monotonic()), "/team/update_requests")
 
     def _on_own_history(self, message: TeamUpdate) -> None:
-        self._perform(self.session.own_history(self._record(message)))
+        if self._of_this_run(f"/{self._ns}/team/history", message):
+            self._perform(self.session.own_history(self._record(message)))
 
     def _maintain(self) -> None:
         """The session's 10 Hz tick, with whether the world publishes this robot's scans

@@ -41,9 +41,10 @@ class RobotOutputs:
     teammate's records go through the link relay."""
 
     def __init__(self, node: Node, robot_id: int, params: ExplorationParams,
-                 wire: TeamWireFormat, relay_mode: bool) -> None:
+                 wire: TeamWireFormat, relay_mode: bool, run_id: int) -> None:
         ns = robot_namespace(robot_id)
         self._node = node
+        self._run_id = run_id  # carried by every project message it publishes
         self._robot_id = robot_id
         self._params = params
         self._wire = wire
@@ -69,7 +70,8 @@ class RobotOutputs:
     def command(self, reply: CommandReply, again: bool) -> None:
         """The MotionCommand answering a step (``again``: once more)."""
         message = MotionCommand(
-            robot_id=reply.robot_id, step=reply.step, team_sequence=reply.team_sequence,
+            run_id=self._run_id, robot_id=reply.robot_id, step=reply.step,
+            team_sequence=reply.team_sequence,
             team_messages=reply.team_messages, team_requests=reply.team_requests,
             finished=reply.finished, blocked_s=reply.blocked_s,
             given_up_count=reply.given_up_count,
@@ -84,12 +86,12 @@ class RobotOutputs:
 
     def update(self, record: TeamRecord, what: str) -> None:
         """A record of this robot's stream on its update topic."""
-        publish_or_log(self.update_pub, team_update_to_msg(record, self._wire), self._node,
-                       what)
+        publish_or_log(self.update_pub, self._record_msg(record), self._node, what)
 
     def request(self, owner: int, first_sequence: int, last_sequence: int) -> None:
         """A request to robot ``owner`` for records ``first..last`` of its stream."""
-        request = TeamUpdateRequest(requester_id=self._robot_id, robot_id=owner,
+        request = TeamUpdateRequest(run_id=self._run_id, requester_id=self._robot_id,
+                                    robot_id=owner,
                                     first_sequence=first_sequence, last_sequence=last_sequence)
         request.header.stamp = self._node.get_clock().now().to_msg()
         publish_or_log(self.request_pub, request, self._node, "a request for team updates")
@@ -99,8 +101,14 @@ class RobotOutputs:
         publisher = (self._history_pubs[requester] if self._copies_pub is None
                      else self._copies_pub)
         for record in records:
-            publish_or_log(publisher, team_update_to_msg(record, self._wire), self._node,
+            publish_or_log(publisher, self._record_msg(record), self._node,
                            f"robot {requester}'s record {record.sequence}")
+
+    def _record_msg(self, record: TeamRecord) -> TeamUpdate:
+        """A record of the team stream as the message of this run."""
+        message = team_update_to_msg(record, self._wire)
+        message.run_id = self._run_id
+        return message
 
     def transforms(self, agent: RobotAgent, stamp_s: float, odom_pose: np.ndarray) -> None:
         """/tf ``map`` -> ``odom`` -> ``base_link`` of a step (sim time ``stamp_s``), once

@@ -82,6 +82,8 @@ class TeamRelay:
     def _checked(self, topic: str, message: TeamUpdate,
                  robot_id: int) -> team_data.TeamUpdate | None:
         """The message as core data if it is a valid record of ``robot_id``'s stream."""
+        if not self.inputs.check(topic, self.session.run_problem(int(message.run_id))):
+            return None
         try:
             update = checked_team_update(message, self.wire)
         except InvalidTeamUpdate as error:
@@ -103,7 +105,8 @@ class TeamRelay:
         """``sender``'s copy of a record of a restarted teammate's stream."""
         topic = history_copies_topic(sender)
         owner = int(message.robot_id)
-        if not self.inputs.check(topic, self.session.history_problem(sender, owner)):
+        if not self.inputs.check(topic, self.session.run_problem(int(message.run_id)),
+                                 self.session.history_problem(sender, owner)):
             return
         update = self._checked(topic, message, owner)
         if update is not None:
@@ -112,6 +115,8 @@ class TeamRelay:
 
     def _on_request(self, message: TeamUpdateRequest, info: MessageInfo) -> None:
         requester, owner = int(message.requester_id), int(message.robot_id)
+        if not self.inputs.check(REQUESTS_TOPIC, self.session.run_problem(int(message.run_id))):
+            return
         if requester == TeamUpdateRequest.OBSERVER:
             return  # the evaluator's: robots hear it directly
         first, last = int(message.first_sequence), int(message.last_sequence)
@@ -135,5 +140,5 @@ class TeamRelay:
         """The on-time / late / never counts of the team updates, for the evaluator."""
         counts, step = effect.counts, effect.step
         publish_or_log(self.counts_pub, TeamLinkCounts(
-            step=step, sent=counts.sent, on_time=counts.on_time, late=counts.late,
-            never=counts.never), self.node, f"the link counts of step {step}")
+            run_id=self.session.settings.run_id, step=step, sent=counts.sent,
+            on_time=counts.on_time, late=counts.late, never=counts.never), self.node, f"the link counts of step {step}")

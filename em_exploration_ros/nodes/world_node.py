@@ -62,7 +62,7 @@ class WorldNode(LeanNode):
         self.session = WorldSession(self.params, self.settings, time.monotonic(),
                                     LIVELINESS_LEASE_S)
         self.lines = LineWriter(self)
-        self.outputs = WorldOutputs(self, self.params)
+        self.outputs = WorldOutputs(self, self.params, self.settings.run_id)
         self.relay = (None if self.session.relay is None
                       else TeamRelay(self, self.session, self.inputs, self._perform))
         self.command_subs = [self.create_subscription(
@@ -123,7 +123,8 @@ class WorldNode(LeanNode):
         twist = message.twist
         linear_x, angular_z = float(twist.linear.x), float(twist.angular.z)
         if not self.inputs.check(
-                topic, header_problem(message.header, f"{robot_namespace(robot)}/base_link"),
+                topic, self.session.run_problem(int(message.run_id)),
+                header_problem(message.header, f"{robot_namespace(robot)}/base_link"),
                 content_problem(message),
                 self.session.command_problem(robot, int(message.robot_id), linear_x, angular_z,
                                              int(message.team_sequence))):

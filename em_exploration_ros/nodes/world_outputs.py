@@ -71,8 +71,9 @@ def world_markers(world: World, stamp_s: float) -> MarkerArray:
 class WorldOutputs:
     """em-world's publishers (see module docstring) and the publishing of each effect."""
 
-    def __init__(self, node: Node, params: ExplorationParams) -> None:
+    def __init__(self, node: Node, params: ExplorationParams, run_id: int) -> None:
         self.max_range_m = params.sensors.sonar_max_range_m
+        self.run_id = run_id  # carried by every project message it publishes
         self.clock_pub = node.create_publisher(Clock, "/clock", CLOCK_QOS)
         self.anchor_pub = node.create_publisher(PoseStamped, "/mission/anchor_pose",
                                                 LATCHED_QOS)
@@ -118,6 +119,7 @@ class WorldOutputs:
     def sensors(self, effect: PublishSensors) -> None:
         """A robot's sonar scan (barrier and delivery counts in it) and dead reckoning."""
         scan = sonar_scan_to_msg(effect.frame, self.max_range_m, effect.team_sequences)
+        scan.run_id = self.run_id
         if effect.delivered is not None:
             scan.delivered_updates, scan.delivered_requests = effect.delivered
         self.sonar_pubs[effect.robot].publish(scan)
@@ -135,6 +137,7 @@ class WorldOutputs:
     def status(self, effect: PublishStatus) -> None:
         """/world/status: the current step, whether stepping is over for good, and why."""
         header = Header(stamp=seconds_to_time(effect.stamp_s), frame_id=WORLD_FRAME)
-        self.status_pub.publish(WorldStatus(header=header, step=effect.step,
+        self.status_pub.publish(WorldStatus(header=header, run_id=self.run_id,
+                                            step=effect.step,
                                             stepping_over=effect.stepping_over,
                                             reason=effect.reason))

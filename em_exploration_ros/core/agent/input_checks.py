@@ -272,6 +272,14 @@ class ClockGuard:
                 and now_ns - self._rival_first_ns >= self.recover_advance_s * 1e9)
 
 
+def run_problem(run_id: int, own_run_id: int) -> str | None:
+    """Reason to drop a message of another run (``run_id`` not this node's ``own_run_id``:
+    two runs on one ROS domain), naming both runs."""
+    if run_id == own_run_id:
+        return None
+    return f"of run {run_id}, not of this node's run {own_run_id} (another run on the domain)"
+
+
 def reason_kind(reason: str) -> str:
     """A reason with its values blanked (quoted text, numbers), so that reasons of the same
     kind share one throttled log line: ``frame_id 'x' is not 'map'`` -> ``frame_id _ is not _``."""

@@ -151,6 +151,7 @@ def cdr_size(update: TeamUpdate) -> int:
     encapsulation header): what DDS carries per update, without RTPS and UDP/IP headers.
     Equal to ``len(rclpy.serialization.serialize_message(team_update_to_msg(update)))``."""
     cdr = _CdrLayout()
+    cdr.add(8)  # run_id
     cdr.add(4, 2)  # step, sequence
     cdr.add(1, 2)  # robot_id, finished
     cdr.add(4)  # keyframes length
@@ -180,6 +181,7 @@ def request_cdr_size() -> int:
     cdr.add(4, 2)  # header.stamp (sec, nanosec)
     cdr.add(4)  # header.frame_id length
     cdr.add(1)  # its terminating NUL
+    cdr.add(8)  # run_id
     cdr.add(4, 2)  # requester_id, robot_id
     cdr.add(8, 2)  # first_sequence, last_sequence
     return CDR_ENCAPSULATION_BYTES + cdr.offset

@@ -74,8 +74,9 @@ import numpy as np
 from em_exploration_ros.core.agent.clock_watch import ClockWatch
 from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD,
                                                         command_sequence_problem, id_problem,
-                                                        first_problem, size_problem,
-                                                        stamp_step_problem, step_problem)
+                                                        first_problem, run_problem,
+                                                        size_problem, stamp_step_problem,
+                                                        step_problem)
 from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness, UnseenLiveliness
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics,
@@ -277,6 +278,10 @@ class EvaluatorSession:
                 f"{self.monitor.final_step}")
 
     # -- inputs: the truth -------------------------------------------------------------------
+
+    def run_problem(self, run_id: int) -> str | None:
+        """Reason to drop a message of another run (its ``run_id`` not the evaluator's)."""
+        return run_problem(run_id, self.settings.run_id)
 
     def step_of(self, stamp_ns: int, keyframes_only: bool = False) -> tuple[int, str | None]:
         """(step, reason to drop) of a message stamp [ns sim time]: not the time of a step,

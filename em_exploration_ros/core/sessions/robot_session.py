@@ -54,8 +54,8 @@ from em_exploration_ros.core.agent.clock_watch import ClockWatch
 from em_exploration_ros.core.agent.input_checks import (MAX_STEP_LEAD, RejectionLog,
                                                         barrier_problem,
                                                         history_request_problem,
-                                                        request_problem, size_problem,
-                                                        step_problem)
+                                                        request_problem, run_problem,
+                                                        size_problem, step_problem)
 from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
                                                   keyframe_ranges, records_beyond_the_team,
                                                   step_to_resume_at)
@@ -203,6 +203,10 @@ class RobotSession:
         return (step_problem(step, self._next_step, self.params.run.max_steps, lead)
                 or (size_problem(len(pending) + 1, MAX_STEP_LEAD, "pending steps")
                     if step not in pending else None))
+
+    def run_problem(self, run_id: int) -> str | None:
+        """Reason to drop a message of another run (its ``run_id`` not this robot's)."""
+        return run_problem(run_id, self.settings.run_id)
 
     def barrier_problem(self, team_sequences: tuple[int, ...], step: int) -> str | None:
         """Reason to drop a scan of ``step`` for its barrier (implausible against what this

@@ -44,7 +44,7 @@ from typing import Any, Iterable
 
 from em_exploration_ros.core.agent.input_checks import (command_problem,
                                                         command_sequence_problem,
-                                                        request_problem)
+                                                        request_problem, run_problem)
 from em_exploration_ros.core.agent.liveness import UnseenLiveliness
 from em_exploration_ros.core.evaluation.run_monitor import METRICS_INTERVAL_STEPS, final_step
 from em_exploration_ros.core.links.link_model import (Frame, UpdateDeliveryCounts,
@@ -193,6 +193,10 @@ class WorldSession:
         return effects
 
     # -- the robots' answers and liveliness -------------------------------------------------
+
+    def run_problem(self, run_id: int) -> str | None:
+        """Reason to drop a message of another run (its ``run_id`` not the world's)."""
+        return run_problem(run_id, self.settings.run_id)
 
     def command_problem(self, robot: int, robot_id: int, linear_x: float, angular_z: float,
                         team_sequence: int) -> str | None:
