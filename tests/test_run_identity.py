@@ -55,4 +55,3 @@ def test_another_runs_messages_share_one_throttled_line_per_topic():
     log = RejectionLog(5.0)
     counts = [log.note("/robot_0/motion_command " + reason_kind(r), 1.0) for r in reasons]
     assert counts[0] is not None and counts[1:] == [None, None]
-
