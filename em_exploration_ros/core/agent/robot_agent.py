@@ -35,7 +35,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -238,7 +238,7 @@ class RobotAgent:
             self._update_slam()
 
     def resume(self, history: list[TeamUpdate], through_sequence: int = 0,
-               first_step: int = 0) -> None:
+               first_step: int = 0, team_records: Sequence[TeamUpdate] = ()) -> None:
         """Take back this robot's own earlier stream after its process restarted.
 
         ``history``: its records from sequence 1 on, as its teammates hold them;
@@ -246,7 +246,12 @@ class RobotAgent:
         world's barrier entry), if more than the history holds; ``first_step``: the first
         step this process processes. The own keyframes go back into the graph, the targets
         into the decision list, rendezvous events into the bookkeeping, and numbering
-        continues after ``through_sequence`` (``TeamUpdateOutbox.restore``). The next
+        continues after ``through_sequence`` (``TeamUpdateOutbox.restore``).
+        ``team_records``: the teammates' records the earlier process applied, in the order it
+        applied them (its team journal). Both are replayed in the order and groups of the
+        earlier process (``_replay_order``): one SLAM update per step that had a keyframe or
+        teammates' records, so that iSAM2 takes the same updates from the same linearization
+        points and the rebuilt estimate is the uninterrupted one. The next
         odometry reading is linked to the last keyframe: the dead-reckoning pose there is
         the composition of the keyframe deltas (the stream started at the odometry origin,
         step 0, as every lockstep robot's does), so the reading measures all the motion
@@ -270,12 +275,18 @@ class RobotAgent:
             history = [self._stream_start()]
         self.outbox.restore(history, through_sequence)
         odom_pose, last_keyframe = np.zeros(3), None
-        for update in history:
+        for own, records in self._replay_order(history, team_records):
+            if not own:
+                self.apply_team_updates(records)
+                continue
+            update = records[0]
             for keyframe in update.keyframes:
                 self.slam.add_keyframe(keyframe)
                 if not keyframe.is_first:
                     odom_pose = compose(odom_pose, keyframe.odom_delta)
                 last_keyframe = keyframe
+            if update.keyframes:
+                self._update_slam()
             for target in update.targets:
                 self.team_targets[self.robot_id].append(target)
                 partner = None if target.partner_id == self.robot_id else target.partner_id
@@ -285,9 +296,10 @@ class RobotAgent:
                     target.planning_time_s, 0, float("nan"), target.planner_failed))
             for event in update.rendezvous:
                 self._apply_rendezvous_event(event)
+        self.finished = any(update.finished for update in history)
         if last_keyframe is None:
             return
-        self.slam.update()
+        self._restore_target()
         self._keyframes.resume(last_keyframe.index)
         self._dead_reckoning.resume(odom_pose)
         interval = self.params.slam.keyframe_interval_steps
@@ -295,6 +307,47 @@ class RobotAgent:
         moving_steps = interval if complete else max(
             first_step - last_keyframe.index * interval, interval)
         self._gap_covariance = self._moving_step_covariance() * moving_steps
+
+    def _restore_target(self) -> None:
+        """Drive on to the last target the earlier process chose (its last decision: a target
+        reached or given up is followed by a new decision at the same step), with its
+        deadline as set then from the estimated pose at the decision's keyframe; the
+        progress window starts anew."""
+        if self.finished or not self.decisions:
+            return
+        decision = self.decisions[-1]
+        self.target = decision.target
+        self._progress.restart()
+        motion = self.params.motion
+        indices, poses = self.slam.trajectory(self.robot_id)
+        step = round(decision.stamp_s / motion.time_step_s)
+        at_decision = indices <= step // self.params.slam.keyframe_interval_steps
+        if not at_decision.any():
+            return
+        distance = float(np.linalg.norm(decision.target.position
+                                        - poses[at_decision][-1][:2]))
+        self._target_deadline_s = (decision.stamp_s + motion.target_timeout_factor * distance
+                                   / motion.speed_mps + motion.target_timeout_margin_s)
+
+    def _replay_order(self, history: Sequence[TeamUpdate], team_records: Sequence[TeamUpdate]
+                      ) -> list[tuple[bool, list[TeamUpdate]]]:
+        """The own records (True, [record]) and groups of teammates' records (False, records)
+        in the order the earlier process handled them: at each step, the teammates' records
+        it applied (one group), then its own record of the step. A teammate's record made at
+        step s was applied at step s + 1 (the lockstep links' delivery; later if it came
+        later in the journal's order)."""
+        time_step = self.params.motion.time_step_s
+        events: list[tuple[int, int, int, bool, list[TeamUpdate]]] = [
+            (round(update.stamp_s / time_step), 1, order, True, [update])
+            for order, update in enumerate(history)]
+        groups: dict[int, list[TeamUpdate]] = {}
+        applied_at = 0
+        for update in team_records:
+            applied_at = max(round(update.stamp_s / time_step) + 1, applied_at)
+            groups.setdefault(applied_at, []).append(update)
+        events += [(step, 0, 0, False, records) for step, records in groups.items()]
+        events.sort(key=lambda event: event[:3])
+        return [(own, records) for _, _, _, own, records in events]
 
     def skip_steps(self) -> None:
         """The steps between the last one processed and the next are skipped: the world went

@@ -161,6 +161,7 @@ class RobotSession:
         self.rejected_updates = 0
         self._recovery: OwnHistoryRecovery | None = None
         self._journal_barrier: list[int] | None = None  # awaiting the journals read back
+        self._journaled_team: list[TeamUpdate] = []  # applied by the earlier process
         self._served_history: dict[int, float] = {}
         self._served_history_log = RejectionLog(log_period_s)
         self._last_reply: CommandReply | None = None
@@ -357,6 +358,7 @@ class RobotSession:
         # Applied by the earlier process: the archive holds them from now on, so they are
         # served to a restarted teammate and not journaled again when applied.
         self.archive.keep(teammates)
+        self._journaled_team = teammates
         self._out.append(StartJournal(Journal.TEAM, tuple(teammates), fresh=False))
         self._out.append(info(
             f"read {len(taken_own)} records of this robot's stream from its journal "
@@ -799,6 +801,16 @@ class RobotSession:
             taken.append(update)
         return taken
 
+    def _take_journaled_team(self) -> list[TeamUpdate]:
+        """The teammates' records the earlier process applied (its team journal), in its
+        order, taken out of the inbox to be replayed by ``RobotAgent.resume``."""
+        journaled, self._journaled_team = self._journaled_team, []
+        limits: dict[int, int] = {}
+        for update in journaled:
+            limits[update.robot_id] = max(update.sequence, limits.get(update.robot_id, 0))
+        released = {(u.robot_id, u.sequence) for u in self.inbox.pop_ready(limits)}
+        return [u for u in journaled if (u.robot_id, u.sequence) in released]
+
     def _resume(self) -> None:
         recovery, self._recovery = self._recovery, None
         history = recovery.history()
@@ -808,7 +820,8 @@ class RobotSession:
                 f"sequence {recovery.needed_sequence}): no teammate sent them; they are "
                 f"re-sent empty, and the motion since the last keyframe recovered is linked "
                 f"with the odometry covariance of every step since"))
-        self.agent.resume(history, recovery.needed_sequence, self._next_step)
+        self.agent.resume(history, recovery.needed_sequence, self._next_step,
+                          self._take_journaled_team())
         if self.journaled:
             self._out.append(StartJournal(Journal.OWN, tuple(self.agent.outbox.resend(1, 0)),
                                           fresh=False))
