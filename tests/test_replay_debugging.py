@@ -8,7 +8,9 @@ only what the world published (/clock, /mission/anchor_pose, /robot_i/sonar,
 recorded sequence numbers that the recorded scans name in their lockstep barrier
 (SonarScan.team_sequences). em-record records the fresh robots' team updates; every
 recorded update's targets (decision index, x, y, frontier type) must come out the same, in
-the same updates, in the same order. All processes are bounded in time and stopped.
+the same updates, in the same order. The fresh robots are given the recording's run identity
+(``run_id``, read from its updates): a robot drops what another run publishes. All processes
+are bounded in time and stopped.
 """
 from __future__ import annotations
 
@@ -54,6 +56,15 @@ def team_targets(path: Path) -> dict[int, dict[int, list[Target]]]:
     return updates
 
 
+def recorded_run_id(path: Path) -> int:
+    """The run identity of the recorded team (the ``run_id`` of its first team update)."""
+    message_class = import_message_class(TEAM_UPDATE_TYPE)
+    for channel, message in BagScanner(path, tolerant=True).messages():
+        if channel.topic.endswith("/team/updates"):
+            return int(deserialize_message(message.data, message_class).run_id)
+    raise AssertionError(f"no team update in {path}")
+
+
 def tails(processes: list[NodeProcess]) -> str:
     """The end of each process's log, for a failure message."""
     return "\n".join(f"--- {p.log_path.name}\n{p.output()[-1500:]}" for p in processes)
@@ -69,6 +80,8 @@ def test_world_topics_replayed_into_fresh_robots_reproduce_the_targets(tmp_path:
         assert sorted(updates) == list(range(1, last_sequence[robot] + 1)), robot
 
     fresh_bag = tmp_path / "fresh_team_updates"
+    run_id = recorded_run_id(SAMPLE)
+    assert run_id != 0  # run_team.sh gave the recorded run its own
     with ProcessSet() as processes:
         recorder = processes.start_module(
             "em_exploration_ros.tools.record",
@@ -76,7 +89,8 @@ def test_world_topics_replayed_into_fresh_robots_reproduce_the_targets(tmp_path:
              "0.2", "--chunk-interval", "0.5"], tmp_path / "record.log")
         robots = [processes.start_module(
             "em_exploration_ros.nodes.robot_node",
-            ros_args({"robot_id": robot, "use_sim_time": True}, f"/robot_{robot}", PARAMS_FILE),
+            ros_args({"robot_id": robot, "use_sim_time": True, "run_id": run_id},
+                     f"/robot_{robot}", PARAMS_FILE),
             tmp_path / f"robot_{robot}.log") for robot in range(NUM_ROBOTS)]
         for robot in robots:
             robot.wait_for_output("waiting for the mission anchor", STARTUP_TIMEOUT_S)

@@ -118,20 +118,28 @@ rclpy.init()
 node = Node("intruder")
 pubs = {r: node.create_publisher(TeamUpdate, f"/robot_{r}/team/updates", TEAM_QOS)
         for r in range(3)}
-# Matched first (two teammates and the evaluator read each topic), so that nothing it sends
-# after the go file appears is lost to discovery, which can take seconds.
+# An intruder inside the run: it takes the run's identity from what robot 0 publishes (the
+# nodes drop any other run's messages before they look at them).
+heard = []
+node.create_subscription(TeamUpdate, "/robot_0/team/updates", heard.append, TEAM_QOS)
+# Matched first (two teammates and the evaluator read each topic, and its own reader robot
+# 0's), so that nothing it sends after the go file appears is lost to discovery, which can
+# take seconds.
 until = time.monotonic() + 60.0
-while any(pub.get_subscription_count() < 3 for pub in pubs.values()):
+while any(pub.get_subscription_count() < 3 + (r == 0) for r, pub in pubs.items()):
     if time.monotonic() > until:
         sys.exit("the team's readers were not discovered within 60 s")
     time.sleep(0.01)
 print("matched", flush=True)
 go_file = Path(sys.argv[2])
-while not go_file.exists():
-    time.sleep(0.01)
+while not go_file.exists() or not heard:
+    if time.monotonic() > until + 120.0:
+        sys.exit("no update of robot 0 heard")
+    rclpy.spin_once(node, timeout_sec=0.01)
+run_id = heard[0].run_id
 
 def update(robot, sequence, **fields):
-    message = TeamUpdate(robot_id=robot, sequence=sequence)
+    message = TeamUpdate(run_id=run_id, robot_id=robot, sequence=sequence)
     for key, value in fields.items():
         setattr(message, key, value)
     return message
