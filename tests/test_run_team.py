@@ -204,8 +204,8 @@ def test_three_robots_explore_end_to_end(tmp_path):
     assert summary["distance_m"] == pytest.approx(reference["distance_m"], abs=1e-6)
     assert_same_summary(summary, reference)
 
-    picture = summary_path.with_name("summary_map.png")
-    assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for name in ("summary_map.png", "summary_timeline.png"):  # as em-sim draws beside it
+        assert summary_path.with_name(name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     logs = summary_path.parent / "logs"
     assert {"world.log", "evaluator.log", "robot_0.log", "robot_1.log",
             "robot_2.log"} <= {p.name for p in logs.iterdir()}

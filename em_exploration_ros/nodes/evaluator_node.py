@@ -31,11 +31,9 @@ from rclpy.task import Future
 from std_msgs.msg import Header
 
 from em_exploration_ros.core.agent.input_checks import frame_problem, size_problem
-from em_exploration_ros.core.evaluation.map_render import render_team_map
 from em_exploration_ros.core.links.link_model import perfect_links
-from em_exploration_ros.core.evaluation.summary import RunSummary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
-from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
+from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.records.team_data import (MAX_LANDMARKS_PER_UPDATE,
                                                      InvalidTeamUpdate, LandmarkEstimate)
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
@@ -52,11 +50,13 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_
                                                   landmark_positions_from_msg,
                                                   meeting_from_msg, odometry_codec,
                                                   odometry_pose, planar_path, robot_namespace,
-                                                  serialized_path, seconds_to_time)
+                                                  serialized_path)
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   content_problem, deserialized, header_problem,
                                                   path_problem, publish_or_log, serialized_size,
                                                   size_limited)
+from em_exploration_ros.nodes.evaluator_outputs import (draw_pictures, metrics_to_msg,
+                                                        replace_summary)
 from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.log_lines import LineWriter
@@ -288,7 +288,7 @@ class EvaluatorNode(LeanNode):
             elif isinstance(effect, LogLine):
                 self._lines.write(effect)
             elif isinstance(effect, PublishMetrics):
-                self._publish_metrics(effect)
+                self.metrics_pub.publish(metrics_to_msg(effect))
             elif isinstance(effect, RequestUpdates):
                 for gap in effect.gaps:
                     request = TeamUpdateRequest(run_id=self.session.settings.run_id,
@@ -303,42 +303,26 @@ class EvaluatorNode(LeanNode):
             elif isinstance(effect, Finished):
                 self._write(effect)
 
-    def _publish_metrics(self, effect: PublishMetrics) -> None:
-        metrics = effect.metrics
-        message = ExplorationMetrics(
-            explored_ratio=metrics.explored_ratio, distance_m=metrics.distance_m,
-            loc_rmse_m=metrics.loc_rmse_m, landmark_rmse_m=metrics.landmark_rmse_m,
-            decisions=effect.decisions,
-            robot_distance_m=[float(d) for d in metrics.robot_distances_m])
-        message.header.stamp = seconds_to_time(metrics.stamp_s)
-        message.header.frame_id = WORLD_FRAME
-        self.metrics_pub.publish(message)
-
-    def _replace_summary(self, summary: RunSummary) -> None:
-        """Write ``summary`` over the summary file at once (renamed over it: a process killed
-        meanwhile leaves the previous one whole)."""
-        self.summary_path.parent.mkdir(parents=True, exist_ok=True)
-        write_replacing(self.summary_path, summary.write)
-
     def _keep_so_far(self, effect: KeepSoFar) -> None:
         """The summary so far replaces the summary file (a full disk: the previous one is
         kept, and said at most every few seconds)."""
         try:
-            self._replace_summary(effect.summary)
+            replace_summary(self.summary_path, effect.summary)
         except OSError as error:
             self._lines.write(warn(f"could not keep the summary so far: {error}",
                                    "summary so far"))
 
     def _write(self, finished: Finished) -> None:
-        """The summary JSON (replacing the summary so far) and the map PNG; then ``done``
-        completes."""
-        self._replace_summary(finished.summary)
+        """The summary JSON (replacing the summary so far), the map and the timeline; then
+        ``done`` completes."""
+        replace_summary(self.summary_path, finished.summary)
         log = self.get_logger()
         log.info(f"summary: {self.summary_path}")
         if self.session.evaluator is not None:
-            render_team_map(self.session.map_layers(finished.summary.stop_reason),
-                            self.map_png_path)
-            log.info(f"map: {self.map_png_path}")
+            for picture in draw_pictures(
+                    finished.summary, self.session.map_layers(finished.summary.stop_reason),
+                    self.summary_path, self.map_png_path):
+                log.info(f"picture: {picture}")
         if not self.done.done():
             self.done.set_result(finished.exit_code)
 

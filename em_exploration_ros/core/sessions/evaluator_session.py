@@ -882,8 +882,9 @@ class EvaluatorSession:
 
     def map_layers(self, title: str) -> TeamMapLayers:
         """The final map's layers: the truth and the estimates of the last evaluation, the
-        targets counted in the summary and the rendezvous; ``title`` ends the picture's
-        title (planner, team size and seed come first)."""
+        targets counted in the summary, the targets given up before the end and the
+        rendezvous; ``title`` ends the picture's title (planner, team size and seed come
+        first)."""
         paths, landmarks = self._evaluated
         final = self.monitor.final_metrics
         end_s = math.inf if final is None else final.stamp_s
@@ -894,7 +895,9 @@ class EvaluatorSession:
              for r, chosen in enumerate(self._decisions())},
             rendezvous_outcomes(self._rendezvous, end_s),
             f"{self.params.planner.name}, {self.num_robots} robots, seed "
-            f"{self.params.run.seed}: {title}")
+            f"{self.params.run.seed}: {title}",
+            given_up={r: [g for g in entries if g.stamp_s < end_s]
+                      for r, entries in enumerate(self._given_up)})
 
 
 def _progress_line(metrics: TeamMetrics, decisions: int) -> str:
