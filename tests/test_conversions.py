@@ -11,8 +11,8 @@ from em_exploration_ros.core.planning.progress import GivenUpTarget, GiveUpReaso
 from em_exploration_ros.core.records.team_data import (FrontierType, InvalidTeamUpdate,
                                                        LandmarkEstimate, TargetRecord, TeamUpdate)
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
-from em_exploration_ros.core.records.wire_model import sim_time_s, twist_to_increment_covariance
-from em_exploration_ros.core.sessions.team_runner import TeamRunner, step_input
+from em_exploration_ros.core.records.wire_model import sim_time_s
+from em_exploration_ros.core.sessions.team_runner import TeamRunner, sensor_inputs
 from em_exploration_ros.nodes import conversions as conv
 
 PARAMS = ExplorationParams().replace(world={"width_m": 50.0, "height_m": 50.0,
@@ -34,26 +34,27 @@ def running_team() -> TeamRunner:
 
 
 def test_sensor_frame_over_the_wire_equals_em_sim_input(running_team):
+    """em-robot's session gets from the world's messages what em-sim's gets from the frame."""
     dt = PARAMS.motion.time_step_s
     for robot in range(PARAMS.world.num_robots):
         frame = running_team.simulation.sense(robot)
-        scan = through_dds(conv.sonar_scan_to_msg(frame, 7.5, [3, 0, 5]))
+        message = conv.sonar_scan_to_msg(frame, 7.5, [3, 0, 5])
+        message.delivered_updates, message.delivered_requests = 4, 2
+        scan = through_dds(message)
         odom = deserialize_message(conv.serialized_dead_reckoning(frame), Odometry)
-        expected = step_input(frame, dt)
-        assert scan.step == expected.step and list(scan.team_sequences) == [3, 0, 5]
-        assert conv.time_to_seconds(scan.header.stamp) == expected.stamp_s == sim_time_s(
+        odometry, expected = sensor_inputs(frame, (4, 2))
+        got = conv.scan_input_from_msg(scan)
+        assert (got.step, got.stamp, got.delivered) == (expected.step, expected.stamp, (4, 2))
+        assert got.team_sequences == (3, 0, 5) and expected.team_sequences == ()
+        assert conv.time_to_seconds(scan.header.stamp) == frame.stamp_s == sim_time_s(
             frame.step, dt)
-        assert np.array_equal(conv.odometry_pose(odom), expected.odom_pose)
-        assert np.array_equal(twist_to_increment_covariance(conv.odometry_twist_covariance(odom),
-                                                            dt),
-                              expected.odom_increment_covariance)
-        assert tuple(conv.landmark_reading_from_msg(r) for r in scan.landmarks) == \
-            expected.landmarks
-        for got, want in zip((conv.teammate_reading_from_msg(r) for r in scan.teammates),
-                             expected.teammates):
-            assert got.robot_id == want.robot_id
-            assert np.array_equal(got.relative_pose, want.relative_pose)
-            assert np.array_equal(got.covariance, want.covariance)
+        assert np.array_equal(conv.odometry_pose(odom), odometry.pose)
+        assert np.array_equal(conv.odometry_twist_covariance(odom), odometry.twist_covariance)
+        assert got.landmarks == expected.landmarks
+        for mine, want in zip(got.teammates, expected.teammates):
+            assert mine.robot_id == want.robot_id
+            assert np.array_equal(mine.relative_pose, want.relative_pose)
+            assert np.array_equal(mine.covariance, want.covariance)
         assert scan.header.frame_id == f"robot_{robot}/base_link"
         assert (odom.header.frame_id, odom.child_frame_id) == (f"robot_{robot}/odom",
                                                                f"robot_{robot}/base_link")

@@ -10,12 +10,15 @@ import pytest
 from em_exploration_ros.core.agent.rejoin import (OwnHistoryRecovery, StreamArchive,
                                                   keyframe_ranges, records_beyond_the_team,
                                                   step_to_resume_at)
-from em_exploration_ros.core.agent.robot_agent import RobotAgent
+from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.records.team_data import (InvalidTeamUpdate, TeamUpdate,
                                                        TeamUpdateInbox, TeamUpdateOutbox)
-from em_exploration_ros.core.sessions.team_runner import TeamRunner, step_input
+from em_exploration_ros.core.records.wire_model import (pose_through_wire,
+                                                        twist_to_increment_covariance)
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.core.world.sensors import odometry_covariance_per_step
+from em_exploration_ros.core.world.simulation import SensorFrame
 
 PARAMS = ExplorationParams().replace(
     planner={"name": "NEAREST"}, world={"width_m": 50.0, "height_m": 50.0, "num_landmarks": 5},
@@ -137,6 +140,14 @@ def crashed_team(robot: int = 1) -> tuple[TeamRunner, RobotAgent]:
             sim.apply_command(vehicle, 0.0, 0.0)
         sim.advance()
     return runner, runner.agents[robot]
+
+
+def step_input(frame: SensorFrame, time_step_s: float) -> StepInput:
+    """A world sensor frame as a RobotAgent's step takes it, through the wire's numbers (what
+    a robot's session hands its agent)."""
+    return StepInput(frame.step, frame.stamp_s, pose_through_wire(frame.odom_pose),
+                     twist_to_increment_covariance(frame.twist_covariance, time_step_s),
+                     frame.landmarks, frame.teammates)
 
 
 def step_to_next_keyframe(agent: RobotAgent, runner: TeamRunner) -> TeamUpdate:

@@ -30,6 +30,7 @@ from em_exploration_ros.core.records.wire_model import (NANOSECONDS_PER_SECOND,
                                                         nanoseconds_to_seconds,
                                                         planar_covariance_to_6x6, planar_quaternion,
                                                         planar_yaw, seconds_to_nanoseconds)
+from em_exploration_ros.core.sessions.robot_session import ScanInput
 from em_exploration_ros.core.world.simulation import SensorFrame
 from em_exploration_ros.nodes.odometry_cdr import OdometryCodec, PlanarOdometry
 from em_exploration_ros.nodes.path_cdr import DecodedPath, encode_path
@@ -123,6 +124,18 @@ def sonar_scan_to_msg(frame: SensorFrame, max_range_m: float,
     message.header.stamp = seconds_to_time(frame.stamp_s)
     message.header.frame_id = f"{robot_namespace(frame.robot_id)}/base_link"
     return message
+
+
+def scan_input_from_msg(message: em_msg.SonarScan) -> ScanInput:
+    """What a robot takes from a sonar scan (``sonar_scan_to_msg``'s inverse, with the
+    barrier and, in relay mode, the deliveries so far): em-sim builds the same from the
+    world's frame (``core.sessions.team_runner.sensor_inputs``)."""
+    stamp = message.header.stamp
+    return ScanInput(int(message.step), (stamp.sec, stamp.nanosec),
+                     tuple(landmark_reading_from_msg(r) for r in message.landmarks),
+                     tuple(teammate_reading_from_msg(r) for r in message.teammates),
+                     tuple(int(s) for s in message.team_sequences),
+                     (int(message.delivered_updates), int(message.delivered_requests)))
 
 
 @functools.lru_cache(maxsize=256)

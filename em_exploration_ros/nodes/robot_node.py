@@ -44,12 +44,10 @@ from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.records.wire_model import nanoseconds_to_seconds
 from em_exploration_ros.core.sessions import robot_effects as fx
 from em_exploration_ros.core.sessions.effects import Dropped, LogLine
-from em_exploration_ros.core.sessions.robot_session import (OdometryInput, RobotSession,
-                                                            ScanInput)
-from em_exploration_ros.nodes.conversions import (MAP_FRAME, landmark_reading_from_msg,
-                                                  odometry_codec, planar_odometry_from_msg,
-                                                  quaternion_to_yaw, robot_namespace,
-                                                  teammate_reading_from_msg)
+from em_exploration_ros.core.sessions.robot_session import OdometryInput, RobotSession
+from em_exploration_ros.nodes.conversions import (MAP_FRAME, odometry_codec,
+                                                  planar_odometry_from_msg, quaternion_to_yaw,
+                                                  robot_namespace, scan_input_from_msg)
 from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
                                                   checked_team_update, content_problem,
                                                   deserialized, header_problem, size_limited)
@@ -195,13 +193,7 @@ class RobotNode(LeanNode):
         if message.robot_id == self.robot_id and self.session.processed(step):
             self._perform(self.session.scan_again(step))  # our answer did not arrive
         elif self.inputs.check(f"/{self._ns}/sonar", self.scan_problem(message)):
-            stamp = message.header.stamp
-            scan = ScanInput(step, (stamp.sec, stamp.nanosec),
-                             tuple(landmark_reading_from_msg(r) for r in message.landmarks),
-                             tuple(teammate_reading_from_msg(r) for r in message.teammates),
-                             tuple(int(s) for s in message.team_sequences),
-                             (int(message.delivered_updates), int(message.delivered_requests)))
-            self._perform(self.session.scan(scan, *self._times()))
+            self._perform(self.session.scan(scan_input_from_msg(message), *self._times()))
 
     def _on_odometry_data(self, data: bytes) -> None:
         """Serialized dead reckoning: read in one struct when it is in the world's own form

@@ -38,7 +38,7 @@ from typing import Callable
 
 import numpy as np
 
-from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
+from em_exploration_ros.core.agent.robot_agent import RobotAgent
 from em_exploration_ros.core.node_settings import (EvaluatorNodeSettings, RobotNodeSettings,
                                                    WorldNodeSettings)
 from em_exploration_ros.core.records.team_data import MissingRange, TeamUpdate
@@ -60,15 +60,18 @@ from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.links.link_model import Delivery, FrameKind
 from em_exploration_ros.core.world.simulation import SensorFrame, WorldSimulation
 from em_exploration_ros.core.records.wire_model import (pose_through_wire,
-                                                        seconds_to_nanoseconds, sim_time_s,
-                                                        twist_to_increment_covariance)
+                                                        seconds_to_nanoseconds, sim_time_s)
 
 
-def step_input(frame: SensorFrame, time_step_s: float) -> StepInput:
-    """The robot-side view of a world sensor frame (same conversion as the ROS robot node)."""
-    return StepInput(frame.step, frame.stamp_s, pose_through_wire(frame.odom_pose),
-                     twist_to_increment_covariance(frame.twist_covariance, time_step_s),
-                     frame.landmarks, frame.teammates)
+def sensor_inputs(frame: SensorFrame, delivered: tuple[int, int]
+                  ) -> tuple[OdometryInput, ScanInput]:
+    """A world sensor frame as a robot's session takes it: the dead reckoning through the
+    wire's numbers and the scan with its stamp (sec, nanosec) and ``delivered``, the links'
+    deliveries to the robot so far (records, requests); em-robot builds the same from the
+    world's messages (``nodes.conversions.scan_input_from_msg``)."""
+    stamp = divmod(seconds_to_nanoseconds(frame.stamp_s), 1_000_000_000)
+    return (OdometryInput(pose_through_wire(frame.odom_pose), frame.twist_covariance),
+            ScanInput(frame.step, stamp, frame.landmarks, frame.teammates, (), delivered))
 
 
 @dataclass(frozen=True)
@@ -162,11 +165,9 @@ class TeamRunner:
         for session in self.sessions:
             robot = session.robot_id
             frame = sensors[robot].frame
-            session.odometry(step, OdometryInput(pose_through_wire(frame.odom_pose),
-                                                 frame.twist_covariance), 0.0, step)
-            stamp = divmod(seconds_to_nanoseconds(frame.stamp_s), 1_000_000_000)
-            effects = session.scan(ScanInput(step, stamp, frame.landmarks, frame.teammates,
-                                             (), tuple(self._delivered[robot])), 0.0, step)
+            odometry, scan = sensor_inputs(frame, tuple(self._delivered[robot]))
+            session.odometry(step, odometry, 0.0, step)
+            effects = session.scan(scan, 0.0, step)
             commands.append(self._send(robot, step, effects))
         self.world.advance(commands)
 
