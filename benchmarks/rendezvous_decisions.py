@@ -14,7 +14,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from em_exploration_ros.core.planning.planners import CandidateUtility, EmPlanner
+from em_exploration_ros.core.planning.planner_api import CandidateUtility
+from em_exploration_ros.core.planning.planners import EmPlanner
 from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.tools.sim_cli import add_run_arguments, params_from_args

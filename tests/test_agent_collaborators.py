@@ -6,8 +6,8 @@ import pytest
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.geometry import between
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.planners import (CandidateUtility, Decision,
-                                                       PlanningContext)
+from em_exploration_ros.core.planning.planner_api import (CandidateUtility, Decision,
+                                                          PlanningContext)
 from em_exploration_ros.core.planning.progress import GiveUpReason
 from em_exploration_ros.core.records.wire_model import DeadReckoningIntegrator
 from em_exploration_ros.core.world.world import step_pose

@@ -7,7 +7,8 @@ import pytest
 
 from em_exploration_ros.core.agent.robot_agent import RobotAgent, StepInput
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.planners import CandidateUtility, Decision, PlanningContext
+from em_exploration_ros.core.planning.planner_api import (CandidateUtility, Decision,
+                                                          PlanningContext)
 from em_exploration_ros.core.records.readings import KeyframeMeasurements, TeammateReading
 from em_exploration_ros.core.records.team_data import (FrontierType, RendezvousEvent,
                                                        RendezvousState, TargetRecord, TeamUpdate)

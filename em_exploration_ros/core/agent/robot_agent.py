@@ -47,8 +47,8 @@ from em_exploration_ros.core.planning.motion import ApfController
 from em_exploration_ros.core.planning.rendezvous import Meeting, RendezvousBook, meeting_timeout_s
 from em_exploration_ros.core.virtual_map.occupancy import OccupancyGrid
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.planning.planners import (Decision, Planner, PlanningContext,
-                                                      make_planner)
+from em_exploration_ros.core.planning.planner_api import Decision, Planner, PlanningContext
+from em_exploration_ros.core.planning.planners import make_planner
 from em_exploration_ros.core.planning.progress import (GivenUpTarget, GiveUpReason,
                                                        ProgressMonitor, RecoveryTurn,
                                                        TargetBlacklist, blocked_step)

@@ -46,9 +46,7 @@ from em_exploration_ros.core.planning.em_scenario import (ScenarioBuilder, TeamS
                                                           VirtualNoise, VirtualScenario)
 from em_exploration_ros.core.planning.em_step import DecisionFactorization
 from em_exploration_ros.core.planning.frontiers import Frontier
-# CandidateUtility: re-exported for the modules that import the planner types from here.
-from em_exploration_ros.core.planning.planner_api import (CandidateUtility,  # noqa: F401
-                                                          Decision, Planner, PlannerFactory,
+from em_exploration_ros.core.planning.planner_api import (Decision, Planner, PlannerFactory,
                                                           PlanningContext, decide)
 from em_exploration_ros.core.records.team_data import FrontierType
 from em_exploration_ros.core.virtual_map.cell_uncertainty import (CellObservations,
