@@ -22,8 +22,7 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
-from em_exploration_ros.core.evaluation.association_stats import (association_line,
-                                                                  team_association)
+from em_exploration_ros.core.evaluation.association_stats import association_line
 from em_exploration_ros.core.evaluation.summary import activity_line
 from em_exploration_ros.core.output_paths import output_path_problem, write_replacing
 from em_exploration_ros.core.params import (ExplorationParams, SensorParams,
@@ -230,10 +229,6 @@ def main(argv: Sequence[str] | None = None,
     except KeyboardInterrupt:
         log.warning("interrupted")
         return 130
-    if not params.sensors.ideal_sonar:
-        summary.association = team_association(
-            [agent.slam for agent in runner.agents], runner.simulation.keyframe_scans(),
-            params.slam.keyframe_interval_steps)
     # The files first: a reader that closes stdout early (| head) must not cost them.
     unwritten: list[Path] = []
     if args.summary and not _write_output(args.summary, "--summary", summary.write,

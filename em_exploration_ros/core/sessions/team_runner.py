@@ -52,6 +52,7 @@ from em_exploration_ros.core.sessions.world_session import WorldSession
 from em_exploration_ros.core.sessions.evaluator_session import (CommandReport,
                                                                 EvaluatorSession, Effect,
                                                                 PublishMetrics)
+from em_exploration_ros.core.evaluation.association_stats import team_association
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers
 from em_exploration_ros.core.evaluation.run_monitor import METRICS_INTERVAL_STEPS, RunMonitor
@@ -284,7 +285,12 @@ class TeamRunner:
 
     def summary(self, wall_s: float) -> RunSummary:
         """The run's summary in the shared JSON schema (``EvaluatorSession``'s, as
-        em-evaluator's), at wall time ``wall_s`` [s], with what the links delivered."""
+        em-evaluator's), at wall time ``wall_s`` [s], with what the links delivered and,
+        when the sonar is not ideal, how well the robots associated (``association``)."""
         summary = self.observer.summary(wall_s)
         summary.team_updates = dataclasses.asdict(self.world.update_counts())
+        if not self.params.sensors.ideal_sonar:
+            summary.association = team_association(
+                [agent.slam for agent in self.agents], self.simulation.keyframe_scans(),
+                self.params.slam.keyframe_interval_steps)
         return summary
