@@ -15,10 +15,13 @@ from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String
+from em_exploration_msgs.msg import Keyframe, TeamUpdate
 
 from em_exploration_ros.nodes.conversions import path_to_msg
-from em_exploration_ros.nodes.input_guard import (InputGuard, content_problem, publish_or_log,
-                                                  serialized_size, size_limited)
+from em_exploration_ros.nodes.input_guard import (InputGuard, TeamUpdateHead, content_problem,
+                                                  publish_or_log, screened_team_updates,
+                                                  serialized_size, size_limited,
+                                                  team_update_head)
 from em_exploration_ros.nodes.node_main import RCLError
 
 from ros_process import NodeProcess, REPO_ROOT
@@ -72,6 +75,55 @@ def test_size_limited_drops_bytes_that_are_not_the_type():
     on_bytes(b"\x00\x01\x00\x00" + b"\xff" * 40)  # a count of 2^32 - 1 poses
     on_bytes(b"\x00\x01")
     assert received == [] and inputs.dropped == 2
+
+
+def test_team_update_head_is_read_from_the_bytes_in_either_byte_order():
+    message = TeamUpdate(run_id=2**64 - 2, step=7, sequence=2**32 - 1, robot_id=2,
+                         keyframes=[Keyframe()] * 3)
+    data = serialize_message(message)
+    assert team_update_head(data) == TeamUpdateHead(2**64 - 2, 2**32 - 1, 2, 3)
+    big_endian = (b"\x00\x00\x00\x00" + (2**64 - 2).to_bytes(8, "big") + (7).to_bytes(4, "big")
+                  + (2**32 - 1).to_bytes(4, "big") + b"\x02\x00\x00\x00" + (3).to_bytes(4, "big"))
+    assert team_update_head(big_endian) == TeamUpdateHead(2**64 - 2, 2**32 - 1, 2, 3)
+    assert team_update_head(data[:27]) is None
+    assert team_update_head(b"\x00\x02" + data[2:]) is None  # not plain CDR
+
+
+def test_screened_team_updates_reads_only_what_passes_its_head():
+    received: list[TeamUpdate] = []
+    inputs = guard()
+    expected = {1: 5}
+    on_bytes = screened_team_updates(
+        inputs, "/robot_1/team/updates", 1,
+        lambda run_id: None if run_id == 7 else f"of run {run_id}", expected.get,
+        received.append)
+
+    def send(**fields) -> None:
+        on_bytes(serialize_message(TeamUpdate(**{"run_id": 7, "robot_id": 1, **fields})))
+
+    send(run_id=8, sequence=5)
+    send(robot_id=2, sequence=5)
+    send(sequence=5, keyframes=[Keyframe()] * 1001)
+    send(sequence=5 + 10_001)
+    assert received == [] and inputs.dropped == 4
+    send(sequence=4, keyframes=[Keyframe()] * 400)  # held already, 20 kB: ignored unread
+    assert received == [] and inputs.dropped == 4
+    on_bytes(serialize_message(TeamUpdate(run_id=7, robot_id=1, sequence=6))[:30])
+    assert received == [] and inputs.dropped == 5  # its head passes, its body is cut short
+    send(sequence=4, keyframes=[Keyframe()] * 300)  # held already, 15 kB: read
+    send(sequence=5, step=3)
+    send(sequence=5 + 10_000)
+    assert [(m.sequence, m.step) for m in received] == [(4, 0), (5, 3), (10_005, 0)]
+    assert inputs.dropped == 5
+
+
+def test_screened_team_updates_hands_on_the_message_info():
+    received = []
+    on_bytes = screened_team_updates(guard(), "/robot_0/team/updates", 0, lambda _: None,
+                                     None, lambda m, info: received.append((m.sequence, info)),
+                                     with_info=True)
+    on_bytes(serialize_message(TeamUpdate(sequence=3)), {"publication_sequence_number": 9})
+    assert received == [(3, {"publication_sequence_number": 9})]
 
 
 class RecordingLogger:

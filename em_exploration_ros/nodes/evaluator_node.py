@@ -53,7 +53,8 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_
                                                   serialized_path)
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
                                                   content_problem, deserialized, header_problem,
-                                                  path_problem, publish_or_log, serialized_size,
+                                                  path_problem, publish_or_log,
+                                                  screened_team_updates, serialized_size,
                                                   size_limited)
 from em_exploration_ros.nodes.evaluator_outputs import (draw_pictures, metrics_to_msg,
                                                         replace_summary)
@@ -164,8 +165,11 @@ class EvaluatorNode(LeanNode):
                     self.inputs, landmarks_topic, LandmarkArray, landmarks_bytes,
                     lambda m, r=robot: self._on_landmark_estimates(r, m)),
                 ESTIMATE_READER_QOS, raw=True)
-            self.create_subscription(TeamUpdate, f"/{ns}/team/updates",
-                                     lambda m, r=robot: self._on_team_update(r, m), TEAM_QOS)
+            updates_topic = f"/{ns}/team/updates"  # read raw: a flood is screened first
+            self.create_subscription(TeamUpdate, updates_topic, screened_team_updates(
+                self.inputs, updates_topic, robot, self.session.run_problem,
+                self.session.next_expected, lambda m, r=robot: self._on_team_update(r, m)),
+                TEAM_QOS, raw=True)
             self.create_subscription(MotionCommand, f"/{ns}/motion_command",
                                      lambda m, r=robot: self._on_command(r, m), COMMAND_QOS)
         watch_liveliness(self, list(range(self.num_robots)), lambda robot, alive, restarted:
@@ -250,9 +254,8 @@ class EvaluatorNode(LeanNode):
                           WORLD_STATUS_TOPIC)
 
     def _on_team_update(self, robot: int, message: TeamUpdate) -> None:
+        """A record whose head ``screened_team_updates`` passed (of this run)."""
         topic = f"/{robot_namespace(robot)}/team/updates"
-        if not self.inputs.check(topic, self.session.run_problem(int(message.run_id))):
-            return
         try:
             update = checked_team_update(message, self.wire)
         except InvalidTeamUpdate as error:

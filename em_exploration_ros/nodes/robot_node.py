@@ -50,7 +50,8 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, odometry_codec,
                                                   robot_namespace, scan_input_from_msg)
 from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
                                                   checked_team_update, content_problem,
-                                                  deserialized, header_problem, size_limited)
+                                                  deserialized, header_problem,
+                                                  screened_team_updates, size_limited)
 from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveliness
 from em_exploration_ros.nodes.log_lines import LineWriter
@@ -124,11 +125,13 @@ class RobotNode(LeanNode):
         else:
             self.create_subscription(TeamUpdate, f"/{ns}/team/history", self._on_own_history,
                                      TEAM_QOS)
-            for teammate in teammates:
-                self.create_subscription(
-                    TeamUpdate, f"/{robot_namespace(teammate)}/team/updates",
-                    lambda message, sender=teammate: self._on_team_update(sender, message),
-                    TEAM_QOS)
+            for teammate in teammates:  # read raw: a flood is screened before it is read
+                topic = f"/{robot_namespace(teammate)}/team/updates"
+                self.create_subscription(TeamUpdate, topic, screened_team_updates(
+                    self.inputs, topic, teammate, self.session.run_problem,
+                    self.session.inbox.next_expected,
+                    lambda message, sender=teammate: self._on_team_update(sender, message)),
+                    TEAM_QOS, raw=True)
         self.alive_pub = offer_liveliness(self, self.robot_id)
         watch_liveliness(self, teammates, lambda *change: self._perform(
             self.session.teammate_liveliness(*change)))
@@ -232,10 +235,10 @@ class RobotNode(LeanNode):
             return error
 
     def _on_team_update(self, sender: int, message: TeamUpdate) -> None:
+        """A teammate's record whose head ``screened_team_updates`` passed (of this run)."""
         topic = f"/{robot_namespace(sender)}/team/updates"
-        if self._of_this_run(topic, message):
-            self._perform(self.session.team_update(self._record(message), sender,
-                                                   *self._times()), topic)
+        self._perform(self.session.team_update(self._record(message), sender, *self._times()),
+                      topic)
 
     def _on_delivered_update(self, message: TeamUpdate, info: MessageInfo) -> None:
         if not self._of_this_run(delivered_updates_topic(self.robot_id), message):

@@ -6,7 +6,8 @@ is the world's session's (``core.sessions.world_session.WorldSession``, with
 node, checks and converts every message for the session, and publishes the deliveries and
 link counts it returns. Topics (QoS ``TEAM_QOS``):
 
-- hears ``/robot_<i>/team/updates`` (TeamUpdate: new updates and re-sends),
+- hears ``/robot_<i>/team/updates`` (TeamUpdate: new updates and re-sends; read raw, and
+  deserialized only when its head passes: ``input_guard.screened_team_updates``),
   ``/team/update_requests`` (TeamUpdateRequest from robots; the evaluator's requests, with
   the OBSERVER id, are not link traffic and are left to the robots) and
   ``/robot_<s>/team/history_copies`` (robot s's copies of a restarted teammate's records,
@@ -36,7 +37,7 @@ from em_exploration_ros.core.sessions.world_effects import PublishLinkCounts
 from em_exploration_ros.core.sessions.world_session import WorldSession
 from em_exploration_ros.nodes.conversions import robot_namespace
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
-                                                  publish_or_log)
+                                                  publish_or_log, screened_team_updates)
 from em_exploration_ros.nodes.message_info import MessageInfo, publication_sequence
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, TEAM_QOS
 from em_exploration_ros.nodes.team_topics import (LINK_COUNTS_TOPIC, REQUESTS_TOPIC,
@@ -65,10 +66,11 @@ class TeamRelay:
                                                 GROUND_TRUTH_QOS)
         for robot in robots:
             ns = robot_namespace(robot)
-            node.create_subscription(
-                TeamUpdate, f"/{ns}/team/updates",
+            topic = f"/{ns}/team/updates"  # read raw: a flood is screened before it is read
+            node.create_subscription(TeamUpdate, topic, screened_team_updates(
+                inputs, topic, robot, session.run_problem, None,
                 lambda message, info, sender=robot: self._on_update(sender, message, info),
-                TEAM_QOS)
+                with_info=True), TEAM_QOS, raw=True)
             node.create_subscription(
                 TeamUpdate, history_copies_topic(robot),
                 lambda message, sender=robot: self._on_history(sender, message), TEAM_QOS)

@@ -6,3 +6,10 @@
 MAX_ABS_VALUE = 1e9
 #: Largest id of anything (landmark, decision, rendezvous): ids are small counters.
 MAX_ID = 2**31 - 1
+#: Largest serialized team update [B] a receiver still reads when it already holds the record
+#: (its sequence number is below the next one expected: ignored whatever it holds, read only
+#: to say what is wrong with it). A larger one is ignored unread: a record of a few readings
+#: is a few hundred bytes and deserializes in under a millisecond; em-fuzz's of 100-300 kB
+#: (thousands of nested messages) took rclpy 30-180 ms each, and a flood of them held the
+#: robots tens of seconds behind the lockstep barrier.
+MAX_HELD_RECORD_READ_BYTES = 16_384

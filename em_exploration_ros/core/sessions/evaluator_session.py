@@ -283,6 +283,11 @@ class EvaluatorSession:
         """Reason to drop a message of another run (its ``run_id`` not the evaluator's)."""
         return run_problem(run_id, self.settings.run_id)
 
+    def next_expected(self, robot: int) -> int:
+        """The next sequence number of robot ``robot``'s update stream this observer takes
+        (a record below it is one it holds: ``screened_team_updates`` ignores it unread)."""
+        return self._team_updates.next_expected(robot)
+
     def step_of(self, stamp_ns: int, keyframes_only: bool = False) -> tuple[int, str | None]:
         """(step, reason to drop) of a message stamp [ns sim time]: not the time of a step,
         (``keyframes_only``: not a keyframe's step), or a step outside the run or implausibly
