@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 from em_exploration_ros.core.agent.liveness import (ACTIVE, FINISHED, LOST, REJOINED,
-                                                    StatusChange, TeamLiveness,
-                                                    UnseenLiveliness)
+                                                    LivelinessWriters, StatusChange,
+                                                    TeamLiveness, UnseenLiveliness)
 
 
 def test_a_liveliness_loss_counts_after_the_grace_and_downtime_is_summed():
@@ -113,3 +113,32 @@ def test_robots_never_seen_alive_are_due_once_a_lease_after_the_first_step():
     assert unseen.was_seen(0) and unseen.was_seen(1) and not unseen.was_seen(2)
     unseen.seen(2)                                   # a late report still counts as seen
     assert unseen.was_seen(2)
+
+
+def test_a_new_liveliness_writer_of_a_robot_seen_before_is_a_restart():
+    writers = LivelinessWriters([1, 2])
+    assert writers.gained(1, [b"a"]) == (False, None)          # the first process
+    assert writers.gained(1, [b"a"]) == (False, None)          # its liveliness back
+    assert writers.gained(2, [b"x"]) == (False, None)          # robots apart
+    assert writers.gained(1, [b"b"]) == (True, None)           # a new process
+    assert writers.gained(1, [b"a", b"b"]) == (False, None)    # both known
+
+
+def test_a_flood_of_liveliness_identities_is_bounded_and_told_once():
+    writers = LivelinessWriters([0, 1], limit=4)
+    writers.gained(0, [b"robot"])
+    restarted, note = writers.gained(0, [b"robot", b"f1", b"f2", b"f3"])
+    assert restarted and note is None                          # at the bound
+    restarted, note = writers.gained(0, [b"robot", b"f4"])
+    assert restarted and "more than 4 writers seen" in note    # f1 is forgotten
+    for fake in range(5, 1000):
+        restarted, note = writers.gained(0, [b"robot", f"f{fake}".encode()])
+        assert restarted and note is None                      # told once per robot
+    assert len(writers._seen[0]) == 4
+    assert writers.gained(0, [b"robot"]) == (False, None)      # present all along: kept
+    assert writers.gained(0, [b"f1"])[0]                       # forgotten: a restart
+    # More writers present at once than the bound: the known ones are kept.
+    assert writers.gained(1, [b"robot"]) == (False, None)
+    restarted, note = writers.gained(1, [b"robot"] + [b"g%d" % i for i in range(10)])
+    assert restarted and "robot 1's liveliness" in note
+    assert writers.gained(1, [b"robot"]) == (False, None)

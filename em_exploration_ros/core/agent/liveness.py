@@ -10,7 +10,10 @@ since the caller's start) at which it happened, so a run's summary can show down
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+
+from em_exploration_ros.core.records.limits import MAX_LIVELINESS_WRITERS
 
 ACTIVE, FINISHED, LOST, REJOINED = "active", "finished", "lost", "rejoined"
 
@@ -157,3 +160,37 @@ class UnseenLiveliness:
             return []
         self._looked = True
         return sorted(self._unseen)
+
+
+class LivelinessWriters:
+    """The liveliness writers (the middleware's endpoint ids) a watcher has seen for each
+    robot, to tell a restarted robot (its liveliness gained from a writer never seen before,
+    while one was seen earlier) from one whose liveliness came back. At most ``limit`` per
+    robot, those present most recently: under a flood of identities on a robot's alive
+    topic the ones absent longest are forgotten (one note per robot the first time)."""
+
+    def __init__(self, robots: Iterable[int], limit: int = MAX_LIVELINESS_WRITERS) -> None:
+        self.limit = limit
+        self._seen: dict[int, dict[bytes, None]] = {robot: {} for robot in robots}
+        self._told: set[int] = set()
+
+    def gained(self, robot: int, writers: Iterable[bytes]) -> tuple[bool, str | None]:
+        """The robot's liveliness was gained while ``writers`` write its alive topic:
+        (restarted: a writer is new and one was seen before, a note when writers are
+        forgotten for the first time for this robot, else None)."""
+        seen = self._seen[robot]
+        # Known writers last: the most recent, kept when more than the limit are present.
+        present = sorted(set(writers), key=lambda writer: writer in seen)
+        restarted = bool(seen) and any(writer not in seen for writer in present)
+        for writer in present:
+            seen.pop(writer, None)
+            seen[writer] = None
+        forgotten = len(seen) - self.limit
+        for writer in list(seen)[:max(forgotten, 0)]:
+            del seen[writer]
+        if forgotten <= 0 or robot in self._told:
+            return restarted, None
+        self._told.add(robot)
+        return restarted, (f"robot {robot}'s liveliness: more than {self.limit} writers seen "
+                           f"(a flood of identities?); those absent longest are forgotten, "
+                           f"and one of them back counts as a restart")

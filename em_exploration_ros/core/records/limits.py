@@ -13,3 +13,7 @@ MAX_ID = 2**31 - 1
 #: (thousands of nested messages) took rclpy 30-180 ms each, and a flood of them held the
 #: robots tens of seconds behind the lockstep barrier.
 MAX_HELD_RECORD_READ_BYTES = 16_384
+#: Liveliness writers (processes) a watcher remembers per robot, to tell a restarted robot
+#: from one whose liveliness came back: a run restarts a robot a few times at most; a flood
+#: of identities on its alive topic makes the watcher forget those absent longest.
+MAX_LIVELINESS_WRITERS = 64
