@@ -2,7 +2,8 @@
 
 A separate process (em-fuzz, em_exploration_ros/tools/fuzz.py) reads the ROS graph for
 every topic the world, the robots and the evaluator subscribe to and, for a bounded time,
-publishes well-formed messages with extreme values on all of them (NaN, infinities,
+publishes well-formed messages with extreme values on all of them, with the run's id that
+it learned from the run's messages (another run's id is one of the extreme values) (NaN, infinities,
 largest or negative ids, steps, sequence numbers and stamps, huge arrays, negative and
 backwards /clock, wrong frame_ids) while a seeded lockstep team explores a small map.
 Then: no process exited, the summary (targets, every metric sample, the stop step) equals
@@ -12,6 +13,7 @@ over that run's (peak VmRSS).
 from __future__ import annotations
 
 import json
+import random
 import signal
 import sys
 import time
@@ -143,9 +145,14 @@ def test_fuzzed_team_keeps_running_its_result_and_its_memory(tmp_path):
     assert {"/em_world", "/em_evaluator", "/robot_0/em_robot", "/robot_1/em_robot",
             "/robot_2/em_robot"} <= subscribers
     assert all(report["topics"][t]["sent"] > 0 for t in ATTACKED_TOPICS)
+    # em-fuzz learned the run's id from the run's messages, so that most of its messages
+    # reach the checks past the run's (another run's id is one fault among the others).
+    assert report["run_id"] is not None and report["run_id_source"].startswith("/")
     for name in RUN_PROCESSES:
         assert "dropped a message on" in attacked["logs"][name], name
         assert "Traceback" not in attacked["logs"][name], name
+        assert any("dropped a message on" in line and "another run" not in line
+                   for line in attacked["logs"][name].splitlines()), name
 
     assert ([r["targets"] for r in attacked["summary"]["robots"]]
             == [r["targets"] for r in clean["summary"]["robots"]])
@@ -194,9 +201,19 @@ def test_sigterm_ends_the_attack_like_ctrl_c(tmp_path):
     (["--rate", "nan"], "--rate must be a positive finite number, got nan"),
     (["--start-timeout", "nan"], "--start-timeout must be a positive finite number"),
     (["--report", "/nonexistent/x.json"], "the folder /nonexistent does not exist"),
-    (["--report", "."], "is a directory")])
+    (["--report", "."], "is a directory"),
+    (["--run-id", "-1"], "--run-id must be in 0..2^64 - 1, got -1")])
 def test_bad_arguments_are_refused_before_the_attack(args, phrase, capsys):
     with pytest.raises(SystemExit) as stopped:
         fuzz.main(args)
     assert stopped.value.code == 2
     assert phrase in capsys.readouterr().err
+
+
+def test_messages_carry_the_runs_id_unless_it_is_their_extreme_field():
+    from em_exploration_msgs.msg import SonarScan, TeamUpdate
+
+    messages = fuzz.ExtremeMessages(random.Random(3), run_id=123456789)
+    ids = [messages.make(kind).run_id for kind in (TeamUpdate, SonarScan) for _ in range(60)]
+    assert set(ids) == {123456789, 2**64 - 1, 2**63}
+    assert ids.count(123456789) > 0.7 * len(ids)  # most reach the checks past the run's

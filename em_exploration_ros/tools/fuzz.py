@@ -22,6 +22,17 @@ turn, so that the rate holds even for messages with thousands of nested ones.
 
     em-fuzz --duration 20 --rate 500 --seed 1        # then: messages sent per topic
 
+The run's identity: every message type of the system carries a ``run_id`` and every node
+drops another run's messages at once, so a fuzz with other ids would test only that
+check. em-fuzz speaks with the run's id: it listens, while it reads the graph, on the
+topics with a ``run_id`` field that the target nodes publish (/world/status is latched,
+the others come every step) and takes the id of the first message it gets (an attacker
+on the domain can read it just as well); it attacks only once it knows the id and stops
+listening then (its own messages never teach it one). ``--run-id N`` gives the id instead
+(0: nodes started by hand). A foreign id stays one fault class among the others: the
+``run_id`` field, like any other, is the forced extreme one of some messages (2^64 - 1 or
+2^63), which the nodes drop at the run check.
+
 With ``--topics T ...`` only those of the topics are attacked (a flood of one topic at the
 highest rate the fuzzer reaches: ``em-fuzz --topics /team/update_requests --rate 5000``).
 
@@ -30,9 +41,10 @@ the settling pause: a test starts it with the team and attacks mid-run even when
 lasts only seconds.
 
 Ctrl-C or SIGTERM ends the attack early (the report tells what was sent until then).
-Exit code 0 (1: the start file did not appear in time; 2: bad arguments, such as a
-non-finite number or a --report file that cannot be written); the last stdout line is a
-JSON report (``--report FILE`` writes it too).
+Exit code 0 (1: the start file did not appear in time, or no message of the run told its
+id within ``--start-timeout``; 2: bad arguments, such as a non-finite number or a --report
+file that cannot be written); the last stdout line is a JSON report (``--report FILE``
+writes it too; ``run_id`` and ``run_id_source``: the id sent and where it came from).
 """
 from __future__ import annotations
 
@@ -69,6 +81,8 @@ HUGE_MESSAGE_ARRAY = 3_000
 POOL_SIZE = 8
 #: The encapsulation header that starts every serialized message (little-endian CDR).
 CDR_HEADER = b"\x00\x01\x00\x00"
+#: The field of the system's messages that names their run.
+RUN_ID_FIELD = "run_id"
 #: Probability that a field other than the forced one is extreme too.
 EXTRA_EXTREME_PROBABILITY = 0.1
 #: Frame names of the system (plausible values) and wrong ones (extreme values).
@@ -116,10 +130,12 @@ class FieldType:
 
 
 class ExtremeMessages:
-    """Builds messages of one class with at least one extreme value (module docstring)."""
+    """Builds messages of one class with at least one extreme value (module docstring);
+    a plausible ``run_id`` is the run's (``run_id``), an extreme one another run's."""
 
-    def __init__(self, rng: random.Random) -> None:
+    def __init__(self, rng: random.Random, run_id: int = 0) -> None:
         self._rng = rng
+        self.run_id = run_id
 
     def make(self, message_class: type, allow_huge: bool = True) -> Any:
         """A message of ``message_class``: plausible values, one forced extreme field (at
@@ -172,7 +188,7 @@ class ExtremeMessages:
         if base in _INT_BITS:
             if extreme:
                 return rng.choice(_int_extremes(base))
-            return rng.randrange(4)
+            return self.run_id if name == RUN_ID_FIELD else rng.randrange(4)
         if base == "boolean":
             return rng.random() < 0.5
         if base in ("string", "wstring"):
@@ -207,16 +223,28 @@ class Target:
 
 
 class Fuzzer(Node):
-    """Finds the system's subscriptions and publishes extreme messages on them."""
+    """Finds the system's subscriptions and publishes extreme messages on them, with the
+    run's id (given, or learned from the run's messages before the attack)."""
 
     def __init__(self, target_nodes: tuple[str, ...], seed: int,
-                 topics: frozenset[str] | None = None) -> None:
+                 topics: frozenset[str] | None = None, run_id: int | None = None) -> None:
         super().__init__("em_fuzzer")
         self._target_nodes = target_nodes
         self._topics = topics  # None: every topic the target nodes subscribe to
         self._messages = ExtremeMessages(random.Random(seed))
         self.targets: dict[str, Target] = {}
         self.failed_publishes = 0
+        #: Where the run's id came from: "--run-id", the topic it was learned on, or None
+        #: while it is not known.
+        self.run_id_source: str | None = None
+        if run_id is not None:
+            self._messages.run_id, self.run_id_source = run_id, "--run-id"
+        self._listeners: dict[str, Any] = {}  # topic -> subscription learning the run's id
+
+    @property
+    def run_id(self) -> int | None:
+        """The run's id the messages carry (None: not learned yet)."""
+        return None if self.run_id_source is None else self._messages.run_id
 
     def discover(self) -> None:
         """Add every topic with a subscriber among the target nodes (publishers' QoS:
@@ -237,6 +265,8 @@ class Fuzzer(Node):
 
     def _read_graph(self) -> None:
         for topic, types in self.get_topic_names_and_types():
+            if self.run_id_source is None:
+                self._listen_for_run_id(topic, types[0])
             if self._topics is not None and topic not in self._topics:
                 continue
             subscribers = [info for info in self.get_subscriptions_info_by_topic(topic)
@@ -258,25 +288,63 @@ class Fuzzer(Node):
                                          self.create_publisher(message_class, topic, qos),
                                          subscribers=names)
 
-    def wait_for(self, start_file: Path, timeout_s: float) -> bool:
-        """Read the graph every ``REDISCOVER_S`` until ``start_file`` exists; False if it
-        does not within ``timeout_s`` wall seconds."""
+    def _listen_for_run_id(self, topic: str, type_name: str) -> None:
+        """Subscribe to ``topic`` if a target node publishes it and its type has a run_id
+        (reliable, transient local when every such writer is: a latched status comes at
+        once)."""
+        if topic in self._listeners:
+            return
+        writers = [info for info in self.get_publishers_info_by_topic(topic)
+                   if info.node_name in self._target_nodes]
+        message_class = import_message_class(type_name)
+        if not writers or RUN_ID_FIELD not in message_class.get_fields_and_field_types():
+            return
+        durable = all(info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                      for info in writers)
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=(DurabilityPolicy.TRANSIENT_LOCAL if durable
+                                     else DurabilityPolicy.VOLATILE))
+        self._listeners[topic] = self.create_subscription(
+            message_class, topic, lambda message: self._heard_run(topic, message), qos)
+
+    def _heard_run(self, topic: str, message: Any) -> None:
+        """A message of the run: its id is the run's, if none is known yet."""
+        if self.run_id_source is None:
+            self._messages.run_id = int(getattr(message, RUN_ID_FIELD))
+            self.run_id_source = topic
+
+    def _stop_listening(self) -> None:
+        """No more learning: from now on this fuzzer's own messages are on those topics."""
+        for subscription in self._listeners.values():
+            self.destroy_subscription(subscription)
+        self._listeners.clear()
+
+    def wait_for(self, start_file: Path | None, timeout_s: float) -> str | None:
+        """Read the graph every ``REDISCOVER_S`` (and take the run's messages) until
+        ``start_file`` (if any) exists and the run's id is known; why not, if that does not
+        happen within ``timeout_s`` wall seconds."""
         deadline = time.monotonic() + timeout_s
         next_discovery = time.monotonic() + GRAPH_SETTLE_S
-        while not start_file.exists():
+        while True:
+            started = start_file is None or start_file.exists()
+            if started and self.run_id_source is not None:
+                return None
             self._stop_if_shut_down()
             now = time.monotonic()
             if now > deadline:
-                return False
+                return (f"{start_file} did not appear within {timeout_s:g} s" if not started
+                        else f"no message of the run told its run_id within {timeout_s:g} s "
+                        f"(give it with --run-id)")
             if now >= next_discovery:
                 self.discover()
                 next_discovery = now + REDISCOVER_S
-            time.sleep(0.05)
-        return True
+            rclpy.spin_once(self, timeout_sec=0.05)
 
     def attack(self, duration_s: float, rate_hz: float, settle_s: float = GRAPH_SETTLE_S) -> None:
         """Publish round robin over the targets for ``duration_s`` wall seconds (after
-        ``settle_s`` for this new participant to learn the graph)."""
+        ``settle_s`` for this new participant to learn the graph), with the run's id."""
+        self._stop_listening()
         time.sleep(settle_s)
         start = time.monotonic()
         next_discovery = start
@@ -304,7 +372,8 @@ class Fuzzer(Node):
     def report(self, duration_s: float) -> dict[str, Any]:
         """What was sent, per topic."""
         return {"duration_s": duration_s, "messages": sum(t.sent for t in self.targets.values()),
-                "failed_publishes": self.failed_publishes,
+                "failed_publishes": self.failed_publishes, "run_id": self.run_id,
+                "run_id_source": self.run_id_source,
                 "topics": {name: {"type": t.message_class.__module__.split(".")[0] + "/"
                                   + t.message_class.__name__, "sent": t.sent,
                                   "subscribers": sorted(t.subscribers)}
@@ -327,36 +396,40 @@ def main(argv: list[str] | None = None) -> int:
                         "script starts the fuzzer early (discovery takes seconds) and chooses "
                         "the moment of the attack")
     parser.add_argument("--start-timeout", type=float, default=600.0,
-                        help="wall seconds to wait for --start-file (600); exit code 1 after")
+                        help="wall seconds to wait for --start-file and the run's id (600); "
+                        "exit code 1 after")
+    parser.add_argument("--run-id", type=int,
+                        help="the run's id to send (default: learned from the first message "
+                        "of the run em-fuzz hears; 0 for nodes started by hand)")
     args = parser.parse_args(argv)
     for name in ("duration", "rate", "start_timeout"):
         value = getattr(args, name)
         if not (math.isfinite(value) and value > 0):
             parser.error(f"--{name.replace('_', '-')} must be a positive finite number, "
                          f"got {value:g}")
+    if args.run_id is not None and not 0 <= args.run_id < 2**64:
+        parser.error(f"--run-id must be in 0..2^64 - 1, got {args.run_id}")
     if args.report is not None:
         problem = output_path_problem(args.report, "--report")
         if problem is not None:
             parser.error(problem)
     rclpy.init()
     fuzzer = Fuzzer(tuple(args.nodes), args.seed,
-                    frozenset(args.topics) if args.topics else None)
+                    frozenset(args.topics) if args.topics else None, args.run_id)
     try:
         try:
-            started = args.start_file is None or fuzzer.wait_for(args.start_file,
-                                                                 args.start_timeout)
-            if started:
+            problem = fuzzer.wait_for(args.start_file, args.start_timeout)
+            if problem is None:
                 fuzzer.attack(args.duration, args.rate,
                               settle_s=GRAPH_SETTLE_S if args.start_file is None else 0.0)
         except (KeyboardInterrupt, ExternalShutdownException):  # SIGINT, SIGTERM
-            started = True  # report what was sent until then
-        report = fuzzer.report(args.duration) if started else None
+            problem = None  # report what was sent until then
+        report = fuzzer.report(args.duration) if problem is None else None
     finally:
         fuzzer.destroy_node()
         rclpy.try_shutdown()
     if report is None:
-        print(f"em-fuzz: error: {args.start_file} did not appear within "
-              f"{args.start_timeout:g} s; nothing sent", file=sys.stderr, flush=True)
+        print(f"em-fuzz: error: {problem}; nothing sent", file=sys.stderr, flush=True)
         return 1
     text = json.dumps(report, sort_keys=True)
     if args.report:
