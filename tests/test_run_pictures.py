@@ -20,7 +20,17 @@ from em_exploration_ros.core.evaluation.rendezvous_stats import RendezvousOutcom
 from em_exploration_ros.core.evaluation.run_animation import FrameRecorder, render_animation
 from em_exploration_ros.core.evaluation.run_timeline import timeline_figure
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, TargetEntry
+from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.records.wire_model import seconds_to_nanoseconds, sim_time_s
+from em_exploration_ros.core.sessions.effects import Dropped
+from em_exploration_ros.core.sessions.evaluator_session import EvaluatorSession, PublishMetrics
+from em_exploration_ros.core.sessions.robot_effects import KeyframeEstimate
+from em_exploration_ros.core.sessions.team_runner import TeamRunner
+from em_exploration_ros.nodes.conversions import (keyframe_covariance_from_msg,
+                                                  keyframe_estimate_to_msg, planar_path,
+                                                  serialized_path)
+from em_exploration_ros.nodes.path_cdr import decode_path
 from em_exploration_ros.tools import sim_cli
 
 SMALL_RUN = ["--quiet", "--map-size", "40", "--landmarks", "4", "--max-steps", "20"]
@@ -219,3 +229,163 @@ def test_em_sim_refuses_an_animation_it_cannot_write(tmp_path, capsys) -> None:
     with pytest.raises(SystemExit) as exited:
         sim_cli.main(SMALL_RUN + ["--animate", str(tmp_path / "run.avi")])
     assert exited.value.code == 2 and "must end in .gif" in capsys.readouterr().err
+
+
+# -- the pose uncertainty the robots publish, in both drivers' pictures ----------------------
+
+def _observer_with_covariances():
+    """An observer of 2 robots on a 40 m map fed, keyframe by keyframe, each robot's path,
+    landmarks and (robot 0 only) its latest keyframe's covariance, then the truth."""
+    params = ExplorationParams().replace(
+        world={"width_m": 40.0, "height_m": 40.0, "num_robots": 2, "num_landmarks": 1},
+        run={"max_steps": 40})
+    step_s, interval = params.motion.time_step_s, params.slam.keyframe_interval_steps
+    session = EvaluatorSession(params, EvaluatorNodeSettings(
+        metrics_interval_s=interval * step_s, estimate_wait_s=5.0), 0.0, 3.0)
+    session.true_landmarks([0], np.array([[20.0, 20.0]]), 0.5, 0.0)
+
+    def pose(robot: int, step: int) -> np.ndarray:
+        return np.array([5.0 + 0.2 * step, 5.0 + 10.0 * robot, 0.0])
+
+    def covariance(step: int) -> np.ndarray:
+        return np.diag([0.01 + 0.001 * step, 0.02 + 0.001 * step, 1e-4])
+
+    def publish(step: int, wall_s: float = 0.0) -> list:
+        keyframes = np.arange(0, step + 1, interval)
+        stamps = np.array([sim_time_s(k, step_s) for k in keyframes])
+        effects = []
+        for robot in (0, 1):
+            ns = seconds_to_nanoseconds(sim_time_s(step, step_s))
+            effects += session.path_estimate(robot, ns, stamps,
+                                             np.array([pose(robot, k) for k in keyframes]),
+                                             wall_s)
+            effects += session.landmark_estimate(robot, ns, {}, wall_s)
+        return effects
+
+    def truth(step: int, wall_s: float = 0.0) -> list:
+        return [e for robot in (0, 1)
+                for e in session.true_pose(robot, step, pose(robot, step), wall_s)]
+
+    def covariance_of(step: int, wall_s: float = 0.0, value: np.ndarray | None = None) -> list:
+        return session.keyframe_covariance(
+            0, seconds_to_nanoseconds(sim_time_s(step, step_s)),
+            covariance(step) if value is None else value, wall_s)
+
+    return session, interval, publish, truth, covariance_of, covariance
+
+
+def test_the_observer_records_each_keyframe_covariance_as_published():
+    session, interval, publish, truth, covariance_of, covariance = _observer_with_covariances()
+    for step in range(2 * interval + 1):
+        if step % interval == 0:
+            assert covariance_of(step) == []
+            publish(step)
+        truth(step)
+    # Implausible covariances are dropped: older than the last, not symmetric, not finite.
+    older = covariance_of(interval)
+    assert [type(e) for e in older] == [Dropped] and "older" in older[0].reason
+    assert "symmetric" in covariance_of(2 * interval, value=np.array(
+        [[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))[0].reason
+    assert "non-finite" in covariance_of(2 * interval, value=np.full((3, 3), np.nan))[0].reason
+    # The next keyframe's path is in, its covariance not yet: the evaluation waits for it.
+    step = 3 * interval
+    publish(step)
+    assert not any(isinstance(e, PublishMetrics) for e in truth(step, 1.0))
+    assert any(isinstance(e, PublishMetrics) for e in covariance_of(step, 1.0))
+    sigmas = [h.robot_pose_sigma_m for h in session.monitor.summary([[], []], 0.0).history]
+    # Each evaluation reads robot 0's newest covariance as of the step before; robot 1
+    # published none (NaN: null in the JSON).
+    expected = [np.sqrt(covariance(k)[0, 0] + covariance(k)[1, 1])
+                for k in range(0, 3 * interval, interval)]
+    assert [s[0] for s in sigmas] == pytest.approx(expected)
+    assert all(np.isnan(s[1]) for s in sigmas)
+    # The map: the team virtual map from robot 0's keyframes (robot 1's have none).
+    layers = session.map_layers("t")
+    assert layers.team_uncertainty is not None and layers.team_uncertainty.count > 20
+
+
+def test_em_sims_pictures_draw_the_uncertainty_and_each_robots_sigma_under_the_paths():
+    runner = TeamRunner(ExplorationParams().replace(
+        world={"width_m": 40.0, "height_m": 40.0, "num_landmarks": 4}, run={"max_steps": 40}))
+    summary = runner.run().to_dict()
+    layers = runner.map_layers()
+    assert layers.team_uncertainty is not None and layers.team_uncertainty.count > 50
+    axes = team_map_figure(layers).axes[0]
+    ellipses = [c for c in axes.collections if isinstance(c, EllipseCollection)]
+    assert len(ellipses) == 1
+    assert len(ellipses[0].get_offsets()) == layers.team_uncertainty.count
+    # Under the paths and targets (the only lines at the ellipses' level: the border).
+    assert ellipses[0].get_zorder() < min(Z["true_path"], Z["estimated_path"], Z["targets"])
+    assert {line.get_zorder() for line in axes.get_lines()} & {Z["true_path"], Z["targets"]}
+    assert "cell uncertainty (1 sigma)" in [t.get_text() for t in axes.get_legend().get_texts()]
+    # Every robot's position sigma at every evaluation once it has a keyframe.
+    last = summary["history"][-1]["robot_pose_sigma_m"]
+    assert len(last) == 3 and all(0.0 < s < 1.0 for s in last)
+    sigma = timeline_figure(summary).axes[2]
+    curves = [line for line in sigma.get_lines() if line.get_label().startswith("robot")]
+    assert len(curves) == 3 and all(np.isfinite(c.get_ydata()[-1]) for c in curves)
+    assert not sigma.texts
+
+
+def _sigmas(summary: dict) -> np.ndarray:
+    """(samples, robots) of the history's robot_pose_sigma_m, null as NaN."""
+    return np.array([[np.nan if v is None else v for v in h["robot_pose_sigma_m"]]
+                     for h in summary["history"]], dtype=float)
+
+
+def test_the_ros_evaluator_draws_em_sims_uncertainty_from_the_published_messages():
+    """What em-evaluator reads (each robot's estimated_pose and path, converted as the node
+    converts them) gives the same layer and history as em-sim's observer."""
+    params = ExplorationParams().replace(
+        world={"width_m": 40.0, "height_m": 40.0, "num_landmarks": 4}, run={"max_steps": 40})
+    runner = TeamRunner(params)
+    ros = EvaluatorSession(params, runner.observer.settings, 0.0, 3.0)
+    ros.true_world(runner.simulation.world, 0.0)
+    observer = runner.observer
+
+    class Relay:
+        """em-sim's observer, each input also handed to ``ros`` as em-evaluator reads it
+        from the messages (the estimates converted as the robot and the node convert them)."""
+
+        def __getattr__(self, name):  # the rest: em-sim's observer
+            return getattr(observer, name)
+
+        def keyframe_covariance(self, robot, stamp_ns, covariance, wall_s):
+            message = keyframe_estimate_to_msg(KeyframeEstimate(
+                stamp_ns * 1e-9, np.zeros(3), covariance))
+            stamp = message.header.stamp
+            ros.keyframe_covariance(robot, stamp.sec * 1_000_000_000 + stamp.nanosec,
+                                    keyframe_covariance_from_msg(message), wall_s)
+            return observer.keyframe_covariance(robot, stamp_ns, covariance, wall_s)
+
+        def path_estimate(self, robot, stamp_ns, stamps_s, poses, wall_s):
+            path = decode_path(serialized_path(stamp_ns * 1e-9, stamps_s, poses))
+            ros.path_estimate(robot, stamp_ns, *planar_path(path), wall_s)
+            return observer.path_estimate(robot, stamp_ns, stamps_s, poses, wall_s)
+
+        def landmark_estimate(self, *args):
+            ros.landmark_estimate(*args)
+            return observer.landmark_estimate(*args)
+
+        def true_pose(self, *args):
+            ros.true_pose(*args)
+            return observer.true_pose(*args)
+
+        def command(self, *args):
+            ros.command(*args)
+            return observer.command(*args)
+
+        def team_update(self, *args):
+            ros.team_update(*args)
+            return observer.team_update(*args)
+
+    runner.observer = Relay()
+    summary = runner.run().to_dict()
+    ours = ros.summary(0.0).to_dict()
+    np.testing.assert_allclose(_sigmas(ours), _sigmas(summary), rtol=1e-9)
+    assert np.isfinite(_sigmas(summary)[-1]).all()
+    theirs, mine = observer.map_layers("t").team_uncertainty, ros.map_layers("t").team_uncertainty
+    assert theirs is not None and mine is not None and mine.count == theirs.count > 50
+    for field in ("centres", "axes", "angles"):
+        np.testing.assert_allclose(getattr(mine, field), getattr(theirs, field), rtol=1e-5,
+                                   atol=1e-6)

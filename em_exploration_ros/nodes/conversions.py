@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from builtin_interfaces.msg import Time
 from em_exploration_msgs import msg as em_msg
-from geometry_msgs.msg import PoseStamped, Quaternion
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Quaternion
 from nav_msgs.msg import Odometry, Path
 
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry
@@ -28,8 +28,10 @@ from em_exploration_ros.core.records.team_wire import (TeamWireFormat, covarianc
                                                        covariance_upper)
 from em_exploration_ros.core.records.wire_model import (NANOSECONDS_PER_SECOND,
                                                         nanoseconds_to_seconds,
+                                                        planar_covariance_from_6x6,
                                                         planar_covariance_to_6x6, planar_quaternion,
                                                         planar_yaw, seconds_to_nanoseconds)
+from em_exploration_ros.core.sessions.robot_effects import KeyframeEstimate
 from em_exploration_ros.core.sessions.robot_session import ScanInput
 from em_exploration_ros.core.world.simulation import SensorFrame
 from em_exploration_ros.nodes.odometry_cdr import OdometryCodec, PlanarOdometry
@@ -393,6 +395,25 @@ def path_from_msg(message: Path) -> tuple[np.ndarray, np.ndarray]:
     poses = np.array([[p.pose.position.x, p.pose.position.y, quaternion_to_yaw(p.pose.orientation)]
                       for p in message.poses]).reshape(-1, 3)
     return stamps, poses
+
+
+def keyframe_estimate_to_msg(estimate: KeyframeEstimate) -> PoseWithCovarianceStamped:
+    """A robot's latest keyframe (pose and marginal covariance, map frame) as
+    geometry_msgs/PoseWithCovarianceStamped stamped with the keyframe's time; the 6x6 in
+    REP-103 order (x, y, z, roll, pitch, yaw), zero for z, roll and pitch."""
+    message = PoseWithCovarianceStamped()
+    message.header.stamp = seconds_to_time(estimate.stamp_s)
+    message.header.frame_id = MAP_FRAME
+    pose = message.pose.pose
+    pose.position.x, pose.position.y = float(estimate.pose[0]), float(estimate.pose[1])
+    pose.orientation = yaw_to_quaternion(float(estimate.pose[2]))
+    message.pose.covariance = _flat(planar_covariance_to_6x6(estimate.covariance))
+    return message
+
+
+def keyframe_covariance_from_msg(message: PoseWithCovarianceStamped) -> np.ndarray:
+    """The (x, y, theta) covariance (3, 3) of a ``keyframe_estimate_to_msg`` message."""
+    return planar_covariance_from_6x6(message.pose.covariance)
 
 
 def landmark_array_to_msg(stamp_s: float, frame_id: str, landmarks: list[LandmarkEstimate],

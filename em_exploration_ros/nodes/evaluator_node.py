@@ -5,8 +5,8 @@ the run waits for before it ends, the exit codes 0, 3, 4, 5 and 130, the summary
 ``core/sessions/evaluator_session.py``'s. This node declares the parameters, subscribes to
 the ground truth (``/world/ground_truth/robot_i``, ``/world/landmarks``, ``/world/status``,
 ``/world/link_counts`` in relay mode) and to what each robot publishes
-(``/robot_i/estimated_path``, ``/robot_i/landmarks``, ``/robot_i/team/updates``,
-``/robot_i/motion_command``, its liveliness), checks each message's header and numbers,
+(``/robot_i/estimated_path``, ``/robot_i/landmarks``, ``/robot_i/estimated_pose``,
+``/robot_i/team/updates``, ``/robot_i/motion_command``, its liveliness), checks each message's header and numbers,
 hands it to the session as core values (wall times from the steady clock), and performs the
 effects: ``/evaluation/metrics``, ``/team/update_requests`` (it never publishes anything a
 robot uses for its estimates or decisions), log lines, the summary JSON (the summary so far
@@ -25,6 +25,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from em_exploration_msgs.msg import (ExplorationMetrics, LandmarkArray, MotionCommand,
                                      TeamLinkCounts, TeamUpdate, TeamUpdateRequest, WorldStatus)
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path as PathMsg
 from rclpy.clock import Clock, ClockType
 from rclpy.task import Future
@@ -46,6 +47,7 @@ from em_exploration_ros.core.sessions.evaluator_session import (EXIT_INTERRUPTED
                                                                 RequestUpdates)
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_NODE_NAME,
                                                   WORLD_STATUS_TOPIC, given_up_from_msg,
+                                                  keyframe_covariance_from_msg,
                                                   landmark_array_to_msg,
                                                   landmark_positions_from_msg,
                                                   meeting_from_msg, odometry_codec,
@@ -146,6 +148,8 @@ class EvaluatorNode(LeanNode):
         path_bytes = len(serialized_path(0.0, np.zeros(keyframes), np.zeros((keyframes, 3))))
         landmarks_bytes = serialized_size(landmark_array_to_msg(0.0, MAP_FRAME, [
             LandmarkEstimate(0, np.zeros(2), np.eye(2))] * MAX_LANDMARKS_PER_UPDATE))
+        pose_bytes = serialized_size(PoseWithCovarianceStamped(header=Header(
+            frame_id=MAP_FRAME)))
         for robot in range(self.num_robots):
             ns = robot_namespace(robot)
             truth_topic = f"/world/ground_truth/{ns}"
@@ -164,6 +168,12 @@ class EvaluatorNode(LeanNode):
                 LandmarkArray, landmarks_topic, size_limited(
                     self.inputs, landmarks_topic, LandmarkArray, landmarks_bytes,
                     lambda m, r=robot: self._on_landmark_estimates(r, m)),
+                ESTIMATE_READER_QOS, raw=True)
+            pose_topic = f"/{ns}/estimated_pose"
+            self.create_subscription(
+                PoseWithCovarianceStamped, pose_topic, size_limited(
+                    self.inputs, pose_topic, PoseWithCovarianceStamped, pose_bytes,
+                    lambda m, r=robot: self._on_keyframe_estimate(r, m)),
                 ESTIMATE_READER_QOS, raw=True)
             updates_topic = f"/{ns}/team/updates"  # read raw: a flood is screened first
             self.create_subscription(TeamUpdate, updates_topic, screened_team_updates(
@@ -235,6 +245,15 @@ class EvaluatorNode(LeanNode):
                                           "landmarks"), content_problem(message)):
             self._perform(self.session.landmark_estimate(
                 robot, _stamp_ns(message.header.stamp), landmark_positions_from_msg(message),
+                time.monotonic()), topic)
+
+    def _on_keyframe_estimate(self, robot: int, message: PoseWithCovarianceStamped) -> None:
+        """A robot's latest keyframe with its covariance: the covariance is what is read."""
+        topic = f"/{robot_namespace(robot)}/estimated_pose"
+        if self.inputs.check(topic, header_problem(message.header, MAP_FRAME),
+                             content_problem(message)):
+            self._perform(self.session.keyframe_covariance(
+                robot, _stamp_ns(message.header.stamp), keyframe_covariance_from_msg(message),
                 time.monotonic()), topic)
 
     def _on_link_counts(self, message: TeamLinkCounts) -> None:

@@ -309,7 +309,7 @@ class RobotNode(LeanNode):
             elif kind is fx.PublishTransforms:
                 outputs.transforms(agent, effect.stamp_s, effect.odom_pose)
             elif kind is fx.PublishEstimates:
-                outputs.estimates(agent, effect.stamp_s)
+                outputs.estimates(agent, effect.stamp_s, effect.latest)
             elif kind is fx.PublishDecision:
                 outputs.decision(agent, effect.stamp_s)
             elif kind is Dropped:

@@ -1,6 +1,7 @@
 """What a robot publishes (ROS side), when its session asks (``core.sessions.robot_effects``):
 its MotionCommand, team updates, requests and copies of a restarted teammate's records, and
-what users see: its TF, estimated path and landmarks at keyframe steps, and the target,
+what users and the evaluator see: its TF, estimated path, landmarks and latest keyframe's
+pose with its marginal covariance (``estimated_pose``) at keyframe steps, and the target,
 virtual map and markers of each new decision, from the robot's ``RobotAgent``.
 
 Messages only users look at (transforms, target, grid, markers) are built only when someone
@@ -11,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 from em_exploration_msgs.msg import LandmarkArray, MotionCommand, TeamUpdate, TeamUpdateRequest
-from geometry_msgs.msg import PointStamped
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Path
 from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
@@ -23,10 +24,11 @@ from em_exploration_ros.core.records.team_data import LandmarkEstimate
 from em_exploration_ros.core.records.team_data import TeamUpdate as TeamRecord
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.records.wire_model import sim_time_s
-from em_exploration_ros.core.sessions.robot_effects import CommandReply
+from em_exploration_ros.core.sessions.robot_effects import CommandReply, KeyframeEstimate
 from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariances_from_poses
 from em_exploration_ros.nodes import tf_publishing, visualization
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, given_up_to_msg,
+                                                  keyframe_estimate_to_msg,
                                                   landmark_array_to_msg, meeting_to_msg,
                                                   robot_namespace, seconds_to_time,
                                                   serialized_path,
@@ -60,6 +62,8 @@ class RobotOutputs:
             r: node.create_publisher(TeamUpdate, f"/{robot_namespace(r)}/team/history",
                                      TEAM_QOS) for r in teammates}
         self.path_pub = node.create_publisher(Path, f"/{ns}/estimated_path", ESTIMATE_QOS)
+        self.pose_pub = node.create_publisher(PoseWithCovarianceStamped,
+                                              f"/{ns}/estimated_pose", ESTIMATE_QOS)
         self.landmarks_pub = node.create_publisher(LandmarkArray, f"/{ns}/landmarks",
                                                    ESTIMATE_QOS)
         self.grid_pub = node.create_publisher(OccupancyGrid, f"/{ns}/virtual_map", LATCHED_QOS)
@@ -119,8 +123,13 @@ class RobotOutputs:
             publish_or_log(self.tf_pub, tf_publishing.tf_message(stamp_s, transforms),
                            self._node, "the robot's transforms")
 
-    def estimates(self, agent: RobotAgent, stamp_s: float) -> None:
-        """The robot's estimated path (every keyframe) and landmarks."""
+    def estimates(self, agent: RobotAgent, stamp_s: float,
+                  latest: KeyframeEstimate | None) -> None:
+        """The robot's latest keyframe with its covariance (first: the evaluator waits for
+        the path and landmarks, then for it), estimated path (every keyframe) and
+        landmarks."""
+        if latest is not None:
+            self.pose_pub.publish(keyframe_estimate_to_msg(latest))
         slam = agent.slam
         indices, poses = slam.trajectory(self._robot_id)
         interval = self._params.slam.keyframe_interval_steps

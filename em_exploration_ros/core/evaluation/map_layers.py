@@ -9,9 +9,11 @@ the world frame in simulation), metres:
 - the targets each robot chose, with their frontier type (exploration, revisiting,
   rendezvous);
 - the team virtual map's uncertainty: one ellipse per observed cell, from every robot's
-  estimated keyframes and their marginal covariances (``team_uncertainty``), or each robot's
-  own as it published it (``uncertainty_ellipses``, read from a recording), and each robot's
-  last frontier candidates;
+  estimated keyframes and their marginal covariances (``team_uncertainty``; the observer's
+  are each keyframe's as the robot published it when that keyframe was its newest, see
+  ``keyframe_covariances``), or each robot's own as it published it
+  (``uncertainty_ellipses``, read from a recording), and each robot's last frontier
+  candidates;
 - requested rendezvous and whether the robots met;
 - the targets each robot gave up.
 
@@ -68,12 +70,15 @@ def team_virtual_map(geometry: GridGeometry, poses: Mapping[int, np.ndarray],
                      map_params: MapParams) -> UncertaintyEllipses:
     """The team virtual map's ellipses (one per observed cell) from each robot's estimated
     keyframe poses (K, 3) and their marginal covariances (K, 3, 3) (map frame), fused over
-    all robots as one robot fuses its team's (``cell_covariances_from_poses``)."""
+    all robots as one robot fuses its team's (``cell_covariances_from_poses``); a keyframe
+    whose covariance is not finite (not known) is left out."""
     robots = sorted(set(poses) & set(covariances))
     stacked = np.concatenate([np.asarray(poses[r], dtype=float).reshape(-1, 3) for r in robots]
                              or [np.zeros((0, 3))])
     stacked_cov = np.concatenate([np.asarray(covariances[r], dtype=float).reshape(-1, 3, 3)
                                   for r in robots] or [np.zeros((0, 3, 3))])
+    known = np.isfinite(stacked_cov).all(axis=(1, 2))
+    stacked, stacked_cov = stacked[known], stacked_cov[known]
     cells, observed = cell_covariances_from_poses(geometry, stacked, stacked_cov, sensors,
                                                   map_params)
     centres = geometry.cell_centers().reshape(-1, 2)[observed.ravel()]
@@ -107,8 +112,8 @@ def evaluation_layers(evaluator: TeamEvaluator, estimated_paths: Mapping[int, np
     """The map of a run watched by ``evaluator``: its world's truth (every robot's true path
     as recorded) and explored area, with the robots' estimated paths (K, 3) and landmarks
     (M, 2), chosen targets, requested rendezvous and, when given, the targets given up and
-    the marginal covariances (K, 3, 3) (map frame) of the estimated paths' poses, from which
-    the team virtual map's uncertainty is drawn."""
+    the marginal covariances (K, 3, 3) (map frame) of the estimated paths' poses (NaN where
+    not known), from which the team virtual map's uncertainty is drawn."""
     world = evaluator.world
     team_uncertainty = None
     if pose_covariances:

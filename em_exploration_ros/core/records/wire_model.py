@@ -74,6 +74,13 @@ def planar_covariance_to_6x6(covariance: np.ndarray) -> np.ndarray:
     return full
 
 
+def planar_covariance_from_6x6(covariance: np.ndarray) -> np.ndarray:
+    """The 3x3 covariance over (x, y, theta) of a ROS pose's 6x6 (x, y, z, roll, pitch,
+    yaw): the inverse of ``planar_covariance_to_6x6``."""
+    full = np.asarray(covariance, dtype=float).reshape(6, 6)
+    return full[np.ix_(_PLANAR_INDEX, _PLANAR_INDEX)].copy()
+
+
 def increment_covariance_to_twist(covariance: np.ndarray, time_step_s: float) -> np.ndarray:
     """Covariance of a per-step increment (3x3, x/y/theta) as a 6x6 twist covariance.
 

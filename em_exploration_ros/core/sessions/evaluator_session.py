@@ -12,10 +12,18 @@ layers the same way.
 
 The observer sees the ground truth (``/world/ground_truth/robot_i``, ``/world/landmarks``)
 and what each robot publishes (``/robot_i/estimated_path``, ``/robot_i/landmarks``,
+``/robot_i/estimated_pose`` for its latest keyframe's marginal covariance,
 ``/robot_i/team/updates`` for the chosen targets and rendezvous, ``/robot_i/motion_command``
 for the finished flags and the robots' own progress bookkeeping). It never publishes
 anything a robot uses for its estimates or decisions; it only asks robots to re-send team
 updates it missed, as robots do.
+
+The keyframe covariances (``keyframe_covariance``, kept as ``KeyframeCovariances`` says: each
+keyframe's as the robot published it when that keyframe was its newest) give each robot's
+position uncertainty at every evaluation (the history's ``robot_pose_sigma_m``: its newest
+covariance as of the step before) and the team virtual map's uncertainty in the final map
+(from each robot's evaluated path and the covariances of its keyframes). Once a robot
+published one, an evaluation waits for the covariance of the last keyframe of its path too.
 
 A simulation step is complete when the true poses of every robot at that step arrived; steps
 are recorded in order. Every ``metrics_interval_s`` of simulation time (default 2 s = em-sim's
@@ -81,6 +89,7 @@ from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness, UnseenLiv
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics,
                                                           landmark_truth, stamp_key)
+from em_exploration_ros.core.evaluation.keyframe_covariances import KeyframeCovariances
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, evaluation_layers
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
 from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry,
@@ -191,6 +200,11 @@ class StampedEstimates:
         items = self._items.get(robot)
         return max(items) if items else None
 
+    def newest(self, robot: int) -> Any:
+        """The newest value of ``robot`` (None if nothing arrived)."""
+        key = self.newest_key(robot)
+        return None if key is None else self._items[robot][key]
+
     def as_of(self, stamp_s: float) -> dict[int, Any]:
         """Each robot's newest value stamped at or before ``stamp_s`` [s], in robot id order
         (so pooled sums add up the same way every run); older values, no longer needed by
@@ -233,6 +247,7 @@ class EvaluatorSession:
         self._landmarks = StampedEstimates()
         self._blocked_s = StampedEstimates()
         self._slam_recoveries = StampedEstimates()
+        self._keyframe_covariances = KeyframeCovariances()
         self._given_up: list[list[GivenUpEntry]] = [[] for _ in range(self.num_robots)]
         self._meetings: list[MeetingEntry] = []
         self._targets: list[dict[int, TargetRecord]] = [{} for _ in range(self.num_robots)]
@@ -407,6 +422,23 @@ class EvaluatorSession:
         if problem:
             return [Dropped(problem)]
         return self._on_estimate(self._landmarks, robot, stamp_ns, positions, wall_s)
+
+    def keyframe_covariance(self, robot: int, stamp_ns: int, covariance: np.ndarray,
+                            wall_s: float) -> list[Effect]:
+        """Robot ``robot``'s marginal covariance (3, 3) (x, y [m], theta [rad], map frame) of
+        its latest keyframe, stamped with that keyframe's time [ns sim time]."""
+        _, problem = self.step_of(stamp_ns, keyframes_only=True)
+        newest = self._keyframe_covariances.newest_key(robot)
+        stamp_s = nanoseconds_to_seconds(stamp_ns)
+        problem = (problem or ("older than the robot's last keyframe covariance"
+                               if newest is not None and stamp_key(stamp_s) < newest else None)
+                   or _covariance_problem(covariance))
+        if problem:
+            return [Dropped(problem)]
+        self._keyframe_covariances.add(robot, stamp_s, covariance)
+        if robot in self._overdue and not self._behind(robot, max(self.recorded_step, 0)):
+            self._overdue.discard(robot)
+        return self._process(wall_s)
 
     def team_update(self, robot: int, update: TeamUpdate, wall_s: float) -> list[Effect]:
         """A record of robot ``robot``'s update stream (wire-checked by the driver): its
@@ -725,8 +757,18 @@ class EvaluatorSession:
         """Whether the robot's estimates of the last keyframe before ``step`` are missing."""
         interval = self.params.slam.keyframe_interval_steps
         needed = stamp_key(self._stamp_s(max(step - 1, 0) // interval * interval))
-        return any(history.newest_key(robot) is None or history.newest_key(robot) < needed
-                   for history in (self._paths, self._landmarks))
+        return self._covariance_behind(robot) or any(
+            history.newest_key(robot) is None or history.newest_key(robot) < needed
+            for history in (self._paths, self._landmarks))
+
+    def _covariance_behind(self, robot: int) -> bool:
+        """Whether the covariance of the last keyframe of the robot's newest path is missing,
+        once the robot published one (a robot or recording without them is not waited
+        for; a robot without an estimate of its own pose publishes none)."""
+        newest = self._keyframe_covariances.newest_key(robot)
+        path = self._paths.newest(robot)
+        return (newest is not None and path is not None and len(path[0]) > 0
+                and stamp_key(float(path[0][-1])) > newest)
 
     def _waited_for(self, robot: int) -> bool:
         """Whether an evaluation waits for the robot's estimates: unless it is lost (its
@@ -775,7 +817,8 @@ class EvaluatorSession:
         self._evaluated = (self._paths.as_of(as_of_s), self._landmarks.as_of(as_of_s))
         self._blocked_s.as_of(as_of_s)  # drops the values no later summary needs
         self._slam_recoveries.as_of(as_of_s)
-        metrics = self.evaluator.evaluate(stamp_s, *self._evaluated)
+        metrics = self.evaluator.evaluate(stamp_s, *self._evaluated,
+                                          self._keyframe_covariances.latest_as_of(as_of_s))
         decisions = sum(len(self.monitor.decisions_counted(chosen, until=metrics))
                         for chosen in self._decisions())
         effects: list[Effect] = []
@@ -902,7 +945,28 @@ class EvaluatorSession:
             f"{self.params.planner.name}, {self.num_robots} robots, seed "
             f"{self.params.run.seed}: {title}",
             given_up={r: [g for g in entries if g.stamp_s < end_s]
-                      for r, entries in enumerate(self._given_up)})
+                      for r, entries in enumerate(self._given_up)},
+            pose_covariances=self._path_covariances(paths))
+
+    def _path_covariances(self, paths: dict[int, Any]) -> dict[int, np.ndarray] | None:
+        """The published covariances (K, 3, 3) of the keyframes of each evaluated path
+        (``{robot: (stamps, poses)}``), NaN where none arrived; None if no robot published
+        any."""
+        if not self._keyframe_covariances.published:
+            return None
+        return {r: self._keyframe_covariances.along(r, stamps)
+                for r, (stamps, _) in paths.items()}
+
+
+def _covariance_problem(covariance: np.ndarray) -> str | None:
+    """Reason if ``covariance`` is not a finite symmetric 3x3 with a nonnegative diagonal."""
+    matrix = np.asarray(covariance, dtype=float)
+    if matrix.shape != (3, 3) or not np.isfinite(matrix).all():
+        return f"a covariance of shape {matrix.shape} or with non-finite entries"
+    if (np.diag(matrix) < 0.0).any() or not np.allclose(matrix, matrix.T, rtol=1e-6,
+                                                        atol=1e-12):
+        return "a covariance that is not symmetric with a nonnegative diagonal"
+    return None
 
 
 def _progress_line(metrics: TeamMetrics, decisions: int) -> str:

@@ -127,10 +127,24 @@ class PublishTransforms:
 
 
 @dataclass(frozen=True)
-class PublishEstimates:
-    """The estimated path and landmarks, at a keyframe step (``stamp_s``: sim time)."""
+class KeyframeEstimate:
+    """The robot's estimate of its latest keyframe: the keyframe's time ``stamp_s`` [s sim
+    time], its pose (x [m], y [m], theta [rad]) and marginal covariance (3, 3) (additive
+    x, y, theta errors), both in the map frame."""
 
     stamp_s: float
+    pose: np.ndarray
+    covariance: np.ndarray
+
+
+@dataclass(frozen=True)
+class PublishEstimates:
+    """The estimated path and landmarks, at a keyframe step (``stamp_s``: sim time), and
+    the latest keyframe's pose with its covariance (None while the robot has no estimate of
+    its own pose)."""
+
+    stamp_s: float
+    latest: KeyframeEstimate | None = None
 
 
 @dataclass(frozen=True)

@@ -74,9 +74,10 @@ from em_exploration_ros.core.records.wire_model import (command_to_twist, sim_ti
                                                         twist_to_increment_covariance)
 from em_exploration_ros.core.sessions.effects import Dropped, LogLine, error, info, warn
 from em_exploration_ros.core.sessions.robot_effects import (
-    AppendJournal, CommandReply, Exit, Journal, PublishDecision, PublishEstimates,
-    PublishHistory, PublishRequest, PublishTransforms, PublishUpdate, ReadJournals,
-    SendCommand, SendFrame, StartJournal)
+    AppendJournal, CommandReply, Exit, Journal, KeyframeEstimate, PublishDecision,
+    PublishEstimates, PublishHistory, PublishRequest, PublishTransforms, PublishUpdate,
+    ReadJournals, SendCommand, SendFrame, StartJournal)
+from em_exploration_ros.core.slam.team_slam import body_to_map_covariance
 
 EXIT_WORLD_GONE = 4
 #: The requester id of a process that is not a robot (the evaluator), as
@@ -573,10 +574,23 @@ class RobotSession:
         out.append(SendCommand(reply))
         self._last_reply = reply
         if step % self.params.slam.keyframe_interval_steps == 0:
-            out.append(PublishEstimates(stamp_s))
+            out.append(PublishEstimates(stamp_s, self._latest_keyframe()))
         if len(agent.decisions) != decisions_before:
             out.append(PublishDecision(stamp_s))
         self._log_slam_recoveries()
+
+    def _latest_keyframe(self) -> KeyframeEstimate | None:
+        """This robot's latest keyframe in its graph, with its marginal covariance (one
+        iSAM2 marginal), in the map frame; None before it has one."""
+        slam = self.agent.slam
+        latest = slam.latest_index(self.robot_id)
+        if latest is None:
+            return None
+        pose = slam.pose(self.robot_id, latest)
+        covariance = body_to_map_covariance(pose, slam.pose_covariance(self.robot_id, latest))
+        return KeyframeEstimate(
+            sim_time_s(latest * self.params.slam.keyframe_interval_steps, self.time_step_s),
+            pose, covariance)
 
     def _warn_if_unanchored(self, steps: int) -> None:
         """A robot without an estimate of its own pose stands still: say so after

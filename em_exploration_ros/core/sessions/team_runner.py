@@ -43,8 +43,10 @@ from em_exploration_ros.core.node_settings import (EvaluatorNodeSettings, RobotN
                                                    WorldNodeSettings)
 from em_exploration_ros.core.records.team_data import MissingRange, TeamUpdate
 from em_exploration_ros.core.sessions.robot_effects import (AppendJournal, Journal,
-                                                            ReadJournals, SendCommand,
-                                                            SendFrame, StartJournal)
+                                                            KeyframeEstimate,
+                                                            PublishEstimates, ReadJournals,
+                                                            SendCommand, SendFrame,
+                                                            StartJournal)
 from em_exploration_ros.core.sessions.robot_session import (JournalRecords, OdometryInput,
                                                             RobotSession, ScanInput)
 from em_exploration_ros.core.sessions.world_effects import PublishSensors
@@ -126,6 +128,8 @@ class TeamRunner:
             time.perf_counter(), 0.0)
         self.observer.true_world(world, time.perf_counter())
         self._reported = [(0, 0)] * n  # (targets given up, meetings) reported of each robot
+        #: The latest keyframes the robots published since the observer last looked.
+        self._published: list[tuple[int, KeyframeEstimate]] = []
 
     @property
     def evaluator(self) -> TeamEvaluator:
@@ -215,6 +219,8 @@ class TeamRunner:
                 self.world.offer(frame)
             elif kind is SendCommand:
                 twist = effect.reply.linear_x, effect.reply.angular_z
+            elif kind is PublishEstimates and effect.latest is not None:
+                self._published.append((robot, effect.latest))
             elif kind is AppendJournal:
                 self.journals[effect.journal][robot].append(effect.record)
             elif kind is StartJournal:
@@ -235,13 +241,18 @@ class TeamRunner:
 
     def observe(self, wall_s: float) -> list[Effect]:
         """Show the observer the step the world is at (wall time ``wall_s`` [s]) as
-        em-evaluator sees it: before an evaluation step k, each robot's estimates as of step
-        k - 1 (stamped at the latest keyframe step, as a robot publishes them); the true
-        poses of step k; then each robot's answer to step k - 1 (its progress bookkeeping).
-        Returns the observer's effects (``PublishMetrics`` at an evaluation)."""
+        em-evaluator sees it: the latest keyframe covariance each robot published while
+        answering step k - 1 (at a keyframe step); before an evaluation step k, each robot's
+        estimates as of step k - 1 (stamped at the latest keyframe step, as a robot publishes
+        them); the true poses of step k; then each robot's answer to step k - 1 (its progress
+        bookkeeping). Returns the observer's effects (``PublishMetrics`` at an evaluation)."""
         observer, step = self.observer, self.simulation.step
         evaluating = observer.evaluates_at(step)
         effects: list[Effect] = []
+        for robot, latest in self._published:
+            effects += observer.keyframe_covariance(
+                robot, seconds_to_nanoseconds(latest.stamp_s), latest.covariance, wall_s)
+        self._published.clear()
         if evaluating:
             interval = self.params.slam.keyframe_interval_steps
             time_step = self.params.motion.time_step_s
