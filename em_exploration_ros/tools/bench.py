@@ -50,6 +50,8 @@ from em_exploration_ros.tools import bench_plots
 from em_exploration_ros.tools.bench_trials import (ProgressBar, TrialSpec, code_version,
                                                   describe_error, failed_record, params_record,
                                                   duration_text, run_trial, write_json)
+from em_exploration_ros.tools.dataset_bench import (DATASET_HELP, add_dataset_arguments,
+                                                   check_dataset_arguments, run_dataset)
 from em_exploration_ros.tools.latency_bench import LATENCY_HELP, add_latency_arguments
 from em_exploration_ros.tools.sim_cli import (PLANNER_NAMES, PLANNER_TYPE, add_run_arguments,
                                               params_from_args)
@@ -503,6 +505,13 @@ def command_planners(args: argparse.Namespace) -> int:
     return 0
 
 
+def command_dataset(args: argparse.Namespace) -> int:
+    """``em-bench dataset``: arguments checked, ``--out`` ready, then the replay."""
+    checked = check_dataset_arguments(args)
+    prepare_out_dir(args.out)
+    return run_dataset(args, *checked)
+
+
 def prepare_out_dir(out_dir: Path) -> None:
     """Create ``--out`` (with its parents) and check that it takes files, before any trial
     runs; ValueError saying why not."""
@@ -569,6 +578,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="folder holding results.csv and summary.json")
     plot.set_defaults(handler=command_plot)
     add_latency_arguments(commands.add_parser("latency", help=LATENCY_HELP))
+    dataset = commands.add_parser("dataset", help=DATASET_HELP)
+    add_dataset_arguments(dataset)
+    dataset.set_defaults(handler=command_dataset)
     return parser
 
 
