@@ -187,7 +187,8 @@ def test_timeline_holds_each_metric_each_robot_and_the_rendezvous() -> None:
     for axes in (explored, rmse, sigma):
         marks = [line for line in axes.get_lines() if line.get_linestyle() == ":"]
         assert sorted(line.get_xdata()[0] for line in marks) == [11.0, 27.0]
-        assert "rendezvous met (2)" in [t.get_text() for t in axes.get_legend().get_texts()]
+        assert "meeting: inter-robot factor (2)" in [t.get_text()
+                                                     for t in axes.get_legend().get_texts()]
 
 
 def test_timeline_of_a_summary_without_position_uncertainty_says_so() -> None:

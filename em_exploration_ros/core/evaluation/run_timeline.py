@@ -9,8 +9,10 @@ Three panels sharing the time axis (simulation time [s]), drawn from the summary
   trace of the position block of its latest keyframe's marginal covariance), when the
   writer recorded it; otherwise the panel says so.
 
-Every meeting that gave an inter-robot factor (the summary's ``meetings``: em-sim) is marked
-in every panel by a vertical line at its time. A null (NaN) value leaves a gap.
+Every requested meeting that gave an inter-robot factor (the summary's ``meetings``, from
+the robots' answers in both drivers) is marked in every panel by a vertical line at its time,
+named in the legend as such: a rendezvous that timed out can still end in a meeting, so the
+count may differ from the map's rendezvous met. A null (NaN) value leaves a gap.
 """
 from __future__ import annotations
 
@@ -79,7 +81,8 @@ def timeline_figure(summary: Mapping[str, Any]) -> Figure:
     sigma.set_ylabel("position sigma [m]")
     sigma.set_xlabel("simulation time [s]")
     meetings = _mark_meetings([explored, rmse, sigma], summary)
-    mark = ([Line2D([], [], label=f"rendezvous met ({meetings})", **MEETING_STYLE)]
+    mark = ([Line2D([], [], label=f"meeting: inter-robot factor ({meetings})",
+                    **MEETING_STYLE)]
             if meetings else [])
     for axes in (explored, rmse, sigma):
         handles, _ = axes.get_legend_handles_labels()
