@@ -15,6 +15,7 @@ import signal
 import socket
 import subprocess
 
+import numpy as np
 import pytest
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, RUN_TEAM, finish_team_run,
                          processes_in_domain, robot_pid, start_team_run, wait_for_liveliness)
@@ -203,6 +204,14 @@ def test_three_robots_explore_end_to_end(tmp_path):
                                                                reference["sim_time_s"])
     assert summary["distance_m"] == pytest.approx(reference["distance_m"], abs=1e-6)
     assert_same_summary(summary, reference)
+    # Each robot's position sigma at every evaluation, from the keyframe covariances it
+    # published (/robot_i/estimated_pose; em-sim's observer takes the same values): em-sim's,
+    # to the last digits two iSAM2 processes may differ in.
+    sigmas, expected = (pose_sigmas(s) for s in (summary, reference))
+    assert sigmas.shape == expected.shape and sigmas.shape[1] == 3
+    assert math.isfinite(sigmas[-1].sum())
+    assert sigmas.ravel().tolist() == pytest.approx(expected.ravel().tolist(), rel=1e-6,
+                                                    nan_ok=True)
 
     for name in ("summary_map.png", "summary_timeline.png"):  # as em-sim draws beside it
         assert summary_path.with_name(name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -287,6 +296,12 @@ ROBOT_KEYS_APART = {
     # The distance from ground truth, compared to 1e-6 (sums in another order).
     "distance_m",
 }
+
+
+def pose_sigmas(summary: dict) -> np.ndarray:
+    """(samples, robots) array of the history's robot_pose_sigma_m, null as NaN."""
+    return np.array([[math.nan if v is None else v for v in sample["robot_pose_sigma_m"]]
+                     for sample in summary["history"]], dtype=float)
 
 
 def assert_same_summary(summary: dict, reference: dict) -> None:
