@@ -147,7 +147,8 @@ def screened_team_updates(guard: InputGuard, topic: str, sender: int,
         if head is None:
             guard.drop(topic, f"malformed TeamUpdate: {len(data)} bytes")
             return None
-        if not guard.check(topic, run_problem(head.run_id), _head_problem(head, sender)):
+        if not guard.check(topic, run_problem(head.run_id),
+                           team_update_head_problem(head, sender)):
             return None
         if next_expected is not None:
             expected = next_expected(sender)
@@ -171,7 +172,7 @@ def screened_team_updates(guard: InputGuard, topic: str, sender: int,
     return on_serialized_with_info if with_info else on_serialized
 
 
-def _head_problem(head: TeamUpdateHead, sender: int) -> str | None:
+def team_update_head_problem(head: TeamUpdateHead, sender: int) -> str | None:
     """Why a team update on robot ``sender``'s topic is refused from its head alone."""
     if head.robot_id != sender:
         return f"rejected a team update: robot_id {head.robot_id} on robot {sender}'s topic"
