@@ -1,0 +1,101 @@
+"""Victoria Park through the team's own association and SLAM (em-bench dataset): a prefix of
+the dataset with one robot and with two, the summary's keys and floors of its association,
+the observation noise as the file states it, and bad arguments refused in one line."""
+import json
+import subprocess
+import sys
+
+import gtsam
+import numpy as np
+import pytest
+
+from em_exploration_ros.core.evaluation.dataset_replay import (batch_solution,
+                                                               observation_sigmas,
+                                                               read_planar_dataset, replay,
+                                                               replay_params, segments)
+from em_exploration_ros.tools.bench import build_parser
+from em_exploration_ros.tools.dataset_bench import check_dataset_arguments
+
+POSES = 600
+
+
+@pytest.fixture(scope="module")
+def prefix():
+    dataset = read_planar_dataset(gtsam.findExampleDataFile("victoria_park.txt"), POSES)
+    return dataset, batch_solution(dataset, replay_params(dataset).slam.prior_sigmas)
+
+
+def test_the_prefix_is_read_as_the_file_states_it(prefix):
+    dataset, (poses, landmarks) = prefix
+    assert len(dataset.poses) == POSES and dataset.poses[0].odometry is None
+    assert dataset.num_detections == 386 and len(landmarks) == 44
+    assert poses.shape == (POSES, 3) and np.allclose(poses[0], dataset.start, atol=1e-3)
+    # The file's x-y variance 0.4 m^2: range sigma sqrt(0.4), bearing sigma sqrt(0.4) / 10 m.
+    assert dataset.range_sigma_m == pytest.approx(0.4 ** 0.5)
+    assert dataset.bearing_sigma_rad == pytest.approx(0.4 ** 0.5 / 10)
+    assert observation_sigmas((0.01, 0.02)) == (0.01, 0.02)  # a BR line's own sigmas
+
+
+def test_segments_cut_the_poses_consecutively():
+    assert segments(10, 3) == [range(0, 3), range(3, 7), range(7, 10)]
+    assert segments(5, 1) == [range(0, 5)]
+
+
+@pytest.mark.parametrize("robots", [1, 2])
+def test_a_prefix_is_associated_without_identities(prefix, robots):
+    dataset, batch = prefix
+    summary = replay(dataset, robots, batch)
+    assert set(summary) == {"dataset_poses", "robots", "keyframes", "detections",
+                            "dataset_landmarks", "association", "landmarks_created",
+                            "landmark_rms_to_batch_m"}
+    association = summary["association"]
+    assert len(association["robots"]) == robots
+    assert association["true_detections"] == summary["detections"] == 386
+    # Floors of what the association reaches on this prefix (measured: precision 0.94 and
+    # 0.96, recall 0.66 and 0.65), not the goal of 0.98 and 0.9 (docs/results.md).
+    assert association["precision"] >= 0.9 and association["recall"] >= 0.6
+    assert 20 <= summary["landmarks_created"] <= 60
+    assert np.isfinite(summary["landmark_rms_to_batch_m"])
+
+
+def test_em_bench_dataset_writes_the_summary_and_prints_its_last_lines(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "em_exploration_ros.tools.bench", "dataset", "victoria_park",
+         "--poses", "200", "--robots", "2", "--out", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["dataset"] == "victoria_park" and summary["robots"] == 2
+    assert summary["dataset_poses"] == 200 and summary["wall_time_s"] > 0
+    lines = result.stdout.strip().splitlines()
+    assert lines[0].startswith("victoria_park: 200 poses, 2 robot(s)")
+    assert lines[1].startswith("association: precision ")
+    assert lines[2] == f"landmarks created: {summary['landmarks_created']}"
+    assert lines[3].startswith("landmark RMS to the batch solution: ")
+    assert lines[4].startswith("wall time: ")
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["nowhere"], "unknown dataset 'nowhere'; known: victoria_park"),
+    (["victoria_park", "--robots", "0"], "--robots must be a positive integer, got '0'"),
+    (["victoria_park", "--robots", "27"], "--robots must be at most 26, got 27"),
+    (["victoria_park", "--poses", "many"], "--poses must be a positive integer, got 'many'"),
+    (["victoria_park", "--poses", "2", "--robots", "3"],
+     "--poses 2 cannot make 3 segments of at least one pose"),
+])
+def test_bad_arguments_are_refused(tmp_path, arguments, message):
+    args = build_parser().parse_args(["dataset", *arguments, "--out", str(tmp_path)])
+    with pytest.raises(ValueError) as refused:
+        check_dataset_arguments(args)
+    assert str(refused.value) == message
+
+
+def test_em_bench_refuses_bad_arguments_in_one_line_with_exit_2(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "em_exploration_ros.tools.bench", "dataset", "victoria_park",
+         "--robots", "x", "--out", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.strip().splitlines() == [
+        "em-bench: --robots must be a positive integer, got 'x'"]
+    assert not (tmp_path / "out").exists()
