@@ -283,6 +283,8 @@ class RobotNode(LeanNode):
             kind = type(effect)
             if kind is LogLine:
                 self._lines.write(effect)
+            elif kind is fx.PublishCorrespondences:
+                outputs.correspondences(effect)
             elif kind is fx.SendCommand:
                 outputs.command(effect.reply, effect.again)
             elif kind is fx.PublishUpdate:

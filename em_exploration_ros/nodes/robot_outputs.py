@@ -2,7 +2,9 @@
 its MotionCommand, team updates, requests and copies of a restarted teammate's records, and
 what users and the evaluator see: its TF, estimated path, landmarks and latest keyframe's
 pose with its marginal covariance (``estimated_pose``) at keyframe steps, and the target,
-virtual map and markers of each new decision, from the robot's ``RobotAgent``.
+virtual map and markers of each new decision, from the robot's ``RobotAgent``; without
+landmark identities, the teammates' landmarks it tied to its own
+(``landmark_correspondences``, for the evaluator's association counts).
 
 Messages only users look at (transforms, target, grid, markers) are built only when someone
 subscribes; the markers cost a robot more CPU than its decision, and a viewer that
@@ -11,7 +13,8 @@ subscribes later gets the next decision's.
 from __future__ import annotations
 
 import numpy as np
-from em_exploration_msgs.msg import LandmarkArray, MotionCommand, TeamUpdate, TeamUpdateRequest
+from em_exploration_msgs.msg import (LandmarkArray, LandmarkCorrespondences, MotionCommand,
+                                     TeamUpdate, TeamUpdateRequest)
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Path
 from rclpy.node import Node
@@ -24,7 +27,8 @@ from em_exploration_ros.core.records.team_data import LandmarkEstimate
 from em_exploration_ros.core.records.team_data import TeamUpdate as TeamRecord
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.records.wire_model import sim_time_s
-from em_exploration_ros.core.sessions.robot_effects import CommandReply, KeyframeEstimate
+from em_exploration_ros.core.sessions.robot_effects import (CommandReply, KeyframeEstimate,
+                                                            PublishCorrespondences)
 from em_exploration_ros.core.virtual_map.cell_uncertainty import cell_covariances_from_poses
 from em_exploration_ros.nodes import tf_publishing, visualization
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, given_up_to_msg,
@@ -52,6 +56,9 @@ class RobotOutputs:
         self._wire = wire
         self.command_pub = node.create_publisher(MotionCommand, f"/{ns}/motion_command",
                                                  COMMAND_QOS)
+        # Only without landmark identities does a robot tie teammates' landmarks to its own.
+        self.correspondences_pub = None if params.sensors.landmark_ids else node.create_publisher(
+            LandmarkCorrespondences, f"/{ns}/landmark_correspondences", COMMAND_QOS)
         self.update_pub = node.create_publisher(TeamUpdate, f"/{ns}/team/updates", TEAM_QOS)
         self.request_pub = node.create_publisher(TeamUpdateRequest, "/team/update_requests",
                                                  TEAM_QOS)
@@ -87,6 +94,17 @@ class RobotOutputs:
         message.twist.linear.x, message.twist.angular.z = reply.linear_x, reply.angular_z
         publish_or_log(self.command_pub, message, self._node,
                        f"the command of step {reply.step}" + (" again" if again else ""))
+
+    def correspondences(self, effect: PublishCorrespondences) -> None:
+        """The teammates' landmarks tied to own ones while answering a step (evaluator)."""
+        message = LandmarkCorrespondences(
+            run_id=self._run_id, robot_id=self._robot_id, step=effect.step,
+            own_landmark_ids=[int(own) for own, _ in effect.pairs],
+            teammate_landmark_ids=[int(theirs) for _, theirs in effect.pairs])
+        message.header.stamp.sec, message.header.stamp.nanosec = effect.stamp
+        message.header.frame_id = MAP_FRAME
+        publish_or_log(self.correspondences_pub, message, self._node,
+                       f"the landmark correspondences of step {effect.step}")
 
     def update(self, record: TeamRecord, what: str) -> None:
         """A record of this robot's stream on its update topic."""

@@ -27,8 +27,8 @@ from em_exploration_ros.core.sessions.effects import LogLine
 from em_exploration_ros.core.sessions.lockstep import StepAnswer
 from em_exploration_ros.core.sessions.world_effects import (Dropped, PublishClock,
                                                             PublishLinkCounts, PublishSensors,
-                                                            PublishStatus, PublishTruth,
-                                                            StartTicking)
+                                                            PublishSonarTruth, PublishStatus,
+                                                            PublishTruth, StartTicking)
 from em_exploration_ros.core.sessions.world_session import TeamConnections, WorldSession
 from em_exploration_ros.nodes.conversions import WORLD_NODE_NAME, robot_namespace
 from em_exploration_ros.nodes.input_guard import InputGuard, content_problem, header_problem
@@ -156,6 +156,8 @@ class WorldNode(LeanNode):
                 outputs.clock(effect)
             elif kind is PublishTruth:
                 outputs.truth(effect)
+            elif kind is PublishSonarTruth:
+                outputs.sonar_truth(effect)
             elif kind is LogLine:
                 self.lines.write(effect)
             elif kind is PublishLinkCounts:

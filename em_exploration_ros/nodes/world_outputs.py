@@ -9,13 +9,15 @@ converts and publishes (QoS from nodes/qos.py).
   ``robot_i/odom`` -> ``robot_i/base_link``);
 - ground truth, under ``/world`` only: ``/world/ground_truth/robot_i`` (Odometry, frame
   ``world``, every step), ``/world/landmarks`` (LandmarkArray, latched),
-  ``/world/markers`` (MarkerArray, latched: landmarks and the map border) and
-  ``/world/status`` (WorldStatus, latched).
+  ``/world/markers`` (MarkerArray, latched: landmarks and the map border),
+  ``/world/status`` (WorldStatus, latched) and, when the sonar is not the paper's ideal
+  one, ``/world/sonar_truth/robot_i`` (SonarTruth, every keyframe step: where each
+  detection came from, for the evaluator's association counts; no robot reads it).
 """
 from __future__ import annotations
 
 import numpy as np
-from em_exploration_msgs.msg import LandmarkArray, SonarScan, WorldStatus
+from em_exploration_msgs.msg import LandmarkArray, SonarScan, SonarTruth, WorldStatus
 from geometry_msgs.msg import Point, PoseStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
@@ -26,7 +28,9 @@ from visualization_msgs.msg import Marker, MarkerArray
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.records.team_data import LandmarkEstimate
 from em_exploration_ros.core.sessions.world_effects import (PublishClock, PublishSensors,
-                                                            PublishStatus, PublishTruth)
+                                                            PublishSonarTruth, PublishStatus,
+                                                            PublishTruth)
+from em_exploration_ros.core.world.sensors import CLUTTER
 from em_exploration_ros.core.world.world import World
 from em_exploration_ros.nodes import tf_publishing
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_STATUS_TOPIC,
@@ -92,6 +96,10 @@ class WorldOutputs:
             self.truth_pubs.append(node.create_publisher(
                 Odometry, f"/world/ground_truth/{ns}", GROUND_TRUTH_QOS))
             self._truth_frames.append(f"{ns}/base_link")
+        self.sonar_truth_pubs = [] if params.sensors.ideal_sonar else [
+            node.create_publisher(SonarTruth, f"/world/sonar_truth/{robot_namespace(robot)}",
+                                  GROUND_TRUTH_QOS)
+            for robot in range(params.world.num_robots)]
 
     def mission(self, world: World, stamp_s: float) -> None:
         """The latched mission set-up at the first step's time ``stamp_s`` [s]: robot 0's
@@ -133,6 +141,17 @@ class WorldOutputs:
         if listened(self.tf_pub):
             self.tf_pub.publish(tf_publishing.tf_message(
                 effect.stamp_s, tf_publishing.truth_transforms(list(effect.poses))))
+
+    def sonar_truth(self, effect: PublishSonarTruth) -> None:
+        """Where each detection of a robot's keyframe scan came from (CLUTTER: none)."""
+        message = SonarTruth(
+            run_id=self.run_id, robot_id=effect.robot, step=effect.step,
+            range=[float(r.range_m) for r in effect.readings],
+            bearing=[float(r.bearing_rad) for r in effect.readings],
+            source=[SonarTruth.CLUTTER if s == CLUTTER else int(s) for s in effect.sources])
+        message.header.stamp = seconds_to_time(effect.stamp_s)
+        message.header.frame_id = self._truth_frames[effect.robot]
+        self.sonar_truth_pubs[effect.robot].publish(message)
 
     def status(self, effect: PublishStatus) -> None:
         """/world/status: the current step, whether stepping is over for good, and why."""

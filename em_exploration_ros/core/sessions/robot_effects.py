@@ -52,6 +52,17 @@ class CommandReply:
 
 
 @dataclass(frozen=True)
+class PublishCorrespondences:
+    """The teammates' landmarks the robot tied to its own while answering ``step`` (at
+    ``stamp``, (sec, nanosec) of the scan): ``pairs`` of team-graph landmark ids (own,
+    teammate's), for the evaluator's association counts (teammates do not read them)."""
+
+    step: int
+    stamp: tuple[int, int]
+    pairs: tuple[tuple[int, int], ...]
+
+
+@dataclass(frozen=True)
 class SendCommand:
     """Publish the command of a step (``again``: the world sent the step again)."""
 

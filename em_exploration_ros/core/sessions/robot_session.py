@@ -74,9 +74,9 @@ from em_exploration_ros.core.records.wire_model import (command_to_twist, sim_ti
                                                         twist_to_increment_covariance)
 from em_exploration_ros.core.sessions.effects import Dropped, LogLine, error, info, warn
 from em_exploration_ros.core.sessions.robot_effects import (
-    AppendJournal, CommandReply, Exit, Journal, KeyframeEstimate, PublishDecision,
-    PublishEstimates, PublishHistory, PublishRequest, PublishTransforms, PublishUpdate,
-    ReadJournals, SendCommand, SendFrame, StartJournal)
+    AppendJournal, CommandReply, Exit, Journal, KeyframeEstimate, PublishCorrespondences,
+    PublishDecision, PublishEstimates, PublishHistory, PublishRequest, PublishTransforms,
+    PublishUpdate, ReadJournals, SendCommand, SendFrame, StartJournal)
 from em_exploration_ros.core.slam.team_slam import body_to_map_covariance
 
 EXIT_WORLD_GONE = 4
@@ -544,6 +544,7 @@ class RobotSession:
         stamp_s = sim_time_s(step, self.time_step_s)
         released = self.inbox.pop_ready(limits)
         meetings_before = len(agent.meeting_effects)  # the teammates' records may add one
+        ties_before = len(agent.slam.landmark_correspondences)  # (and correspondences)
         agent.apply_team_updates(released)
         for update in self.archive.keep(released):
             if self.journaled:
@@ -565,6 +566,9 @@ class RobotSession:
         out.append(PublishTransforms(stamp_s, odometry.pose))
         linear_x, angular_z = command_to_twist(command.turn_rad, command.forward_m,
                                                self.time_step_s)
+        ties = agent.slam.landmark_correspondences[ties_before:]
+        if ties:  # published before the answer to the step
+            out.append(PublishCorrespondences(step, scan.stamp, tuple(ties)))
         reply = CommandReply(self.robot_id, step, scan.stamp, linear_x, angular_z,
                              agent.outbox.last_sequence, self.team_messages,
                              self.team_requests, command.finished, float(agent.blocked_s),

@@ -2,9 +2,10 @@
 
 The ROS world node (``nodes/world_node.py``, with ``nodes/world_outputs.py`` and
 ``nodes/team_relay.py``) turns each effect into a publication or a timer; em-sim
-(``team_runner.TeamRunner``) hands a step's sensor frames to its robots and the deliveries to
-their receivers, and ignores the rest. A delivery is ``core.links.link_model.Delivery``
-itself (a record or request for robot ``receiver``, its payload as the world heard it).
+(``team_runner.TeamRunner``) hands a step's sensor frames to its robots, the deliveries to
+their receivers and the truth of the scans to its observer, and ignores the rest. A delivery
+is ``core.links.link_model.Delivery`` itself (a record or request for robot ``receiver``,
+its payload as the world heard it).
 Besides these, a session returns ``effects.LogLine``.
 """
 from __future__ import annotations
@@ -14,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from em_exploration_ros.core.links.link_model import UpdateDeliveryCounts
+from em_exploration_ros.core.records.readings import LandmarkReading
 from em_exploration_ros.core.sessions.effects import Dropped as Dropped  # every session's
 from em_exploration_ros.core.world.simulation import SensorFrame
 
@@ -46,6 +48,20 @@ class PublishTruth:
 
     stamp_s: float
     poses: tuple[np.ndarray, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class PublishSonarTruth:
+    """Truth side only (for the evaluator; no robot reads it): where each landmark reading
+    of robot ``robot``'s scan at keyframe step ``step`` (simulation time ``stamp_s`` [s])
+    came from: ``sources``, in the order of ``readings`` (the scan's, body frame), a
+    landmark id or ``sensors.CLUTTER``."""
+
+    robot: int
+    step: int
+    stamp_s: float
+    readings: tuple[LandmarkReading, ...]
+    sources: tuple[int, ...]
 
 
 @dataclass(frozen=True)

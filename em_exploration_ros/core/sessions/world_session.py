@@ -57,8 +57,8 @@ from em_exploration_ros.core.sessions.effects import LogLine, Level, info, warn
 from em_exploration_ros.core.sessions.lockstep import STAND_STILL, LockstepBarrier, StepAnswer
 from em_exploration_ros.core.sessions.world_effects import (Dropped, PublishClock,
                                                             PublishLinkCounts, PublishSensors,
-                                                            PublishStatus, PublishTruth,
-                                                            StartTicking)
+                                                            PublishSonarTruth, PublishStatus,
+                                                            PublishTruth, StartTicking)
 from em_exploration_ros.core.world.simulation import WorldSimulation
 
 #: A progress line every this many steps.
@@ -445,8 +445,9 @@ class WorldSession:
 
     def step_messages(self) -> list[Any]:
         """What the world publishes at the current step: the deliveries due before it (relay
-        mode), /clock, every robot's sensors (each robot's own noise streams, in id order)
-        and the ground truth."""
+        mode), /clock, every robot's sensors (each robot's own noise streams, in id order),
+        at a keyframe step the truth of each robot's scan when the sonar is not the paper's
+        ideal one, and the ground truth."""
         sim, relay, n = self.sim, self.relay, self.num_robots
         effects: list[Any] = [] if relay is None else relay.deliveries(sim.step)
         effects.append(PublishClock(sim.stamp_s))
@@ -457,6 +458,12 @@ class WorldSession:
                    for robot in range(n)]
         self._step_sensors = sensors
         effects.extend(sensors)
+        if (not self.params.sensors.ideal_sonar
+                and sim.step % self.params.slam.keyframe_interval_steps == 0):
+            effects.extend(PublishSonarTruth(robot, sim.step, sim.stamp_s,
+                                             sensors[robot].frame.landmarks,
+                                             sim.detection_sources(robot))
+                           for robot in range(n))
         effects.append(PublishTruth(sim.stamp_s, tuple(sim.true_pose(r) for r in range(n))))
         return effects
 
