@@ -19,8 +19,9 @@ import signal
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import pytest
 
@@ -64,6 +65,21 @@ def ros_args(params: Mapping[str, Any] | None = None, namespace: str | None = No
     for name, value in (params or {}).items():
         args += ["-p", f"{name}:={ros_value(value)}"]
     return args + list(extra)
+
+
+@contextmanager
+def graph_reader() -> Iterator[Any]:
+    """An rclpy node (its own context) in this test run's domain, to read the ROS graph."""
+    import rclpy
+    from rclpy.node import Node
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = Node("graph_inspector", context=context)
+    try:
+        yield node
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
 
 
 def wait_until(condition: Callable[[], bool], timeout_s: float, what: str,

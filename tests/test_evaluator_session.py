@@ -8,20 +8,27 @@ summary with every key of em-sim's.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict
 from typing import Any
 
 import numpy as np
+from ros_process import REPO_ROOT
 from summary_keys import key_paths
 
+from em_exploration_ros.core.evaluation.association_stats import (association_line,
+                                                                  team_association)
 from em_exploration_ros.core.evaluation.run_monitor import EXIT_ROBOTS_LOST
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, check_summary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.params_yaml import load_params
+from em_exploration_ros.core.records.readings import (UNIDENTIFIED, KeyframeMeasurements,
+                                                      LandmarkReading)
 from em_exploration_ros.core.records.team_data import (FrontierType, MissingRange,
                                                      TargetRecord, TeamUpdate)
 from em_exploration_ros.core.records.wire_model import seconds_to_nanoseconds, sim_time_s
-from em_exploration_ros.core.sessions.effects import Dropped, LogLine
+from em_exploration_ros.core.sessions.effects import Dropped, Level, LogLine
 from em_exploration_ros.core.sessions.evaluator_session import (EVALUATOR_LOST_PREFIX,
                                                                 EXIT_SILENCE,
                                                                 SO_FAR_INTERVAL_S, CommandReport,
@@ -29,6 +36,8 @@ from em_exploration_ros.core.sessions.evaluator_session import (EVALUATOR_LOST_P
                                                                 KeepSoFar, PublishMetrics,
                                                                 RequestUpdates)
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
+from em_exploration_ros.core.slam.team_slam import owned_landmark_id
+from em_exploration_ros.core.world.sensors import CLUTTER
 
 PARAMS = ExplorationParams().replace(
     world={"num_robots": 2, "width_m": 40.0, "height_m": 40.0, "num_landmarks": 2},
@@ -281,3 +290,68 @@ def test_a_command_reporting_an_implausible_meeting_is_dropped():
             (MeetingEntry(0, 1, 5, 0.0, 0.0, -0.5, 0.2), "negative covariance trace")):
         dropped = of(session.command(0, command(0, 0, meetings=(meeting,)), 0.0), Dropped)
         assert len(dropped) == 1 and reason in dropped[0].reason, dropped
+
+
+#: The field's sonar: no landmark identities, misses and clutter.
+FIELD_SONAR = {"landmark_ids": False, "detection_probability": 0.9, "clutter_rate": 1.0}
+
+
+def keyframe_update(robot: int, readings: tuple[LandmarkReading, ...]) -> TeamUpdate:
+    """Robot ``robot``'s first record: keyframe 0 with these landmark readings."""
+    keyframe = KeyframeMeasurements(robot, 0, 0.0, True, -1, np.zeros(3), np.zeros((3, 3)),
+                                    readings, ())
+    return TeamUpdate(robot, 1, 0.0, keyframes=(keyframe,))
+
+
+def test_the_association_waits_for_the_truth_of_the_scans_and_counts_the_ties():
+    params = PARAMS.replace(sensors=FIELD_SONAR)
+    session = EvaluatorSession(params, EvaluatorNodeSettings(
+        metrics_interval_s=4 * STEP_S, estimate_wait_s=5.0, max_sim_time_s=4 * STEP_S),
+        0.0, 3.0, WORLD_NODE)
+    session.true_landmarks([7, 3], np.array([[10.0, 10.0], [30.0, 30.0]]), 0.5, 0.0)
+    # Each robot saw landmark 3 and named it its own landmark 0; robot 1 saw clutter too.
+    seen = LandmarkReading(UNIDENTIFIED, 4.0, 0.5, 0.01, 0.001)
+    clutter = LandmarkReading(UNIDENTIFIED, 2.5, -1.0, 0.01, 0.001)
+    scans = {0: ((seen,), (3,)), 1: ((seen, clutter), (3, CLUTTER))}
+    named = dataclasses.replace(seen, landmark_id=0)
+    mine, theirs = owned_landmark_id(0, 0), owned_landmark_id(1, 0)
+    for step in range(4):
+        truth(session, step)
+        for robot in range(2):
+            session.command(robot, command(robot, step, sequence=1), 0.0)
+    for robot in range(2):
+        assert session.team_update(robot, keyframe_update(robot, (named,)), 0.0) == []
+    estimates(session, 0)
+    # Implausible truths and ties are dropped.
+    assert session.sonar_truth(0, stamp_ns(1), 1, (seen,), (3,), 0.0) == [
+        Dropped("step 1 is not a keyframe step")]
+    assert session.sonar_truth(0, stamp_ns(0), 0, (seen,), (), 0.0) == [
+        Dropped("0 sources of 1 readings")]
+    assert session.correspondences(0, stamp_ns(2), 2, [(theirs, mine)], 0.0) == [
+        Dropped(f"landmarks {theirs} and {mine} are not robot 0's and a teammate's")]
+    assert session.correspondences(0, stamp_ns(2), 2, [(mine, theirs)], 0.0) == []
+    assert session.sonar_truth(0, stamp_ns(0), 0, *scans[0], 0.0) == []
+    # The run stopped at step 4 waits for the truth of robot 1's scan of step 0.
+    assert not of(truth(session, 4, wall_s=1.0), Finished)
+    effects = session.sonar_truth(1, stamp_ns(0), 0, *scans[1], 1.5)
+    finished = of(effects, Finished)
+    assert len(finished) == 1
+    association = finished[0].summary.association
+    assert [(r["correct"], r["wrong"], r["missed"], r["correspondences_correct"])
+            for r in association["robots"]] == [(1, 0, 0, 1), (1, 0, 0, 0)]
+    assert (association["precision"], association["recall"]) == (1.0, 1.0)
+    assert LogLine(Level.INFO, association_line(association)) in of(effects, LogLine)
+
+
+def test_the_association_counts_what_each_robot_s_own_graph_held():
+    """em-sim's observer counts from what em-evaluator also gets (the truth of the scans, the
+    streams, the robots' ties and paths): the counts of the robots' own graphs at the end."""
+    params = load_params(REPO_ROOT / "config" / "exploration.yaml").replace(
+        world={"num_robots": 3, "width_m": 40.0, "height_m": 40.0, "num_landmarks": 8},
+        planner={"name": "NEAREST"}, run={"seed": 0}, sensors=FIELD_SONAR)
+    runner = TeamRunner(params)
+    association = runner.run().association
+    assert association["correspondences_correct"] > 0  # ties to count
+    assert association == team_association([agent.slam for agent in runner.agents],
+                                            runner.observer.association.scans,
+                                            params.slam.keyframe_interval_steps)

@@ -1,36 +1,61 @@
 """The lockstep ROS team under the field's sensing (issue 38, point 4): with landmark
 identities off, missed detections and clutter, em-world, the em-robot processes and
 em-evaluator choose em-sim's targets (the association runs in each robot's core, the misses
-and clutter come from the world's seeded streams)."""
+and clutter come from the world's seeded streams), and em-evaluator counts the robots'
+associations against ground truth as em-sim does (point 3): the truth of the scans reaches
+it alone, on /world/sonar_truth/robot_i."""
 import json
 
 import pytest
-from ros_process import REPO_ROOT, finish_team_run, start_team_run
+from ros_process import REPO_ROOT, finish_team_run, graph_reader, start_team_run, wait_until
 
+from em_exploration_ros.core.evaluation.association_stats import association_line
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
 
 #: Bound of the end-to-end run (set-up check, start-up, exploration, shutdown) [s].
 RUN_TIMEOUT_S = 400.0
+#: Bound of the wait for the nodes' subscriptions to show in the graph [s].
+GRAPH_TIMEOUT_S = 60.0
 
 
-@pytest.mark.parametrize("landmark_ids, detection_prob, clutter_rate", [
-    ("off", 0.9, 1.0), ("on", 0.8, 2.0)])
+def only_the_evaluator_reads_the_truth_of_the_scans() -> None:
+    """While the team runs: the world publishes /world/sonar_truth/robot_i, the evaluator
+    subscribes to it, and no robot does (each robot's own subscriptions are in the graph)."""
+    topics = [f"/world/sonar_truth/robot_{robot}" for robot in range(3)]
+    with graph_reader() as graph:
+        def nodes(infos) -> set[str]:
+            return {info.node_name for info in infos}
+
+        def all_subscribed() -> bool:
+            return (all("em_robot" in nodes(graph.get_subscriptions_info_by_topic(
+                f"/robot_{robot}/sonar")) for robot in range(3))
+                and all("em_evaluator" in nodes(graph.get_subscriptions_info_by_topic(topic))
+                        for topic in topics))
+        wait_until(all_subscribed, GRAPH_TIMEOUT_S, "the robots' and the evaluator's readers")
+        for topic in topics:
+            assert nodes(graph.get_subscriptions_info_by_topic(topic)) == {"em_evaluator"}
+            assert nodes(graph.get_publishers_info_by_topic(topic)) == {"em_world"}
+
+
+@pytest.mark.parametrize("landmark_ids, detection_prob, clutter_rate, landmarks, seed", [
+    ("off", 0.9, 1.0, 8, 0), ("on", 0.8, 2.0, 4, 2)])
 def test_the_ros_team_chooses_em_sim_s_targets(tmp_path, landmark_ids, detection_prob,
-                                               clutter_rate):
+                                               clutter_rate, landmarks, seed):
     summary_path = tmp_path / "run" / "summary.json"
     run, _ = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
-                            "--map-size", "40", "--landmarks", "4", "--seed", "2",
+                            "--map-size", "40", "--landmarks", str(landmarks),
+                            "--seed", str(seed),
                             "--max-sim-time", "600", "--landmark-ids", landmark_ids,
                             "--detection-prob", str(detection_prob),
                             "--clutter-rate", str(clutter_rate),
                             "--summary", str(summary_path))
-    code = finish_team_run(run, RUN_TIMEOUT_S)
+    code = finish_team_run(run, RUN_TIMEOUT_S, only_the_evaluator_reads_the_truth_of_the_scans)
     assert code == 0, run.output()[-3000:]
     summary = json.loads(summary_path.read_text())
     reference = TeamRunner(load_params(REPO_ROOT / "config" / "exploration.yaml").replace(
-        world={"num_robots": 3, "width_m": 40.0, "height_m": 40.0, "num_landmarks": 4},
-        planner={"name": "NEAREST"}, run={"seed": 2},
+        world={"num_robots": 3, "width_m": 40.0, "height_m": 40.0, "num_landmarks": landmarks},
+        planner={"name": "NEAREST"}, run={"seed": seed},
         sensors={"landmark_ids": landmark_ids == "on",
                  "detection_probability": detection_prob,
                  "clutter_rate": clutter_rate})).run().to_dict()
@@ -38,3 +63,13 @@ def test_the_ros_team_chooses_em_sim_s_targets(tmp_path, landmark_ids, detection
                                                          reference["robots"]]
     assert (summary["stop_reason"], summary["sim_time_s"]) == (reference["stop_reason"],
                                                                reference["sim_time_s"])
+    # The association counts against ground truth, per robot and for the team, are em-sim's
+    # (without identities the robots tied teammates' landmarks: their ties crossed DDS too).
+    association = reference["association"]
+    assert association["correct"] > 0 and 0.0 <= association["recall"] <= 1.0
+    if landmark_ids == "off":
+        assert association["correspondences_correct"] > 0
+    assert summary["association"] == association
+    # run_team.sh prints it among its last lines, as em-sim does.
+    assert any(line.endswith(association_line(association))
+               for line in run.output().splitlines()[-12:])

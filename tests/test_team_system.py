@@ -16,15 +16,15 @@ import signal
 import sys
 
 import pytest
-import rclpy
 from em_exploration_msgs.msg import TeamUpdate
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from em_exploration_ros.nodes.qos import TEAM_QOS
 
-from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
-                         robot_pid, start_team_run, wait_for_liveliness, wait_until)
+from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, NodeProcess, graph_reader,
+                         processes_in_domain, robot_pid, start_team_run, wait_for_liveliness,
+                         wait_until)
 
 #: Bound of one team run in these tests [s].
 RUN_TIMEOUT_S = 180.0
@@ -35,14 +35,8 @@ SMALL_TEAM = ("--robots", "3", "--map-size", "60", "--landmarks", "6", "--seed",
 @pytest.fixture
 def graph_node():
     """An rclpy node in this test run's domain, to read the ROS graph."""
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = Node("graph_inspector", context=context)
-    try:
+    with graph_reader() as node:
         yield node
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def robot_nodes(node: Node) -> set[str]:

@@ -10,7 +10,10 @@ the ground truth (``/world/ground_truth/robot_i``, ``/world/landmarks``, ``/worl
 hands it to the session as core values (wall times from the steady clock), and performs the
 effects: ``/evaluation/metrics``, ``/team/update_requests`` (it never publishes anything a
 robot uses for its estimates or decisions), log lines, the summary JSON (the summary so far
-while the run goes on, ``KeepSoFar``) and the final map PNG, the exit code.
+while the run goes on, ``KeepSoFar``) and the final map PNG, the exit code. When the sonar
+is not the paper's ideal one it also takes the truth of each robot's keyframe scans
+(``/world/sonar_truth/robot_i``) and, without landmark identities, the landmarks each robot
+tied to its own (``/robot_i/landmark_correspondences``): the summary's ``association``.
 
 Run (with the simulation clock): ``python -m em_exploration_ros.nodes.evaluator_node
 --ros-args -p use_sim_time:=true -p summary_path:=runs/x/summary.json``
@@ -23,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from em_exploration_msgs.msg import (ExplorationMetrics, LandmarkArray, MotionCommand,
+from em_exploration_msgs.msg import (ExplorationMetrics, LandmarkArray,
+                                     LandmarkCorrespondences, MotionCommand, SonarTruth,
                                      TeamLinkCounts, TeamUpdate, TeamUpdateRequest, WorldStatus)
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path as PathMsg
@@ -37,9 +41,11 @@ from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.core.records.team_data import (MAX_LANDMARKS_PER_UPDATE,
                                                      InvalidTeamUpdate, LandmarkEstimate)
+from em_exploration_ros.core.records.readings import UNIDENTIFIED, LandmarkReading
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.records.wire_model import sim_time_s
 from em_exploration_ros.core.sessions.effects import Dropped, LogLine, warn
+from em_exploration_ros.core.world.sensors import CLUTTER
 from em_exploration_ros.core.sessions.evaluator_session import (EXIT_INTERRUPTED,
                                                                 CommandReport, Effect,
                                                                 EvaluatorSession, Finished,
@@ -182,11 +188,36 @@ class EvaluatorNode(LeanNode):
                 TEAM_QOS, raw=True)
             self.create_subscription(MotionCommand, f"/{ns}/motion_command",
                                      lambda m, r=robot: self._on_command(r, m), COMMAND_QOS)
+        if self.session.association is not None:
+            self._subscribe_association()
         watch_liveliness(self, list(range(self.num_robots)), lambda robot, alive, restarted:
                          self._perform(self.session.liveliness(robot, alive, restarted,
                                                                time.monotonic())))
         self.create_timer(_WATCH_PERIOD_S, self._watch,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _subscribe_association(self) -> None:
+        """The sonar is not ideal: the truth of each robot's keyframe scans and, without
+        landmark identities, the landmarks each robot tied to its own (association counts)."""
+        truth_bytes = serialized_size(SonarTruth(
+            header=Header(frame_id=f"{robot_namespace(self.num_robots)}/base_link"),
+            range=[0.0] * MAX_LANDMARKS_PER_UPDATE, bearing=[0.0] * MAX_LANDMARKS_PER_UPDATE,
+            source=[0] * MAX_LANDMARKS_PER_UPDATE))
+        ties_bytes = serialized_size(LandmarkCorrespondences(
+            header=Header(frame_id=MAP_FRAME), own_landmark_ids=[0] * MAX_LANDMARKS_PER_UPDATE,
+            teammate_landmark_ids=[0] * MAX_LANDMARKS_PER_UPDATE))
+        for robot in range(self.num_robots):
+            ns = robot_namespace(robot)
+            truth_topic = f"/world/sonar_truth/{ns}"
+            self.create_subscription(SonarTruth, truth_topic, size_limited(
+                self.inputs, truth_topic, SonarTruth, truth_bytes,
+                lambda m, r=robot: self._on_sonar_truth(r, m)), GROUND_TRUTH_QOS, raw=True)
+            if self.params.sensors.landmark_ids:
+                continue
+            ties_topic = f"/{ns}/landmark_correspondences"
+            self.create_subscription(LandmarkCorrespondences, ties_topic, size_limited(
+                self.inputs, ties_topic, LandmarkCorrespondences, ties_bytes,
+                lambda m, r=robot: self._on_correspondences(r, m)), COMMAND_QOS, raw=True)
 
     # -- inputs ----------------------------------------------------------------------------
 
@@ -255,6 +286,45 @@ class EvaluatorNode(LeanNode):
             self._perform(self.session.keyframe_covariance(
                 robot, _stamp_ns(message.header.stamp), keyframe_covariance_from_msg(message),
                 time.monotonic()), topic)
+
+    def _on_sonar_truth(self, robot: int, message: SonarTruth) -> None:
+        """Where each detection of a robot's keyframe scan came from (the world's truth)."""
+        topic = f"/world/sonar_truth/{robot_namespace(robot)}"
+        if not self.inputs.check(
+                topic, self.session.run_problem(int(message.run_id)),
+                header_problem(message.header, f"{robot_namespace(robot)}/base_link"),
+                f"robot_id {message.robot_id} on robot {robot}'s topic"
+                if message.robot_id != robot else None,
+                f"{len(message.range)} ranges, {len(message.bearing)} bearings"
+                if len(message.range) != len(message.bearing) else None,
+                content_problem(message)):
+            return
+        readings = tuple(LandmarkReading(UNIDENTIFIED, float(r), float(b), 0.0, 0.0)
+                         for r, b in zip(message.range, message.bearing))
+        sources = tuple(CLUTTER if s == SonarTruth.CLUTTER else int(s)
+                        for s in message.source)
+        self._perform(self.session.sonar_truth(robot, _stamp_ns(message.header.stamp),
+                                               int(message.step), readings, sources,
+                                               time.monotonic()), topic)
+
+    def _on_correspondences(self, robot: int, message: LandmarkCorrespondences) -> None:
+        """The teammates' landmarks a robot tied to its own while answering a step."""
+        topic = f"/{robot_namespace(robot)}/landmark_correspondences"
+        if not self.inputs.check(
+                topic, self.session.run_problem(int(message.run_id)),
+                header_problem(message.header, MAP_FRAME),
+                f"robot_id {message.robot_id} on robot {robot}'s topic"
+                if message.robot_id != robot else None,
+                f"{len(message.own_landmark_ids)} own landmarks, "
+                f"{len(message.teammate_landmark_ids)} teammates'"
+                if len(message.own_landmark_ids) != len(message.teammate_landmark_ids)
+                else None):
+            return
+        pairs = [(int(own), int(theirs)) for own, theirs in
+                 zip(message.own_landmark_ids, message.teammate_landmark_ids)]
+        self._perform(self.session.correspondences(robot, _stamp_ns(message.header.stamp),
+                                                   int(message.step), pairs,
+                                                   time.monotonic()), topic)
 
     def _on_link_counts(self, message: TeamLinkCounts) -> None:
         if not self.inputs.check(LINK_COUNTS_TOPIC,

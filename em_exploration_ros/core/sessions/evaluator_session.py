@@ -68,6 +68,13 @@ list those stamped before the stop step; ``blocked_s`` and ``slam_recoveries`` a
 of the command answering the step before it, as em-sim's agents hold them at that step (null
 for a robot whose command of that step never arrived; for a restarted robot, its new
 process's).
+
+When the sonar is not the paper's ideal one, the observer also keeps the world's truth of
+every robot's keyframe scans (``sonar_truth``), the landmark readings of the robots' streams
+and the landmarks each robot tied to its own (``correspondences``) in an
+``AssociationRecord``; the summary's ``association`` counts them as of each robot's answer
+to the step before the final evaluation, and the run waits (up to ``estimate_wait_s``) for
+the truth of the scans up to that step.
 """
 from __future__ import annotations
 
@@ -87,6 +94,8 @@ from em_exploration_ros.core.agent.input_checks import (EVALUATOR_STEP_LEAD,
                                                         step_problem)
 from em_exploration_ros.core.agent.liveness import LOST, TeamLiveness, UnseenLiveliness
 from em_exploration_ros.core.agent.world_watch import WorldEvent, WorldWatch
+from em_exploration_ros.core.evaluation.association_record import AssociationRecord
+from em_exploration_ros.core.evaluation.association_stats import association_line
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics,
                                                           landmark_truth, stamp_key)
 from em_exploration_ros.core.evaluation.keyframe_covariances import KeyframeCovariances
@@ -99,12 +108,16 @@ from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry,
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry, RunSummary
 from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.params import ExplorationParams
-from em_exploration_ros.core.records.team_data import (MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
+from em_exploration_ros.core.records.team_data import (MAX_LANDMARKS_PER_UPDATE,
+                                                     MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
                                                      MissingRange, RendezvousEvent,
                                                      TargetRecord, TeamUpdate,
                                                      TeamUpdateInbox)
+from em_exploration_ros.core.records.readings import LandmarkReading
 from em_exploration_ros.core.records.wire_model import nanoseconds_to_seconds, sim_time_s
 from em_exploration_ros.core.sessions.effects import Dropped, LogLine, info, warn
+from em_exploration_ros.core.slam.team_slam import landmark_owner
+from em_exploration_ros.core.world.sensors import CLUTTER
 from em_exploration_ros.core.world.world import World
 
 #: Exit status of a run that ended by silence or when the world stepped over.
@@ -253,6 +266,9 @@ class EvaluatorSession:
         self._targets: list[dict[int, TargetRecord]] = [{} for _ in range(self.num_robots)]
         self._rendezvous: list[RendezvousEvent] = []
         self._team_updates = TeamUpdateInbox(None, self.num_robots)
+        #: The evidence of the robots' data association (None with the ideal sonar).
+        self.association = None if params.sensors.ideal_sonar else AssociationRecord(
+            self.num_robots, params.slam.keyframe_interval_steps, params.sensors.landmark_ids)
         #: Relay mode: the link relay's update counts by step.
         self._link_counts: dict[int, dict[str, int]] = {}
         self._truth: dict[int, dict[int, np.ndarray]] = {}
@@ -452,7 +468,52 @@ class EvaluatorSession:
             for record in ready.targets:
                 self._targets[ready.robot_id][record.decision_index] = record
             self._rendezvous.extend(ready.rendezvous)
+            if self.association is not None:
+                self.association.team_update(ready)
         return self._process(wall_s) if self.monitor.stopped else []
+
+    def sonar_truth(self, robot: int, stamp_ns: int, step: int,
+                    readings: tuple[LandmarkReading, ...], sources: tuple[int, ...],
+                    wall_s: float) -> list[Effect]:
+        """The world's truth of robot ``robot``'s scan at keyframe ``step`` (stamped
+        ``stamp_ns`` [ns sim time]): its landmark readings (body frame) and where each came
+        from (a landmark id, or ``sensors.CLUTTER``); only when the sonar is not ideal."""
+        stamp_step, problem = self.step_of(stamp_ns, keyframes_only=True)
+        problem = (("the sonar is ideal: no truth of its scans is kept"
+                    if self.association is None else None)
+                   or problem or (f"stamp of step {stamp_step} in the truth of step {step}"
+                                  if stamp_step != step else None)
+                   or (f"{len(sources)} sources of {len(readings)} readings"
+                       if len(sources) != len(readings) else None)
+                   or size_problem(len(readings), MAX_LANDMARKS_PER_UPDATE, "readings")
+                   or first_problem(None if source == CLUTTER
+                                    else id_problem(source, None, "landmark id")
+                                    for source in sources))
+        if problem:
+            return [Dropped(problem)]
+        self.association.sonar_truth(robot, step, readings, sources)
+        return self._process(wall_s) if self.monitor.stopped else []
+
+    def correspondences(self, robot: int, stamp_ns: int, step: int,
+                        pairs: Sequence[tuple[int, int]], wall_s: float) -> list[Effect]:
+        """The teammates' landmarks robot ``robot`` tied to its own while answering ``step``
+        (stamped ``stamp_ns`` [ns sim time]): pairs of team-graph ids (own, teammate's)."""
+        stamp_step, problem = self.step_of(stamp_ns)
+        problem = (("landmarks carry identities: no robot ties them"
+                    if self.association is None or self.params.sensors.landmark_ids
+                    else None)
+                   or problem or (f"stamp of step {stamp_step} in correspondences of step "
+                                  f"{step}" if stamp_step != step else None)
+                   or size_problem(len(pairs), MAX_LANDMARKS_PER_UPDATE, "correspondences")
+                   or first_problem(
+                       f"landmarks {own} and {theirs} are not robot {robot}'s and a "
+                       f"teammate's" for own, theirs in pairs
+                       if landmark_owner(own) != robot or landmark_owner(theirs) in (None, robot)
+                       or not landmark_owner(theirs) < self.num_robots))
+        if problem:
+            return [Dropped(problem)]
+        self.association.correspondences(robot, step, pairs)
+        return []
 
     def command(self, robot: int, report: CommandReport, wall_s: float) -> list[Effect]:
         """Robot ``robot``'s answer to a step (on its topic): its finished flag, its
@@ -689,9 +750,14 @@ class EvaluatorSession:
         step), or after ``estimate_wait_s`` wall seconds, saying what is missing."""
         missing = self._missing_updates()
         silent = self._missing_commands()
-        if (missing or silent) and wall_s < self._stream_wait_deadline_s:
+        unseen = self._missing_scans()
+        if (missing or silent or unseen) and wall_s < self._stream_wait_deadline_s:
             return []
         effects: list[Effect] = []
+        if unseen:
+            effects.append(warn(f"association counted without the truth of {len(unseen)} "
+                                f"keyframe scans that never arrived (robot, step): "
+                                f"{unseen[:5]}"))
         if missing:
             effects.append(warn("summary written without team updates that never arrived: "
                                 + ", ".join(f"robot {g.robot_id} #{g.first_sequence}-"
@@ -702,6 +768,14 @@ class EvaluatorSession:
                 "step (their blocked time and targets given up) of robots "
                 + ", ".join(str(robot) for robot in silent)))
         return effects + self.finish(self.monitor.stop_reason, self.monitor.exit_code, wall_s)
+
+    def _missing_scans(self) -> list[tuple[int, int]]:
+        """(robot, step) of the keyframe scans up to the step before the stop step whose
+        truth has not arrived (none with the ideal sonar)."""
+        final = self.monitor.final_metrics
+        if self.association is None or final is None:
+            return []
+        return self.association.missing_scans(round(final.stamp_s / self.time_step_s) - 1)
 
     def _missing_commands(self) -> list[int]:
         """Robots waited for (``_waited_for``) whose motion command answering the step
@@ -861,6 +935,8 @@ class EvaluatorSession:
             f"{summary.distance_m:.1f} m, loc RMSE {summary.loc_rmse_m:.3f} m, landmark RMSE "
             f"{summary.landmark_rmse_m:.3f} m, {summary.decisions} decisions, sim "
             f"{summary.sim_time_s:.1f} s, wall {summary.wall_s:.1f} s"))
+        if summary.association is not None:
+            effects.append(info(association_line(summary.association)))
         return effects + [Finished(summary, exit_code)]
 
     def _decisions(self) -> list[list[DecisionEntry]]:
@@ -894,6 +970,12 @@ class EvaluatorSession:
             if summary.team_updates is None:
                 notes.append(warn(f"no link counts of step {step} arrived: the summary has no "
                                   f"team_updates"))
+        if final is not None and self.association is not None:
+            interval_s = self.params.slam.keyframe_interval_steps * self.time_step_s
+            summary.association = self.association.counts(
+                round(final.stamp_s / self.time_step_s) - 1,
+                {robot: np.rint(stamps_s / interval_s).astype(int)
+                 for robot, (stamps_s, _) in self._evaluated[0].items()})
         until_s = self._status_times(wall_s)
         for entry in summary.robots:
             entry.status = self.liveness.status(entry.id)

@@ -14,8 +14,10 @@ run therefore chooses the same targets as the ROS system in lockstep mode.
 
 The outside observer is em-evaluator's own protocol, ``EvaluatorSession``
 (``evaluator_session.py``), shown every step's ground truth and, at its evaluation steps,
-each robot's estimates, answer and stream as em-evaluator sees them (``TeamRunner.observe``):
-it evaluates, applies the stop rules and writes the summary and the map layers for both.
+each robot's estimates, answer and stream as em-evaluator sees them (``TeamRunner.observe``),
+and, when the sonar is not ideal, the truth of the keyframe scans and the landmarks each robot
+tied to its own as they are made: it evaluates, applies the stop rules and writes the summary
+(with the robots' association counts) and the map layers for both.
 
 Gap repair is driven by steps (``core/links/link_sender.py``, shared with the ROS robot in
 relay mode): a robot whose inbox has gaps sends a request for one of them (through the
@@ -44,17 +46,17 @@ from em_exploration_ros.core.node_settings import (EvaluatorNodeSettings, RobotN
 from em_exploration_ros.core.records.team_data import MissingRange, TeamUpdate
 from em_exploration_ros.core.sessions.robot_effects import (AppendJournal, Journal,
                                                             KeyframeEstimate,
+                                                            PublishCorrespondences,
                                                             PublishEstimates, ReadJournals,
                                                             SendCommand, SendFrame,
                                                             StartJournal)
 from em_exploration_ros.core.sessions.robot_session import (JournalRecords, OdometryInput,
                                                             RobotSession, ScanInput)
-from em_exploration_ros.core.sessions.world_effects import PublishSensors
+from em_exploration_ros.core.sessions.world_effects import PublishSensors, PublishSonarTruth
 from em_exploration_ros.core.sessions.world_session import WorldSession
 from em_exploration_ros.core.sessions.evaluator_session import (CommandReport,
                                                                 EvaluatorSession, Effect,
                                                                 PublishMetrics)
-from em_exploration_ros.core.evaluation.association_stats import team_association
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers
 from em_exploration_ros.core.evaluation.run_monitor import METRICS_INTERVAL_STEPS, RunMonitor
@@ -166,6 +168,10 @@ class TeamRunner:
                 self._deliver(effect, step)
             elif kind is PublishSensors:
                 sensors.append(effect)
+            elif kind is PublishSonarTruth:
+                self.observer.sonar_truth(effect.robot, seconds_to_nanoseconds(effect.stamp_s),
+                                          effect.step, effect.readings, effect.sources,
+                                          time.perf_counter())
         commands = []
         for session in self.sessions:
             robot = session.robot_id
@@ -219,6 +225,10 @@ class TeamRunner:
                 self.world.offer(frame)
             elif kind is SendCommand:
                 twist = effect.reply.linear_x, effect.reply.angular_z
+            elif kind is PublishCorrespondences:
+                self.observer.correspondences(
+                    robot, effect.stamp[0] * 1_000_000_000 + effect.stamp[1], effect.step,
+                    effect.pairs, time.perf_counter())
             elif kind is PublishEstimates and effect.latest is not None:
                 self._published.append((robot, effect.latest))
             elif kind is AppendJournal:
@@ -296,12 +306,8 @@ class TeamRunner:
 
     def summary(self, wall_s: float) -> RunSummary:
         """The run's summary in the shared JSON schema (``EvaluatorSession``'s, as
-        em-evaluator's), at wall time ``wall_s`` [s], with what the links delivered and,
-        when the sonar is not ideal, how well the robots associated (``association``)."""
+        em-evaluator's, with ``association`` when the sonar is not ideal), at wall time
+        ``wall_s`` [s], with what the links delivered."""
         summary = self.observer.summary(wall_s)
         summary.team_updates = dataclasses.asdict(self.world.update_counts())
-        if not self.params.sensors.ideal_sonar:
-            summary.association = team_association(
-                [agent.slam for agent in self.agents], self.simulation.keyframe_scans(),
-                self.params.slam.keyframe_interval_steps)
         return summary

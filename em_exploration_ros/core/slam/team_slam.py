@@ -81,6 +81,13 @@ def owned_landmark_id(robot_id: int, own_id: int) -> int:
     return (robot_id + 1) * OWNED_LANDMARK_STRIDE + own_id
 
 
+def graph_landmark_id(robot_id: int, landmark_id: int, shared_ids: bool) -> int:
+    """The team graph's id of a landmark reading of robot ``robot_id``'s keyframe: the
+    reading's own ``landmark_id`` when the sonar names landmarks (``shared_ids``), else
+    the robot's own number as ``owned_landmark_id`` keeps it."""
+    return landmark_id if shared_ids else owned_landmark_id(robot_id, landmark_id)
+
+
 def landmark_owner(landmark_id: int) -> int | None:
     """The robot whose own landmark a team-graph id is, None for a world id (identities on)."""
     return landmark_id // OWNED_LANDMARK_STRIDE - 1 if landmark_id >= OWNED_LANDMARK_STRIDE \
@@ -377,8 +384,8 @@ class _TeamGraph:
         """Bearing-range factors; unseen landmarks start at the first reading's point."""
         key = pose_key(*keyframe.keyframe_id)
         for reading in keyframe.landmarks:
-            landmark_id = (reading.landmark_id if self.shared_landmark_ids
-                           else owned_landmark_id(keyframe.robot_id, reading.landmark_id))
+            landmark_id = graph_landmark_id(keyframe.robot_id, reading.landmark_id,
+                                            self.shared_landmark_ids)
             point_key = landmark_key(landmark_id)
             if landmark_id not in self._landmark_set:
                 in_body = reading.range_m * np.array([np.cos(reading.bearing_rad),

@@ -60,10 +60,6 @@ class WorldSimulation:
         self.active = np.ones(n, dtype=bool)
         self.step = 0
         self._detection_sources: list[tuple[int, ...]] = [() for _ in range(n)]
-        #: (robot, step) -> its scan and the truth of each reading, at keyframe steps (kept
-        #: when the sonar is not the paper's ideal one, whose association is its own).
-        self._keyframe_scans: dict[tuple[int, int], tuple[tuple[LandmarkReading, ...],
-                                                          tuple[int, ...]]] = {}
 
     @property
     def stamp_s(self) -> float:
@@ -82,10 +78,6 @@ class WorldSimulation:
         """What robot ``robot_id``'s sensors report at the current step."""
         pose = self._true_poses[robot_id]
         readings, self._detection_sources[robot_id] = self._sensors.sonar_scan(robot_id, pose)
-        if (not self.params.sensors.ideal_sonar
-                and self.step % self.params.slam.keyframe_interval_steps == 0):
-            self._keyframe_scans[robot_id, self.step] = (tuple(readings),
-                                                         self._detection_sources[robot_id])
         return SensorFrame(
             robot_id=robot_id, step=self.step, stamp_s=self.stamp_s,
             odom_pose=self._dead_reckoning[robot_id].pose,
@@ -99,14 +91,6 @@ class WorldSimulation:
         :meth:`sense` came from, in the readings' order: a landmark id, or
         ``sensors.CLUTTER`` for a false detection."""
         return self._detection_sources[robot_id]
-
-    def keyframe_scans(self) -> dict[tuple[int, int], tuple[tuple[LandmarkReading, ...],
-                                                            tuple[int, ...]]]:
-        """Truth side only: every scan sensed at a keyframe step (a multiple of
-        ``slam.keyframe_interval_steps``), ``(robot, step) -> (readings, sources)`` with
-        the sources of :meth:`detection_sources` (a copy of the mapping); empty with the
-        paper's ideal sonar."""
-        return dict(self._keyframe_scans)
 
     def apply_command(self, robot_id: int, linear_x: float, angular_z: float) -> None:
         """Move a robot for one step by its velocity command (Twist: m/s, rad/s)."""
