@@ -39,7 +39,8 @@ ATTACKED_TOPICS = {"/clock", "/mission/anchor_pose", "/team/update_requests",
                    "/world/landmarks"} | {
     f"/robot_{r}/{name}" for r in range(3)
     for name in ("sonar", "odom", "motion_command", "team/updates", "estimated_path",
-                 "landmarks")} | {f"/world/ground_truth/robot_{r}" for r in range(3)}
+                 "landmarks", "estimated_pose")} | {f"/world/ground_truth/robot_{r}"
+                                                    for r in range(3)}
 
 
 def process_name(pid: int) -> str | None:
