@@ -26,11 +26,13 @@ import sys
 import time
 
 import numpy as np
-from em_exploration_msgs.msg import SonarScan, TeamUpdate, TeamUpdateRequest
+from em_exploration_msgs.msg import (LandmarkDetection, SonarScan, TeamUpdate, TeamUpdateRequest,
+                                     TeammateDetection)
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.task import Future
+from std_msgs.msg import Header
 
 from em_exploration_ros.core.agent.input_checks import (first_problem, frame_problem,
                                                         landmark_reading_problem, size_problem,
@@ -51,7 +53,8 @@ from em_exploration_ros.nodes.conversions import (MAP_FRAME, odometry_codec,
 from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
                                                   checked_team_update, content_problem,
                                                   deserialized, header_problem,
-                                                  screened_team_updates, size_limited)
+                                                  screened_team_updates, serialized_size,
+                                                  size_limited)
 from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveliness
 from em_exploration_ros.nodes.log_lines import LineWriter
@@ -108,7 +111,16 @@ class RobotNode(LeanNode):
                                     self.settings.run_id)
         self.create_subscription(PoseStamped, "/mission/anchor_pose", self._on_anchor,
                                  LATCHED_QOS)
-        self.create_subscription(SonarScan, f"/{ns}/sonar", self._on_scan, SENSOR_QOS)
+        # Read raw: a scan longer than the largest valid one (every reading a keyframe may
+        # hold, every teammate, a barrier entry per robot) is dropped before it is read.
+        scan_topic = f"/{ns}/sonar"
+        scan_bytes = serialized_size(SonarScan(
+            header=Header(frame_id=f"{ns}/base_link"),
+            landmarks=[LandmarkDetection()] * MAX_READINGS_PER_KEYFRAME,
+            teammates=[TeammateDetection()] * (self.num_robots - 1),
+            team_sequences=[0] * self.num_robots))
+        self.create_subscription(SonarScan, scan_topic, size_limited(
+            self.inputs, scan_topic, SonarScan, scan_bytes, self._on_scan), SENSOR_QOS, raw=True)
         odom_topic = f"/{ns}/odom"
         self._odom_codec = odometry_codec(f"{ns}/odom", f"{ns}/base_link")
         self.create_subscription(Odometry, odom_topic, size_limited(
@@ -123,8 +135,10 @@ class RobotNode(LeanNode):
             self.create_subscription(TeamUpdateRequest, delivered_requests_topic(self.robot_id),
                                      self._on_delivered_request, TEAM_QOS)
         else:
-            self.create_subscription(TeamUpdate, f"/{ns}/team/history", self._on_own_history,
-                                     TEAM_QOS)
+            history_topic = f"/{ns}/team/history"  # read raw, screened as the updates are
+            self.create_subscription(TeamUpdate, history_topic, screened_team_updates(
+                self.inputs, history_topic, self.robot_id, self.session.run_problem, None,
+                self._on_own_history), TEAM_QOS, raw=True)
             for teammate in teammates:  # read raw: a flood is screened before it is read
                 topic = f"/{robot_namespace(teammate)}/team/updates"
                 self.create_subscription(TeamUpdate, topic, screened_team_updates(
@@ -263,8 +277,8 @@ class RobotNode(LeanNode):
             int(message.last_sequence), time.monotonic()), "/team/update_requests")
 
     def _on_own_history(self, message: TeamUpdate) -> None:
-        if self._of_this_run(f"/{self._ns}/team/history", message):
-            self._perform(self.session.own_history(self._record(message)))
+        """A copy of this robot's record whose head ``screened_team_updates`` passed."""
+        self._perform(self.session.own_history(self._record(message)))
 
     def _maintain(self) -> None:
         """The session's 10 Hz tick, with whether the world publishes this robot's scans
