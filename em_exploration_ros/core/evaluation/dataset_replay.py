@@ -243,8 +243,10 @@ def segments(num_poses: int, num_robots: int) -> list[range]:
 
 
 class _ReplayRobot:
-    """One robot driving its segment of the dataset: its graph, its association, and the
-    keyframes it cuts from the segment's poses."""
+    """One robot driving its segment of the dataset: its graph and its association, fed in
+    the order ``RobotAgent`` feeds them (the teammates' records of the previous step, one
+    update and matching; then its own keyframe associated, rounded as sent, one update and
+    matching)."""
 
     def __init__(self, robot_id: int, num_robots: int, params: ExplorationParams,
                  anchor: np.ndarray) -> None:
