@@ -7,7 +7,11 @@ topic the nodes subscribe to; or some, e.g. /team/update_requests) at ``--rate``
 per second for ``--flood`` wall seconds from simulated time ``--flood-at`` on. VmRSS of the
 world, the evaluator and each robot (``/proc/PID/status``) is read every ``POLL_S``; printed
 per process: the clean run's RSS at the flood's start, at its peak and at the run's end
-(last reading before the process exits), the flooded run's, and the difference at the end.
+(last reading before the process exits), the flooded run's, and the difference at the end;
+and the simulated time of each run at the flood's start and end (wall seconds from ``go``):
+how far the team stepped on under the flood (read from the evaluator's progress lines, one
+every 20 simulated seconds; an evaluator that lags shows less). em-fuzz speaks with the
+run's id, which it learns from the run's messages (its report's ``run_id_source``).
 
 Usage: ``.venv/bin/python benchmarks/flood_memory.py [--topics all | TOPIC ...]
 [--rate 5000] [--flood 60] [--flood-at 20] [--domain-id 71] [-- run_team.sh options]``
@@ -71,6 +75,8 @@ class Figures:
     start: dict[str, float] = field(default_factory=dict)
     peak: dict[str, float] = field(default_factory=dict)
     end: dict[str, float] = field(default_factory=dict)
+    #: Simulated time [s] at the flood's start and when it ended (its wall length later).
+    sim_at_flood: tuple[float, float] = (0.0, 0.0)
 
     def sample(self, processes: dict[int, str], flooding: bool) -> None:
         """Read every process's RSS now (``flooding``: from the flood's start on)."""
@@ -111,14 +117,17 @@ def one_run(out: Path, options: argparse.Namespace, flood: bool) -> tuple[Figure
         start_new_session=True) if flood else None
     figures, processes = Figures(), {}
     started = time.monotonic()
-    flood_started = None
+    flood_started = flood_start_s = None
     try:
         while team.poll() is None and time.monotonic() - started < RUN_TIMEOUT_S:
             processes.update(run_processes(options.domain_id))
-            if flood_started is None and sim_time_s((out / "run_team.out").read_text(
-                    errors="replace")) >= options.flood_at:
-                flood_started = time.monotonic()
+            now_s = sim_time_s((out / "run_team.out").read_text(errors="replace"))
+            if flood_started is None and now_s >= options.flood_at:
+                flood_started, flood_start_s = time.monotonic(), now_s
                 go.touch()
+            elif (flood_started is not None and figures.sim_at_flood == (0.0, 0.0)
+                  and time.monotonic() - flood_started >= options.flood):
+                figures.sim_at_flood = (flood_start_s, now_s)
             figures.sample(processes, flood_started is not None)
             time.sleep(POLL_S)
     finally:
@@ -152,7 +161,11 @@ def main() -> int:
     flooded, report = one_run(runs / "flooded", options, flood=True)
     sent = report.get("messages", 0)
     print(f"em-fuzz sent {sent} messages in {options.flood:g} s "
-          f"({sent / options.flood:.0f} per second)")
+          f"({sent / options.flood:.0f} per second) with run_id {report.get('run_id')} "
+          f"(from {report.get('run_id_source')})")
+    for name, run in (("clean", clean), ("flooded", flooded)):
+        print(f"{name}: simulated time t = {run.sim_at_flood[0]:.0f} s at the flood's start, "
+              f"{run.sim_at_flood[1]:.0f} s {options.flood:g} wall seconds later")
     print("VmRSS [MB]     clean: start  peak   end | flooded: start  peak   end | end - clean")
     for name in sorted(flooded.end):
         print(f"{name:12s}        {clean.start.get(name, 0):6.0f} {clean.peak.get(name, 0):5.0f}"
