@@ -29,12 +29,12 @@ from em_exploration_ros.core.records.team_data import (FrontierType, MissingRang
                                                      TargetRecord, TeamUpdate)
 from em_exploration_ros.core.records.wire_model import seconds_to_nanoseconds, sim_time_s
 from em_exploration_ros.core.sessions.effects import Dropped, Level, LogLine
-from em_exploration_ros.core.sessions.evaluator_session import (EVALUATOR_LOST_PREFIX,
-                                                                EXIT_SILENCE,
-                                                                SO_FAR_INTERVAL_S, CommandReport,
-                                                                EvaluatorSession, Finished,
+from em_exploration_ros.core.sessions.evaluator_effects import (CommandReport, Finished,
                                                                 KeepSoFar, PublishMetrics,
                                                                 RequestUpdates)
+from em_exploration_ros.core.sessions.evaluator_session import (EVALUATOR_LOST_PREFIX,
+                                                                EXIT_SILENCE, SO_FAR_INTERVAL_S,
+                                                                EvaluatorSession)
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.core.slam.team_slam import owned_landmark_id
 from em_exploration_ros.core.world.sensors import CLUTTER

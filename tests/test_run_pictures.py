@@ -24,7 +24,8 @@ from em_exploration_ros.core.node_settings import EvaluatorNodeSettings
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.records.wire_model import seconds_to_nanoseconds, sim_time_s
 from em_exploration_ros.core.sessions.effects import Dropped
-from em_exploration_ros.core.sessions.evaluator_session import EvaluatorSession, PublishMetrics
+from em_exploration_ros.core.sessions.evaluator_effects import PublishMetrics
+from em_exploration_ros.core.sessions.evaluator_session import EvaluatorSession
 from em_exploration_ros.core.sessions.robot_effects import KeyframeEstimate
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
 from em_exploration_ros.nodes.conversions import (keyframe_covariance_from_msg,

@@ -46,11 +46,11 @@ from em_exploration_ros.core.records.team_wire import TeamWireFormat
 from em_exploration_ros.core.records.wire_model import sim_time_s
 from em_exploration_ros.core.sessions.effects import Dropped, LogLine, warn
 from em_exploration_ros.core.world.sensors import CLUTTER
-from em_exploration_ros.core.sessions.evaluator_session import (EXIT_INTERRUPTED,
-                                                                CommandReport, Effect,
-                                                                EvaluatorSession, Finished,
+from em_exploration_ros.core.sessions.evaluator_effects import (CommandReport, Effect, Finished,
                                                                 KeepSoFar, PublishMetrics,
                                                                 RequestUpdates)
+from em_exploration_ros.core.sessions.evaluator_session import (EXIT_INTERRUPTED,
+                                                                EvaluatorSession)
 from em_exploration_ros.nodes.conversions import (MAP_FRAME, WORLD_FRAME, WORLD_NODE_NAME,
                                                   WORLD_STATUS_TOPIC, given_up_from_msg,
                                                   keyframe_covariance_from_msg,

@@ -13,7 +13,7 @@ from em_exploration_ros.core.evaluation.map_render import render_team_map
 from em_exploration_ros.core.evaluation.run_timeline import render_timeline
 from em_exploration_ros.core.evaluation.summary import RunSummary
 from em_exploration_ros.core.output_paths import write_replacing
-from em_exploration_ros.core.sessions.evaluator_session import PublishMetrics
+from em_exploration_ros.core.sessions.evaluator_effects import PublishMetrics
 from em_exploration_ros.nodes.conversions import WORLD_FRAME, seconds_to_time
 
 #: Suffix of the timeline picture beside a summary ``<stem>.json``.

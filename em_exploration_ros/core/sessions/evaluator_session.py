@@ -81,8 +81,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 
@@ -99,6 +98,7 @@ from em_exploration_ros.core.evaluation.association_stats import association_lin
 from em_exploration_ros.core.evaluation.evaluator import (TeamEvaluator, TeamMetrics,
                                                           landmark_truth, stamp_key)
 from em_exploration_ros.core.evaluation.keyframe_covariances import KeyframeCovariances
+from em_exploration_ros.core.evaluation.stamped_estimates import StampedEstimates
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers, evaluation_layers
 from em_exploration_ros.core.evaluation.rendezvous_stats import rendezvous_outcomes
 from em_exploration_ros.core.evaluation.run_monitor import (DecisionEntry,
@@ -115,7 +115,10 @@ from em_exploration_ros.core.records.team_data import (MAX_LANDMARKS_PER_UPDATE,
                                                      TeamUpdateInbox)
 from em_exploration_ros.core.records.readings import LandmarkReading
 from em_exploration_ros.core.records.wire_model import nanoseconds_to_seconds, sim_time_s
-from em_exploration_ros.core.sessions.effects import Dropped, LogLine, info, warn
+from em_exploration_ros.core.sessions.effects import Dropped, info, warn
+from em_exploration_ros.core.sessions.evaluator_effects import (CommandReport, Effect, Finished,
+                                                                KeepSoFar, PublishMetrics,
+                                                                RequestUpdates)
 from em_exploration_ros.core.slam.team_slam import landmark_owner
 from em_exploration_ros.core.world.sensors import CLUTTER
 from em_exploration_ros.core.world.world import World
@@ -134,105 +137,6 @@ EVALUATOR_LOST_PREFIX = "evaluator lost: "
 #: Wall seconds [s] at least between two summaries so far (written at evaluations: each one
 #: holds the whole history, so a long run must not write one per evaluation).
 SO_FAR_INTERVAL_S = 2.0
-
-
-@dataclass(frozen=True)
-class PublishMetrics:
-    """Publish one evaluation: the team metrics and the decisions counted until them."""
-
-    metrics: TeamMetrics
-    decisions: int
-
-
-@dataclass(frozen=True)
-class RequestUpdates:
-    """Ask robots again for the team updates of these gaps (as robots do)."""
-
-    gaps: tuple[MissingRange, ...]
-
-
-@dataclass(frozen=True)
-class Finished:
-    """The run ended: write ``summary`` and the map (``EvaluatorSession.map_layers``),
-    then exit with ``exit_code``."""
-
-    summary: RunSummary
-    exit_code: int
-
-
-@dataclass(frozen=True)
-class KeepSoFar:
-    """Replace the summary file with ``summary``, the run so far, whose stop reason starts
-    with ``EVALUATOR_LOST_PREFIX`` (the final summary replaces it; it stays when the
-    evaluator dies before the run ended). Replaced atomically: a process killed while it
-    writes leaves the previous one."""
-
-    summary: RunSummary
-
-
-Effect = Union[Dropped, PublishMetrics, RequestUpdates, Finished, KeepSoFar, LogLine]
-
-
-@dataclass(frozen=True)
-class CommandReport:
-    """What the observer reads in a robot's answer to step ``step`` (its MotionCommand).
-
-    ``stamp_ns``: the answer's stamp [ns sim time]; ``team_sequence``: the last team update
-    the robot published; ``blocked_s``: the simulation time [s] its odometry showed it
-    blocked so far; ``given_up_count``: targets given up so far (this process);
-    ``given_up`` and ``meetings``: those given up and the meetings it requested that added an
-    inter-robot factor, at this step; ``slam_recoveries``: its SLAM updates re-solved in
-    batch so far.
-    """
-
-    robot_id: int
-    step: int
-    stamp_ns: int
-    finished: bool
-    team_sequence: int
-    blocked_s: float
-    given_up_count: int
-    given_up: tuple[GivenUpEntry, ...] = ()
-    meetings: tuple[MeetingEntry, ...] = ()
-    slam_recoveries: int = 0
-
-
-class StampedEstimates:
-    """What each robot published over time (paths, landmark sets, progress values), keyed by
-    their stamps, so that an evaluation reads every robot's value as of a simulation time."""
-
-    def __init__(self) -> None:
-        self._items: dict[int, dict[int, Any]] = {}
-
-    def add(self, robot: int, stamp_s: float, value: Any) -> None:
-        """Keep ``value`` of ``robot`` stamped ``stamp_s`` [s]."""
-        self._items.setdefault(robot, {})[stamp_key(stamp_s)] = value
-
-    def newest_key(self, robot: int) -> int | None:
-        """Stamp key of the newest value of ``robot`` (None if nothing arrived)."""
-        items = self._items.get(robot)
-        return max(items) if items else None
-
-    def newest(self, robot: int) -> Any:
-        """The newest value of ``robot`` (None if nothing arrived)."""
-        key = self.newest_key(robot)
-        return None if key is None else self._items[robot][key]
-
-    def as_of(self, stamp_s: float) -> dict[int, Any]:
-        """Each robot's newest value stamped at or before ``stamp_s`` [s], in robot id order
-        (so pooled sums add up the same way every run); older values, no longer needed by
-        later evaluations, are dropped."""
-        limit = stamp_key(stamp_s)
-        chosen = {}
-        for robot, items in sorted(self._items.items()):
-            keys = [key for key in items if key <= limit]
-            if keys:
-                newest = max(keys)
-                chosen[robot] = items[newest]
-                for key in keys:
-                    if key != newest:
-                        del items[key]
-        return chosen
 
 
 class EvaluatorSession:

@@ -54,9 +54,9 @@ from em_exploration_ros.core.sessions.robot_session import (JournalRecords, Odom
                                                             RobotSession, ScanInput)
 from em_exploration_ros.core.sessions.world_effects import PublishSensors, PublishSonarTruth
 from em_exploration_ros.core.sessions.world_session import WorldSession
-from em_exploration_ros.core.sessions.evaluator_session import (CommandReport,
-                                                                EvaluatorSession, Effect,
+from em_exploration_ros.core.sessions.evaluator_effects import (CommandReport, Effect,
                                                                 PublishMetrics)
+from em_exploration_ros.core.sessions.evaluator_session import EvaluatorSession
 from em_exploration_ros.core.evaluation.evaluator import TeamEvaluator, TeamMetrics
 from em_exploration_ros.core.evaluation.map_layers import TeamMapLayers
 from em_exploration_ros.core.evaluation.run_monitor import METRICS_INTERVAL_STEPS, RunMonitor
