@@ -713,3 +713,33 @@ def test_landmark_keys_are_told_from_pose_keys() -> None:
                    for robot in range(26) for index in (0, 7, 10**6))
     keys = np.array([landmark_key(3), pose_key(0, 3), pose_key(25, 10**6), landmark_key(0)])
     assert landmark_key_mask(keys).tolist() == [is_landmark_key(int(k)) for k in keys]
+
+
+def test_a_landmark_on_the_pose_that_reads_it_is_resolved_by_levenberg_marquardt() -> None:
+    """Where a landmark's estimate lies on a pose that reads it, GTSAM gives the bearing's
+    Jacobian as zero and the landmark keeps one equation for two unknowns: iSAM2's update
+    and the dogleg's undamped re-solve raise GTSAM's indeterminate system (as Victoria Park
+    did with a loose heading sigma, em-bench dataset, a wrongly associated landmark driven
+    onto its keyframe; the run crashed). Built directly: a keyframe reads one landmark at
+    0 m (its first reading puts it on the pose) and at 3 m, both at 0.5 rad. The robot
+    carries on: Levenberg-Marquardt (damped) re-solves, the recovery says so, the landmark
+    is where the two readings agree best and the restarted iSAM2 takes the next keyframe."""
+    slam = TeamSlam(0, 1, PARAMS.slam, np.zeros(3))
+    readings = tuple(LandmarkReading(0, range_m, 0.5, 1e-4, 1e-4) for range_m in (0.0, 3.0))
+    slam.add_keyframe(KeyframeMeasurements(0, 0, 0.0, True, -1, np.zeros(3),
+                                           np.zeros((3, 3)), readings, ()))
+    assert slam.update() == 1
+    [recovery] = slam.recoveries
+    assert recovery.reason.startswith("Indeterminate linear system detected")
+    assert recovery.fallback.startswith("the dogleg re-solve raised Indeterminate linear "
+                                        "system detected while working near variable")
+    assert recovery.describe().startswith(f"iSAM2 update re-solved in batch ({recovery.reason};"
+                                          f" {recovery.fallback}; Levenberg-Marquardt "
+                                          f"re-solved instead): graph error ")
+    assert recovery.error_resolved < recovery.error_before
+    np.testing.assert_allclose(slam.landmark_estimates()[0],
+                               1.5 * np.array([math.cos(0.5), math.sin(0.5)]), atol=1e-6)
+    slam.add_keyframe(KeyframeMeasurements(0, 1, 1.0, False, 0, np.array([1.0, 0.0, 0.0]),
+                                           np.diag([1e-4, 1e-4, 1e-6]), (), ()))
+    assert slam.update() == 1 and len(slam.recoveries) == 1
+    assert np.all(np.isfinite(slam.trajectory(0)[1]))

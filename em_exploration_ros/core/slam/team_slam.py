@@ -441,6 +441,8 @@ class SlamRecovery:
     residuals): ``error_before`` at the previous estimate with the new variables' initial
     values, ``error_after`` after the iSAM2 update (NaN when it raised), ``error_resolved``
     after the re-solve. ``estimate_size`` counts the variables (poses and landmarks).
+    ``fallback`` says why Powell's dogleg failed when Levenberg-Marquardt re-solved instead
+    (``TeamSlam._resolve``), None when the dogleg did.
     """
 
     estimate_size: int
@@ -448,10 +450,13 @@ class SlamRecovery:
     error_before: float
     error_after: float
     error_resolved: float
+    fallback: str | None = None
 
     def describe(self) -> str:
         """One line for a log: why, and the graph's error before and after the re-solve."""
-        return (f"iSAM2 update re-solved in batch ({self.reason}): graph error "
+        solver = "" if self.fallback is None else \
+            f"; {self.fallback}; Levenberg-Marquardt re-solved instead"
+        return (f"iSAM2 update re-solved in batch ({self.reason}{solver}): graph error "
                 f"{self.error_before:.4g} before the update, {self.error_resolved:.4g} after "
                 f"the re-solve, {self.estimate_size} variables")
 
@@ -607,9 +612,10 @@ class TeamSlam:
             after = math.nan if estimate is None else self._graph.factors.error(estimate)
             reason = failure or self._divergence(step, before, after)
             if reason is not None:
-                estimate = self._resolve(initial)
+                estimate, fallback = self._resolve(initial)
                 self.recoveries.append(SlamRecovery(initial.size(), reason, before, after,
-                                                    self._graph.factors.error(estimate)))
+                                                    self._graph.factors.error(estimate),
+                                                    fallback))
         self._set_estimate(estimate)
 
     def _largest_step(self) -> float:
@@ -626,18 +632,34 @@ class TeamSlam:
             return None
         return f"a step of {step:.3g} raised the error to {after:.4g}"
 
-    def _resolve(self, initial: gtsam.Values) -> gtsam.Values:
+    def _resolve(self, initial: gtsam.Values) -> tuple[gtsam.Values, str | None]:
         """Re-solve the whole graph in batch from ``initial`` and restart iSAM2 from the
-        solution; returns iSAM2's new estimate. Powell's dogleg: on the 1492-variable graph
-        of a diverged 200 m mission (CE, seed 19) it converged in 35 iterations (0.6-0.8 s),
-        where GTSAM's default Levenberg-Marquardt stopped at its 100-iteration limit short
-        of the optimum (2.2-3.0 s), and iSAM2's first step from that point raised the error
-        from 272 to 1305."""
-        solution = gtsam.DoglegOptimizer(self._graph.factors, initial,
-                                         gtsam.DoglegParams()).optimize()
+        solution; returns iSAM2's new estimate and, when Powell's dogleg raised, why
+        (Levenberg-Marquardt re-solved instead), else None.
+
+        Powell's dogleg: on the 1492-variable graph of a diverged 200 m mission (CE, seed
+        19) it converged in 35 iterations (0.6-0.8 s), where GTSAM's default
+        Levenberg-Marquardt stopped at its 100-iteration limit short of the optimum (2.2-3.0
+        s), and iSAM2's first step from that point raised the error from 272 to 1305.
+
+        The dogleg's Gauss-Newton systems are undamped, and one raises GTSAM's indeterminate
+        system when a landmark's estimate lies on a pose that reads it: there the bearing is
+        undefined, GTSAM gives its Jacobian as zero, and the landmark keeps one equation (the
+        range) for two unknowns. Victoria Park with the odometry's heading sigma 5 to 10
+        times the file's (2000 poses, one robot) drove a wrongly associated landmark to
+        1.3e-5 m of its keyframe in the dogleg's 21st iteration. Levenberg-Marquardt damps
+        every system and takes a failed solve as a rejected step, so it passes there."""
+        fallback = None
+        try:
+            solution = gtsam.DoglegOptimizer(self._graph.factors, initial,
+                                             gtsam.DoglegParams()).optimize()
+        except RuntimeError as error:  # GTSAM's IndeterminantLinearSystemException
+            fallback = "the dogleg re-solve raised " + " ".join(str(error).split())[:120]
+            solution = gtsam.LevenbergMarquardtOptimizer(
+                self._graph.factors, initial, gtsam.LevenbergMarquardtParams()).optimize()
         self._isam = gtsam.ISAM2(_isam_params(self.slam_params))
         self._isam.update(self._graph.factors, solution)
-        return self._isam.calculateEstimate()
+        return self._isam.calculateEstimate(), fallback
 
     def converge(self, tolerance: float = 1e-9, max_iterations: int = 50) -> int:
         """Iterate iSAM2 until no variable is relinearized, the largest remaining
