@@ -16,6 +16,7 @@ from em_exploration_ros.core.params import ExplorationParams, SlamParams
 from em_exploration_ros.core.records.readings import (UNIDENTIFIED, KeyframeMeasurements,
                                                       LandmarkReading, TeammateReading)
 from em_exploration_ros.core.slam.association import (maximum_consistent_set,
+                                                      offsets_within_gate,
                                                       pairwise_consistency)
 from em_exploration_ros.core.slam.own_landmarks import OwnLandmarks
 from em_exploration_ros.core.slam.team_slam import (OWNED_LANDMARK_STRIDE, KeyframeBuilder,
@@ -143,20 +144,27 @@ def test_an_unanchored_robot_leaves_its_detections_out():
 
 
 class _FakeSlam:
-    """The parts of TeamSlam that match_teammates uses, with landmarks placed by hand."""
+    """The parts of TeamSlam that match_teammates uses, with landmarks placed by hand: each
+    with ``sigma_m`` of its own, and the teammate's with ``drift_m`` in common (their map's
+    offset against this robot's, as a graph's joint marginals hold it)."""
 
-    def __init__(self, points: dict[int, tuple[float, float]], sigma_m: float) -> None:
+    def __init__(self, points: dict[int, tuple[float, float]], sigma_m: float,
+                 drift_m: float = 0.0) -> None:
         self.robot_id = 0
         self.slam_params = SlamParams()
         self.points = {i: np.array(p, dtype=float) for i, p in points.items()}
         self.sigma_m = sigma_m
+        self.drift_m = drift_m
         self.landmark_correspondences: list[tuple[int, int]] = []
 
     def landmark_estimates(self):
         return dict(self.points)
 
-    def landmark_covariance(self, landmark_id):
-        return np.eye(2) * self.sigma_m ** 2
+    def landmarks_joint_covariance(self, landmark_ids):
+        theirs = np.array([landmark_owner(i) != self.robot_id for i in landmark_ids], float)
+        per_landmark = (np.eye(len(landmark_ids)) * self.sigma_m ** 2
+                        + np.outer(theirs, theirs) * self.drift_m ** 2)
+        return np.kron(per_landmark, np.eye(2))
 
     def add_landmark_correspondences(self, pairs):
         self.landmark_correspondences.extend(pairs)
@@ -171,14 +179,14 @@ def _theirs(n):
 
 
 def test_a_planted_wrong_correspondence_is_rejected_and_true_ones_kept():
-    """The teammate's map is offset by 0.6 m (drift); its landmark 3 is a wrong one 1.2 m
-    from own landmark 3 the other way: each pair alone is within the radius, only the
-    wrong one disagrees with the others' offset."""
+    """The teammate's map is offset by 0.6 m (drift, 0.5 m sigma in the graph); its
+    landmark 3 is a wrong one 1.2 m from own landmark 3 the other way: each pair alone is
+    within the radius and the gate, only the wrong one disagrees with the others' offset."""
     offset = np.array([0.6, 0.0])
     own = {_own(k): (10.0 * k, 20.0) for k in range(4)}
     theirs = {_theirs(k): tuple(np.array(own[_own(k)]) + offset) for k in range(3)}
     theirs[_theirs(3)] = tuple(np.array(own[_own(3)]) + [-0.6, 1.0])
-    slam = _FakeSlam({**own, **theirs}, sigma_m=0.05)
+    slam = _FakeSlam({**own, **theirs}, sigma_m=0.05, drift_m=0.5)
     associator = OwnLandmarks(slam, ExplorationParams().sensors)
     accepted = associator.match_teammates()
     assert sorted(accepted) == [(_own(k), _theirs(k)) for k in range(3)]
@@ -193,7 +201,8 @@ def test_a_planted_wrong_correspondence_is_rejected_and_true_ones_kept():
 
 
 def test_a_single_candidate_waits_for_a_second_consistent_one():
-    slam = _FakeSlam({_own(0): (5.0, 5.0), _theirs(0): (5.2, 5.0)}, sigma_m=0.05)
+    slam = _FakeSlam({_own(0): (5.0, 5.0), _theirs(0): (5.2, 5.0)}, sigma_m=0.05,
+                     drift_m=0.5)
     associator = OwnLandmarks(slam, ExplorationParams().sensors)
     assert associator.match_teammates() == []
     slam.points[_own(1)] = np.array([15.0, 5.0])
@@ -223,10 +232,23 @@ def test_the_maximum_consistent_set_is_the_largest_clique():
 def test_pairwise_consistency_cancels_a_common_offset():
     a = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
     b = a + [1.0, -0.5]
-    covariances = np.repeat(np.eye(2)[None] * 0.01 ** 2, 3, axis=0)
-    assert pairwise_consistency(a, covariances, b, covariances, 0.99).all()
+    covariance = np.kron(np.eye(3), np.eye(2) * 2 * 0.01 ** 2)  # a's and b's, independent
+    assert pairwise_consistency(a - b, covariance, 0.99).all()
     b[2] += [0.3, 0.0]
-    consistent = pairwise_consistency(a, covariances, b, covariances, 0.99)
+    consistent = pairwise_consistency(a - b, covariance, 0.99)
+    assert consistent[0, 1] and not consistent[0, 2] and not consistent[1, 2]
+
+
+def test_a_drift_common_to_the_offsets_widens_each_gate_and_cancels_between_them():
+    """Offsets of 1.1 m under a common drift of 1 m sigma (the joint covariance): each is
+    within its own gate, and two that differ by 0.3 m are not consistent (the drift
+    cancels); without the drift each offset is outside its gate."""
+    offsets = np.array([[1.0, -0.5], [1.0, -0.5], [1.3, -0.5]])
+    own = np.kron(np.eye(3), np.eye(2) * 2 * 0.01 ** 2)
+    drifted = own + np.kron(np.ones((3, 3)), np.eye(2))
+    assert offsets_within_gate(offsets, drifted, 0.99).all()
+    assert not offsets_within_gate(offsets, own, 0.99).any()
+    consistent = pairwise_consistency(offsets, drifted, 0.99)
     assert consistent[0, 1] and not consistent[0, 2] and not consistent[1, 2]
 
 

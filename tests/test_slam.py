@@ -467,6 +467,13 @@ def test_accessors_agree_with_each_other_and_with_full_marginals(noisy_run: Team
     np.testing.assert_allclose(slam.landmark_covariance(landmark_id),
                                marginals.marginalCovariance(landmark_key(landmark_id)),
                                rtol=1e-4, atol=1e-12)
+    chosen = sorted(landmarks)[:3][::-1]  # in the order asked, not the keys'
+    joint = marginals.jointMarginalCovariance(gtsam.KeyVector(
+        [landmark_key(i) for i in chosen]))
+    np.testing.assert_allclose(
+        slam.landmarks_joint_covariance(chosen),
+        np.block([[joint.at(landmark_key(a), landmark_key(b)) for b in chosen]
+                  for a in chosen]), rtol=1e-4, atol=1e-12)
     virtual = slam.noise.virtual_robot_observation.sigmas()
     np.testing.assert_allclose(virtual, PARAMS.slam.virtual_robot_obs_sigmas)
 

@@ -287,21 +287,40 @@ class TentativeTracks:
         return confirmed
 
 
-def pairwise_consistency(points_a: FloatArray, covariances_a: FloatArray, points_b: FloatArray,
-                         covariances_b: FloatArray, gate_probability: float) -> np.ndarray:
+def pairwise_consistency(offsets: FloatArray, offset_covariance: FloatArray,
+                         gate_probability: float) -> np.ndarray:
     """Which pairs of correspondences ``a_i = b_i`` agree (``(N, N)`` bool, diagonal true):
-    ``i`` and ``j`` do when the difference of their offsets, ``(a_i - a_j) - (b_i - b_j)``,
-    is within the ``gate_probability`` chi-square gate (2 degrees of freedom) under the sum
-    of the four points' covariances. Points ``(N, 2)`` and covariances ``(N, 2, 2)`` of one
-    side each, map frame [m], [m^2]."""
-    offsets = np.asarray(points_a, dtype=float) - np.asarray(points_b, dtype=float)
-    spread = np.asarray(covariances_a, dtype=float) + np.asarray(covariances_b, dtype=float)
+    ``i`` and ``j`` do when the difference of their offsets ``e_i = a_i - b_i``, ``e_i -
+    e_j``, is within the ``gate_probability`` chi-square gate (2 degrees of freedom) under
+    its covariance, from the offsets' joint covariance. ``offsets`` ``(N, 2)`` [m], map
+    frame; ``offset_covariance`` ``(2N, 2N)`` [m^2] (x, y of ``e_0``, then of ``e_1``, ...):
+    drawn from one graph's joint marginals, a drift common to both points of a
+    correspondence, or to two correspondences, cancels in it."""
+    offsets = np.asarray(offsets, dtype=float).reshape(-1, 2)
+    count = len(offsets)
+    blocks = np.asarray(offset_covariance, dtype=float).reshape(count, 2, count, 2)
+    blocks = blocks.transpose(0, 2, 1, 3)  # (N, N, 2, 2): cov(e_i, e_j)
+    own = blocks[np.arange(count), np.arange(count)]
+    combined = own[:, None] + own[None, :] - blocks - blocks.transpose(1, 0, 2, 3)
+    combined[np.arange(count), np.arange(count)] = np.eye(2)  # e_i - e_i: not tested
     difference = offsets[:, None, :] - offsets[None, :, :]
-    combined = spread[:, None] + spread[None, :]
     distances = np.einsum("ijk,ijkl,ijl->ij", difference, np.linalg.inv(combined), difference)
     consistent = distances <= chi2_quantile(2, gate_probability)
     np.fill_diagonal(consistent, True)
     return consistent
+
+
+def offsets_within_gate(offsets: FloatArray, offset_covariance: FloatArray,
+                        gate_probability: float) -> np.ndarray:
+    """Which correspondences ``a_i = b_i`` are each within the ``gate_probability``
+    chi-square gate (2 degrees of freedom): the offset ``e_i = a_i - b_i`` ``(N, 2)`` [m]
+    under its own block of the joint covariance ``(2N, 2N)`` [m^2]; ``(N,)`` bool."""
+    offsets = np.asarray(offsets, dtype=float).reshape(-1, 2)
+    count = len(offsets)
+    blocks = np.asarray(offset_covariance, dtype=float).reshape(count, 2, count, 2)
+    own = blocks[np.arange(count), :, np.arange(count), :]
+    distances = np.einsum("ik,ikl,il->i", offsets, np.linalg.inv(own), offsets)
+    return distances <= chi2_quantile(2, gate_probability)
 
 
 def maximum_consistent_set(consistent: np.ndarray, required: Sequence[int] = ()) -> list[int]:

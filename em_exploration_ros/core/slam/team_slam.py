@@ -26,7 +26,7 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
-from typing import Iterable, Literal
+from typing import Iterable, Literal, Sequence
 
 import gtsam
 import numpy as np
@@ -757,3 +757,10 @@ class TeamSlam:
     def landmark_covariance(self, landmark_id: int) -> np.ndarray:
         """Marginal covariance ``(2, 2)`` [m^2] of a landmark, map frame."""
         return self._isam.marginalCovariance(landmark_key(landmark_id))
+
+    def landmarks_joint_covariance(self, landmark_ids: Sequence[int]) -> np.ndarray:
+        """Joint marginal covariance ``(2L, 2L)`` [m^2] of landmarks ``(L,)``, map frame, in
+        their order (x, y of the first, then of the second, ...)."""
+        keys = gtsam.KeyVector([landmark_key(int(i)) for i in landmark_ids])
+        joint = self._isam.jointMarginalCovariance(keys)
+        return np.block([[joint.at(row, column) for column in keys] for row in keys])
