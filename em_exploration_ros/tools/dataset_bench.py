@@ -3,9 +3,11 @@
 ``em-bench dataset victoria_park [--robots K] [--poses N] --out DIR`` reads GTSAM's Victoria
 Park dataset (``gtsam.findExampleDataFile``), withholds its landmark identities, drives it
 with one robot or K robots of a decentralized team (consecutive segments of the trajectory,
-core/evaluation/dataset_replay.py), and writes DIR/summary.json: the association's precision
-and recall against the dataset's association, the landmarks created, the landmarks' RMS
-against the batch least-squares solution, and the wall times. Its last lines are printed.
+core/evaluation/dataset_replay.py) with the odometry's heading sigma calibrated on the first
+poses, and writes DIR/summary.json: the association's precision and recall against the
+dataset's association, the landmarks created, the landmarks' RMS against the batch
+least-squares solution, the calibrated heading sigma and the wall times. Its last lines are
+printed.
 """
 from __future__ import annotations
 
@@ -18,8 +20,10 @@ import gtsam
 
 from em_exploration_ros.core.evaluation.association_stats import association_line
 from em_exploration_ros.core.evaluation.dataset_replay import (MAX_ROBOTS, batch_solution,
+                                                               calibrated_heading_sigma,
                                                                read_planar_dataset, replay,
-                                                               replay_params)
+                                                               replay_params,
+                                                               with_heading_sigma)
 from em_exploration_ros.tools.bench_trials import write_json
 
 #: The datasets em-bench knows: name -> file of GTSAM's example data.
@@ -71,7 +75,8 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
     """The printed end of a run: what ran, the association, landmarks, RMS, wall time."""
     return [f"{summary['dataset']}: {summary['dataset_poses']} poses, {summary['robots']} "
             f"robot(s), {summary['keyframes']} keyframes, {summary['detections']} "
-            f"observations of {summary['dataset_landmarks']} landmarks",
+            f"observations of {summary['dataset_landmarks']} landmarks, odometry heading "
+            f"sigma {summary['odometry_heading_sigma_rad']:.4f} rad per pose (calibrated)",
             association_line(summary["association"]),
             f"landmarks created: {summary['landmarks_created']}",
             f"landmark RMS to the batch solution: {summary['landmark_rms_to_batch_m']:.3f} m",
@@ -85,9 +90,13 @@ def run_dataset(args: argparse.Namespace, file_name: str, robots: int,
     its last lines."""
     started = time.perf_counter()
     dataset = read_planar_dataset(gtsam.findExampleDataFile(file_name), poses)
-    batch = batch_solution(dataset, replay_params(dataset).slam.prior_sigmas)
+    prior_sigmas = replay_params(dataset).slam.prior_sigmas
+    batch = batch_solution(dataset, prior_sigmas)
     batch_s = time.perf_counter() - started
-    summary = {"dataset": args.name, **replay(dataset, robots, batch)}
+    heading_sigma = calibrated_heading_sigma(dataset, prior_sigmas)
+    summary = {"dataset": args.name,
+               **replay(with_heading_sigma(dataset, heading_sigma), robots, batch),
+               "odometry_heading_sigma_rad": heading_sigma}
     summary["batch_wall_time_s"] = batch_s
     summary["wall_time_s"] = time.perf_counter() - started
     write_json(args.out / "summary.json", summary)
