@@ -15,6 +15,7 @@ each after a grace period, so no process outlives its test::
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -237,16 +238,32 @@ def processes_in_domain(pattern: str, domain_id: str | int,
 RUN_TEAM = REPO_ROOT / "launch_scripts" / "run_team.sh"
 #: A run's processes, as their command lines name them.
 RUN_PROCESS_PATTERN = r"em_exploration_ros\.(nodes|tools)\."
+#: The domain run_team.sh announces in its first line ("..., ROS_DOMAIN_ID=12; logs in ...").
+CHOSEN_DOMAIN = re.compile(r"ROS_DOMAIN_ID=(\d+);")
 
 
-def start_team_run(tmp_path: Path, *args: str) -> tuple[NodeProcess, str]:
+def start_team_run(tmp_path: Path, *args: str,
+                   own_domain: bool = False) -> tuple[NodeProcess, str]:
     """run_team.sh with ``args`` in this test run's domain; waits until the world, the
     evaluator and every robot (``--robots``, default 3) run, which also shows the leftover
-    check can see them, or until the run has ended."""
-    domain = os.environ["ROS_DOMAIN_ID"]
+    check can see them, or until the run has ended. ``own_domain``: in a free domain that
+    run_team.sh chooses and holds instead (read from its first lines), so that the run can
+    go on beside another one of this test run."""
     robots = int(args[args.index("--robots") + 1]) if "--robots" in args else 3
-    run = NodeProcess(["bash", str(RUN_TEAM), *args, "--domain-id", domain],
-                      tmp_path / "run_team.out")
+    if own_domain:
+        run = NodeProcess(["bash", str(RUN_TEAM), *args], tmp_path / "run_team.out")
+        try:
+            wait_until(lambda: CHOSEN_DOMAIN.search(run.output()) or not run.running(), 60.0,
+                       "run_team.sh's domain")
+        except TimeoutError:
+            run.stop()
+            raise
+        chosen = CHOSEN_DOMAIN.search(run.output())
+        domain = chosen.group(1) if chosen else "none"
+    else:
+        domain = os.environ["ROS_DOMAIN_ID"]
+        run = NodeProcess(["bash", str(RUN_TEAM), *args, "--domain-id", domain],
+                          tmp_path / "run_team.out")
     try:
         wait_until(lambda: len(processes_in_domain(RUN_PROCESS_PATTERN, domain)) >= 2 + robots
                    or not run.running(), 60.0, f"the run's {2 + robots} processes")

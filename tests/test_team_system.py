@@ -14,6 +14,7 @@ import os
 import re
 import signal
 import sys
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 from em_exploration_msgs.msg import TeamUpdate
@@ -159,10 +160,13 @@ print(f"published {count} rounds", flush=True)
 '''
 
 
-def run_summary(tmp_path, name: str, with_intruder: bool) -> tuple[dict, str]:
+def run_summary(tmp_path, name: str, with_intruder: bool,
+                own_domain: bool = False) -> tuple[dict, str]:
+    """One CE team run, attacked or not (in a domain of its own: ``start_team_run``)."""
     summary_path = tmp_path / name / "summary.json"
     run, domain = start_team_run(tmp_path / name, *SMALL_TEAM, "--planner", "CE",
-                                 "--until-explored", "0.8", "--summary", str(summary_path))
+                                 "--until-explored", "0.8", "--summary", str(summary_path),
+                                 own_domain=own_domain)
     intruder = None
     with run:
         if with_intruder:
@@ -205,8 +209,12 @@ def evaluator_heard_every_robot(log_path, robots: int, evaluations_after: int) -
 
 
 def test_hostile_team_messages_are_rejected_and_change_nothing(tmp_path):
-    clean, _ = run_summary(tmp_path, "clean", with_intruder=False)
-    attacked, logs = run_summary(tmp_path, "attacked", with_intruder=True)
+    # The clean run goes on beside the attacked one, in a domain of its own.
+    with ThreadPoolExecutor(max_workers=1) as beside:
+        clean_run = beside.submit(run_summary, tmp_path, "clean", with_intruder=False,
+                                  own_domain=True)
+        attacked, logs = run_summary(tmp_path, "attacked", with_intruder=True)
+        clean, _ = clean_run.result()
     assert "rejected a team update" in logs
     for reason in ("not finite", "not a robot of this team", "implausibly far",
                    "on robot"):
