@@ -17,6 +17,7 @@ import random
 import signal
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -88,10 +89,12 @@ class MemoryWatch:
         return now
 
 
-def run(tmp_path: Path, name: str, attack: bool) -> dict:
-    """One team run, with or without the attack; what the test asserts on."""
+def run(tmp_path: Path, name: str, attack: bool, own_domain: bool = False) -> dict:
+    """One team run, with or without the attack (in a domain of its own: ``start_team_run``);
+    what the test asserts on."""
     summary_path = tmp_path / name / "summary.json"
-    team, domain = start_team_run(tmp_path / name, *TEAM, "--summary", str(summary_path))
+    team, domain = start_team_run(tmp_path / name, *TEAM, "--summary", str(summary_path),
+                                  own_domain=own_domain)
     memory = MemoryWatch(domain)
     report, after_mb = None, {}
     with team:
@@ -137,8 +140,11 @@ def run(tmp_path: Path, name: str, attack: bool) -> dict:
 
 
 def test_fuzzed_team_keeps_running_its_result_and_its_memory(tmp_path):
-    clean = run(tmp_path, "clean", attack=False)
-    attacked = run(tmp_path, "attacked", attack=True)
+    # The clean run goes on beside the attacked one, in a domain of its own.
+    with ThreadPoolExecutor(max_workers=1) as beside:
+        clean_run = beside.submit(run, tmp_path, "clean", attack=False, own_domain=True)
+        attacked = run(tmp_path, "attacked", attack=True)
+        clean = clean_run.result()
 
     report = attacked["report"]
     assert ATTACKED_TOPICS <= set(report["topics"]), sorted(report["topics"])
