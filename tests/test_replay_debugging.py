@@ -31,9 +31,9 @@ NUM_ROBOTS = load_params(PARAMS_FILE).world.num_robots
 WORLD_TOPICS = ["/clock", "/mission/anchor_pose",
                 *[f"/robot_{i}/{name}" for i in range(NUM_ROBOTS) for name in ("sonar", "odom")]]
 #: Replay speed (sim seconds per wall second): the robots' sensor queues hold 50 steps
-#: (10 s of sim time), far more than a CE decision takes on a loaded machine.
-REPLAY_RATE = 1.0
-#: Wall-time bounds [s]: process start-up, and the replay of the ~31 s recording.
+#: (10 s of sim time, 5 s of wall time), far more than a CE decision takes on a loaded machine.
+REPLAY_RATE = 2.0
+#: Wall-time bounds [s]: process start-up, and the replay of the ~31 s recording (~16 s).
 STARTUP_TIMEOUT_S = 30.0
 REPLAY_TIMEOUT_S = 50.0
 TEAM_UPDATE_TYPE = "em_exploration_msgs/msg/TeamUpdate"
