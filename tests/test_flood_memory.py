@@ -20,7 +20,6 @@ import json
 import re
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from ros_process import NodeProcess, start_team_run
@@ -46,13 +45,11 @@ def sim_time_s(output: str) -> float:
     return float(times[-1]) if times else 0.0
 
 
-def run(tmp_path: Path, name: str, flood: bool, own_domain: bool = False) -> dict:
-    """One team run, flooded or not (in a domain of its own: ``start_team_run``): each
-    process's last VmRSS [MB] before it exited, the fuzzer's report and the simulated times
-    the flood ended and the run ended at."""
+def run(tmp_path: Path, name: str, flood: bool) -> dict:
+    """One team run, flooded or not: each process's last VmRSS [MB] before it exited, the
+    fuzzer's report and the simulated times the flood ended and the run ended at."""
     summary_path = tmp_path / name / "summary.json"
-    team, domain = start_team_run(tmp_path / name, *TEAM, "--summary", str(summary_path),
-                                  own_domain=own_domain)
+    team, domain = start_team_run(tmp_path / name, *TEAM, "--summary", str(summary_path))
     memory, last_mb = MemoryWatch(domain), {}
     report, flood_end_s = None, 0.0
 
@@ -92,11 +89,8 @@ def run(tmp_path: Path, name: str, flood: bool, own_domain: bool = False) -> dic
 
 
 def test_memory_comes_back_after_a_flood_of_team_updates(tmp_path):
-    # The clean run goes on beside the flooded one, in a domain of its own.
-    with ThreadPoolExecutor(max_workers=1) as beside:
-        clean_run = beside.submit(run, tmp_path, "clean", flood=False, own_domain=True)
-        flooded = run(tmp_path, "flooded", flood=True)
-        clean = clean_run.result()
+    clean = run(tmp_path, "clean", flood=False)
+    flooded = run(tmp_path, "flooded", flood=True)
 
     sent = flooded["report"]["messages"]
     assert set(flooded["report"]["topics"]) == set(FLOODED_TOPICS)
