@@ -16,7 +16,7 @@ from em_exploration_ros.tools.separate_hosts import (cannot_run_reason, loss_pro
                                                       subnet_problem)
 from ros_process import REPO_ROOT
 
-#: Bound of the whole tool run: set-up check, discovery, a 40 m exploration, em-sim [s].
+#: Bound of the whole tool run: set-up check, discovery, a 30 m exploration, em-sim [s].
 RUN_TIMEOUT_S = 150.0
 
 REASON = cannot_run_reason()
@@ -30,7 +30,7 @@ def test_team_on_separate_hosts_with_lossy_links_chooses_the_one_host_targets(tm
     finishes with the same decisions."""
     result_path = tmp_path / "result.json"
     command = [sys.executable, "-m", "em_exploration_ros.tools.separate_hosts",
-               "--robots", "3", "--map-size", "40", "--landmarks", "4", "--seed", "1",
+               "--robots", "3", "--map-size", "30", "--landmarks", "4", "--seed", "1",
                "--loss", "10",
                "--out", str(tmp_path / "run"), "--json", str(result_path),
                "--timeout", "120", "--domain-id", os.environ.get("ROS_DOMAIN_ID", "0")]
