@@ -243,15 +243,17 @@ CHOSEN_DOMAIN = re.compile(r"ROS_DOMAIN_ID=(\d+);")
 
 
 def start_team_run(tmp_path: Path, *args: str,
-                   own_domain: bool = False) -> tuple[NodeProcess, str]:
+                   beside: ProcessSet | None = None) -> tuple[NodeProcess, str]:
     """run_team.sh with ``args`` in this test run's domain; waits until the world, the
     evaluator and every robot (``--robots``, default 3) run, which also shows the leftover
-    check can see them, or until the run has ended. ``own_domain``: in a free domain that
-    run_team.sh chooses and holds instead (read from its first lines), so that the run can
-    go on beside another one of this test run."""
+    check can see them, or until the run has ended. ``beside``: a run that goes on beside
+    another one of this test, in a free domain that run_team.sh chooses and holds instead
+    (read from its first lines), tracked in ``beside`` from its start, so that the test can
+    stop it from another thread (``ProcessSet.stop_all``)."""
     robots = int(args[args.index("--robots") + 1]) if "--robots" in args else 3
-    if own_domain:
-        run = NodeProcess(["bash", str(RUN_TEAM), *args], tmp_path / "run_team.out")
+    if beside is not None:
+        run = beside.add(NodeProcess(["bash", str(RUN_TEAM), *args],
+                                     tmp_path / "run_team.out"))
         try:
             wait_until(lambda: CHOSEN_DOMAIN.search(run.output()) or not run.running(), 60.0,
                        "run_team.sh's domain")

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from ros_process import (RUN_PROCESS_PATTERN, NodeProcess, processes_in_domain,
+from ros_process import (RUN_PROCESS_PATTERN, NodeProcess, ProcessSet, processes_in_domain,
                          start_team_run)
 
 from em_exploration_ros.tools import fuzz
@@ -89,12 +89,12 @@ class MemoryWatch:
         return now
 
 
-def run(tmp_path: Path, name: str, attack: bool, own_domain: bool = False) -> dict:
-    """One team run, with or without the attack (in a domain of its own: ``start_team_run``);
+def run(tmp_path: Path, name: str, attack: bool, beside: ProcessSet | None = None) -> dict:
+    """One team run, with or without the attack (``beside`` another one: ``start_team_run``);
     what the test asserts on."""
     summary_path = tmp_path / name / "summary.json"
     team, domain = start_team_run(tmp_path / name, *TEAM, "--summary", str(summary_path),
-                                  own_domain=own_domain)
+                                  beside=beside)
     memory = MemoryWatch(domain)
     report, after_mb = None, {}
     with team:
@@ -140,9 +140,10 @@ def run(tmp_path: Path, name: str, attack: bool, own_domain: bool = False) -> di
 
 
 def test_fuzzed_team_keeps_running_its_result_and_its_memory(tmp_path):
-    # The clean run goes on beside the attacked one, in a domain of its own.
-    with ThreadPoolExecutor(max_workers=1) as beside:
-        clean_run = beside.submit(run, tmp_path, "clean", attack=False, own_domain=True)
+    # The clean run goes on beside the attacked one, in a domain of its own (stopped at
+    # once if the attacked one fails).
+    with ThreadPoolExecutor(max_workers=1) as thread, ProcessSet() as beside:
+        clean_run = thread.submit(run, tmp_path, "clean", attack=False, beside=beside)
         attacked = run(tmp_path, "attacked", attack=True)
         clean = clean_run.result()
 

@@ -23,9 +23,9 @@ from rclpy.node import Node
 
 from em_exploration_ros.nodes.qos import TEAM_QOS
 
-from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, NodeProcess, graph_reader,
-                         processes_in_domain, robot_pid, start_team_run, wait_for_liveliness,
-                         wait_until)
+from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, NodeProcess, ProcessSet,
+                         graph_reader, processes_in_domain, robot_pid, start_team_run,
+                         wait_for_liveliness, wait_until)
 
 #: Bound of one team run in these tests [s].
 RUN_TIMEOUT_S = 180.0
@@ -161,30 +161,30 @@ print(f"published {count} rounds", flush=True)
 
 
 def run_summary(tmp_path, name: str, with_intruder: bool,
-                own_domain: bool = False) -> tuple[dict, str]:
-    """One CE team run, attacked or not (in a domain of its own: ``start_team_run``)."""
+                beside: ProcessSet | None = None) -> tuple[dict, str]:
+    """One CE team run, attacked or not (``beside`` another one: ``start_team_run``)."""
     summary_path = tmp_path / name / "summary.json"
     run, domain = start_team_run(tmp_path / name, *SMALL_TEAM, "--planner", "CE",
                                  "--until-explored", "0.8", "--summary", str(summary_path),
-                                 own_domain=own_domain)
+                                 beside=beside)
     intruder = None
     with run:
-        if with_intruder:
-            # Started with the team and matched to its readers; it sends from mid-run on
-            # (when the go file appears), so its stale sequence numbers really are stale.
-            # Started mid-run instead, it was discovered in CI only as the run ended.
-            go_file = tmp_path / name / "intruder.go"
-            intruder = NodeProcess([sys.executable, "-c", HOSTILE_PUBLISHER, "30",
-                                    str(go_file)], tmp_path / name / "intruder.out")
-            run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
-            wait_until(lambda: evaluator_heard_every_robot(
-                summary_path.parent / "logs" / "evaluator.log", robots=3, evaluations_after=3),
-                RUN_TIMEOUT_S, "the evaluator hearing every robot")
-            intruder.wait_for_output("matched", RUN_TIMEOUT_S)
-            go_file.touch()
         try:
+            if with_intruder:
+                # Started with the team and matched to its readers; it sends from mid-run on
+                # (when the go file appears), so its stale sequence numbers really are stale.
+                # Started mid-run instead, it was discovered in CI only as the run ended.
+                go_file = tmp_path / name / "intruder.go"
+                intruder = NodeProcess([sys.executable, "-c", HOSTILE_PUBLISHER, "30",
+                                        str(go_file)], tmp_path / name / "intruder.out")
+                run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+                wait_until(lambda: evaluator_heard_every_robot(
+                    summary_path.parent / "logs" / "evaluator.log", robots=3,
+                    evaluations_after=3), RUN_TIMEOUT_S, "the evaluator hearing every robot")
+                intruder.wait_for_output("matched", RUN_TIMEOUT_S)
+                go_file.touch()
             code = run.wait(RUN_TIMEOUT_S)
-        finally:
+        finally:  # also when the test is interrupted before the attack
             if intruder is not None:
                 intruder.stop()
     assert code == 0, run.output()[-3000:]
@@ -209,10 +209,11 @@ def evaluator_heard_every_robot(log_path, robots: int, evaluations_after: int) -
 
 
 def test_hostile_team_messages_are_rejected_and_change_nothing(tmp_path):
-    # The clean run goes on beside the attacked one, in a domain of its own.
-    with ThreadPoolExecutor(max_workers=1) as beside:
-        clean_run = beside.submit(run_summary, tmp_path, "clean", with_intruder=False,
-                                  own_domain=True)
+    # The clean run goes on beside the attacked one, in a domain of its own (stopped at
+    # once if the attacked one fails).
+    with ThreadPoolExecutor(max_workers=1) as thread, ProcessSet() as beside:
+        clean_run = thread.submit(run_summary, tmp_path, "clean", with_intruder=False,
+                                  beside=beside)
         attacked, logs = run_summary(tmp_path, "attacked", with_intruder=True)
         clean, _ = clean_run.result()
     assert "rejected a team update" in logs
