@@ -69,12 +69,13 @@ def ros_args(params: Mapping[str, Any] | None = None, namespace: str | None = No
 
 
 @contextmanager
-def graph_reader() -> Iterator[Any]:
-    """An rclpy node (its own context) in this test run's domain, to read the ROS graph."""
+def graph_reader(domain: str | None = None) -> Iterator[Any]:
+    """An rclpy node (its own context) in this test run's domain (or in ``domain``), to read
+    the ROS graph."""
     import rclpy
     from rclpy.node import Node
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, domain_id=None if domain is None else int(domain))
     node = Node("graph_inspector", context=context)
     try:
         yield node

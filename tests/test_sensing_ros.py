@@ -5,9 +5,10 @@ and clutter come from the world's seeded streams), and em-evaluator counts the r
 associations against ground truth as em-sim does (point 3): the truth of the scans reaches
 it alone, on /world/sonar_truth/robot_i."""
 import json
+from concurrent.futures import ThreadPoolExecutor
 
-import pytest
-from ros_process import REPO_ROOT, finish_team_run, graph_reader, start_team_run, wait_until
+from ros_process import (REPO_ROOT, ProcessSet, finish_team_run, graph_reader, start_team_run,
+                         wait_until)
 
 from em_exploration_ros.core.evaluation.association_stats import association_line
 from em_exploration_ros.core.params_yaml import load_params
@@ -19,11 +20,12 @@ RUN_TIMEOUT_S = 400.0
 GRAPH_TIMEOUT_S = 60.0
 
 
-def only_the_evaluator_reads_the_truth_of_the_scans() -> None:
-    """While the team runs: the world publishes /world/sonar_truth/robot_i, the evaluator
-    subscribes to it, and no robot does (each robot's own subscriptions are in the graph)."""
+def only_the_evaluator_reads_the_truth_of_the_scans(domain: str) -> None:
+    """While the team runs (in ``domain``): the world publishes /world/sonar_truth/robot_i,
+    the evaluator subscribes to it, and no robot does (each robot's own subscriptions are in
+    the graph)."""
     topics = [f"/world/sonar_truth/robot_{robot}" for robot in range(3)]
-    with graph_reader() as graph:
+    with graph_reader(domain) as graph:
         def nodes(infos) -> set[str]:
             return {info.node_name for info in infos}
 
@@ -38,19 +40,33 @@ def only_the_evaluator_reads_the_truth_of_the_scans() -> None:
             assert nodes(graph.get_publishers_info_by_topic(topic)) == {"em_world"}
 
 
-@pytest.mark.parametrize("landmark_ids, detection_prob, clutter_rate, landmarks, seed", [
-    ("off", 0.9, 1.0, 8, 0), ("on", 0.8, 2.0, 4, 2)])
-def test_the_ros_team_chooses_em_sim_s_targets(tmp_path, landmark_ids, detection_prob,
-                                               clutter_rate, landmarks, seed):
+#: (landmark identities, detection probability, clutter rate, landmarks, seed) of each case.
+SENSINGS = [("off", 0.9, 1.0, 8, 0), ("on", 0.8, 2.0, 4, 2)]
+
+
+def test_the_ros_team_chooses_em_sim_s_targets(tmp_path):
+    """Each sensing of SENSINGS; the second one's team runs beside the first one's, in a
+    domain of its own (stopped at once if the first one fails)."""
+    with ThreadPoolExecutor(max_workers=1) as thread, ProcessSet() as beside:
+        second = thread.submit(check_sensing, tmp_path / SENSINGS[1][0], *SENSINGS[1],
+                               beside=beside)
+        check_sensing(tmp_path / SENSINGS[0][0], *SENSINGS[0])
+        second.result()
+
+
+def check_sensing(tmp_path, landmark_ids: str, detection_prob: float, clutter_rate: float,
+                  landmarks: int, seed: int, beside: ProcessSet | None = None) -> None:
+    """One sensing's ROS team against em-sim (``beside``: ``start_team_run``)."""
     summary_path = tmp_path / "run" / "summary.json"
-    run, _ = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
-                            "--map-size", "40", "--landmarks", str(landmarks),
-                            "--seed", str(seed),
-                            "--max-sim-time", "600", "--landmark-ids", landmark_ids,
-                            "--detection-prob", str(detection_prob),
-                            "--clutter-rate", str(clutter_rate),
-                            "--summary", str(summary_path))
-    code = finish_team_run(run, RUN_TIMEOUT_S, only_the_evaluator_reads_the_truth_of_the_scans)
+    run, domain = start_team_run(tmp_path, "--robots", "3", "--planner", "NEAREST",
+                                 "--map-size", "40", "--landmarks", str(landmarks),
+                                 "--seed", str(seed),
+                                 "--max-sim-time", "600", "--landmark-ids", landmark_ids,
+                                 "--detection-prob", str(detection_prob),
+                                 "--clutter-rate", str(clutter_rate),
+                                 "--summary", str(summary_path), beside=beside)
+    code = finish_team_run(run, RUN_TIMEOUT_S,
+                           lambda: only_the_evaluator_reads_the_truth_of_the_scans(domain))
     assert code == 0, run.output()[-3000:]
     summary = json.loads(summary_path.read_text())
     reference = TeamRunner(load_params(REPO_ROOT / "config" / "exploration.yaml").replace(
