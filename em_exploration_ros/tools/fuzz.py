@@ -222,6 +222,20 @@ class Target:
         return self.pool[(self.turns - 1) % POOL_SIZE]
 
 
+
+def _durable(info) -> bool:
+    """Whether an endpoint of the graph (``TopicEndpointInfo``) is transient local."""
+    return info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+
+
+def _reliable_qos(depth: int, durable: bool) -> QoSProfile:
+    """Reliable keep-last ``depth``, transient local when ``durable`` (to match the run's
+    endpoints: a latched writer's last message comes at once), else volatile."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if durable
+                                  else DurabilityPolicy.VOLATILE))
+
 class Fuzzer(Node):
     """Finds the system's subscriptions and publishes extreme messages on them, with the
     run's id (given, or learned from the run's messages before the attack)."""
@@ -277,12 +291,7 @@ class Fuzzer(Node):
                 continue
             if not subscribers:
                 continue
-            durable = any(info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
-                          for info in subscribers)
-            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                             reliability=ReliabilityPolicy.RELIABLE,
-                             durability=(DurabilityPolicy.TRANSIENT_LOCAL if durable
-                                         else DurabilityPolicy.VOLATILE))
+            qos = _reliable_qos(10, any(_durable(info) for info in subscribers))
             message_class = import_message_class(types[0])
             self.targets[topic] = Target(topic, message_class,
                                          self.create_publisher(message_class, topic, qos),
@@ -299,12 +308,7 @@ class Fuzzer(Node):
         message_class = import_message_class(type_name)
         if not writers or RUN_ID_FIELD not in message_class.get_fields_and_field_types():
             return
-        durable = all(info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
-                      for info in writers)
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                         reliability=ReliabilityPolicy.RELIABLE,
-                         durability=(DurabilityPolicy.TRANSIENT_LOCAL if durable
-                                     else DurabilityPolicy.VOLATILE))
+        qos = _reliable_qos(1, all(_durable(info) for info in writers))
         self._listeners[topic] = self.create_subscription(
             message_class, topic, lambda message: self._heard_run(topic, message), qos)
 
