@@ -3,7 +3,7 @@
 Builds em-fuzz's pools of TeamUpdate messages (``--pools`` seeds, ``fuzz.POOL_SIZE`` each,
 with the run id ``RUN_ID``) and times, per message, what a robot did with each before
 ``input_guard.screened_team_updates`` (rclpy's ``deserialize_message`` and
-``content_problem``) and what it does now first (``team_update_head``). Prints the sizes,
+``content_problem``) and what it does now first (``update_screening.screen_team_update``). Prints the sizes,
 the times (mean, and of the largest messages) and how many messages the head alone drops
 for a receiver of robot 1's topic that expects sequence number ``EXPECTED``.
 
@@ -20,9 +20,8 @@ from em_exploration_msgs.msg import TeamUpdate
 from rclpy._rclpy_pybind11 import RMWError
 from rclpy.serialization import deserialize_message
 
-from em_exploration_ros.core.records.limits import MAX_HELD_RECORD_READ_BYTES
-from em_exploration_ros.nodes.input_guard import (content_problem, team_update_head,
-                                                  team_update_head_problem)
+from em_exploration_ros.core.records.update_screening import only_sender, screen_team_update
+from em_exploration_ros.nodes.input_guard import content_problem
 from em_exploration_ros.tools.fuzz import POOL_SIZE, ExtremeMessages, Target
 
 RUN_ID = 1234567
@@ -42,10 +41,9 @@ def main() -> None:
             data = target.next_message(messages)
             sizes.append(len(data))
             started = time.perf_counter()
-            head = team_update_head(data)
-            dropped = (head is None or head.run_id != RUN_ID
-                       or team_update_head_problem(head, 1) or head.sequence > EXPECTED + 10_000
-                       or (head.sequence < EXPECTED and len(data) > MAX_HELD_RECORD_READ_BYTES))
+            dropped = not screen_team_update(
+                data, lambda run_id: None if run_id == RUN_ID else "another run",
+                only_sender(1), lambda _: EXPECTED).read
             head_us.append((time.perf_counter() - started) * 1e6)
             if not dropped:
                 passed.append(len(data))

@@ -15,13 +15,17 @@ from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String
-from em_exploration_msgs.msg import Keyframe, TeamUpdate
+from em_exploration_msgs.msg import (GivenUpTarget, Keyframe, Meeting, MotionCommand, TeamUpdate,
+                                     TeamUpdateRequest)
+from std_msgs.msg import Header
 
 from em_exploration_ros.nodes.conversions import path_to_msg
-from em_exploration_ros.nodes.input_guard import (InputGuard, TeamUpdateHead, content_problem,
-                                                  publish_or_log, screened_team_updates,
-                                                  serialized_size, size_limited,
-                                                  team_update_head)
+from em_exploration_ros.core.records.update_screening import only_sender
+from em_exploration_ros.nodes.input_guard import (InputGuard, content_problem, publish_or_log,
+                                                  screened_team_updates, serialized_size,
+                                                  size_limited)
+from em_exploration_ros.nodes.message_bounds import (FRAME_ID_ROOM, motion_command_bytes,
+                                                     request_bytes)
 from em_exploration_ros.nodes.node_main import RCLError
 
 from ros_process import NodeProcess, REPO_ROOT
@@ -77,26 +81,14 @@ def test_size_limited_drops_bytes_that_are_not_the_type():
     assert received == [] and inputs.dropped == 2
 
 
-def test_team_update_head_is_read_from_the_bytes_in_either_byte_order():
-    message = TeamUpdate(run_id=2**64 - 2, step=7, sequence=2**32 - 1, robot_id=2,
-                         keyframes=[Keyframe()] * 3)
-    data = serialize_message(message)
-    assert team_update_head(data) == TeamUpdateHead(2**64 - 2, 2**32 - 1, 2, 3)
-    big_endian = (b"\x00\x00\x00\x00" + (2**64 - 2).to_bytes(8, "big") + (7).to_bytes(4, "big")
-                  + (2**32 - 1).to_bytes(4, "big") + b"\x02\x00\x00\x00" + (3).to_bytes(4, "big"))
-    assert team_update_head(big_endian) == TeamUpdateHead(2**64 - 2, 2**32 - 1, 2, 3)
-    assert team_update_head(data[:27]) is None
-    assert team_update_head(b"\x00\x02" + data[2:]) is None  # not plain CDR
-
-
 def test_screened_team_updates_reads_only_what_passes_its_head():
     received: list[TeamUpdate] = []
     inputs = guard()
     expected = {1: 5}
     on_bytes = screened_team_updates(
-        inputs, "/robot_1/team/updates", 1,
-        lambda run_id: None if run_id == 7 else f"of run {run_id}", expected.get,
-        received.append)
+        inputs, "/robot_1/team/updates",
+        lambda run_id: None if run_id == 7 else f"of run {run_id}", only_sender(1),
+        expected.get, received.append)
 
     def send(**fields) -> None:
         on_bytes(serialize_message(TeamUpdate(**{"run_id": 7, "robot_id": 1, **fields})))
@@ -119,11 +111,38 @@ def test_screened_team_updates_reads_only_what_passes_its_head():
 
 def test_screened_team_updates_hands_on_the_message_info():
     received = []
-    on_bytes = screened_team_updates(guard(), "/robot_0/team/updates", 0, lambda _: None,
-                                     None, lambda m, info: received.append((m.sequence, info)),
+    on_bytes = screened_team_updates(guard(), "/robot_0/team/updates", lambda _: None,
+                                     only_sender(0), None,
+                                     lambda m, info: received.append((m.sequence, info)),
                                      with_info=True)
     on_bytes(serialize_message(TeamUpdate(sequence=3)), {"publication_sequence_number": 9})
     assert received == [(3, {"publication_sequence_number": 9})]
+
+
+def test_size_limited_hands_on_the_message_info():
+    received = []
+    on_bytes = size_limited(guard(), "/team/update_requests", TeamUpdateRequest,
+                            request_bytes(), lambda m, info: received.append((m.robot_id, info)),
+                            with_info=True)
+    on_bytes(serialize_message(TeamUpdateRequest(robot_id=2)), {"publication_sequence_number": 4})
+    assert received == [(2, {"publication_sequence_number": 4})]
+
+
+@pytest.mark.parametrize("message_class, bound", [(TeamUpdateRequest, request_bytes),
+                                                   (MotionCommand, motion_command_bytes)])
+def test_a_bounded_message_is_read_up_to_its_bound_and_dropped_past_it(message_class, bound):
+    """A request or command with a frame id of the room allowed is read; one character more
+    is dropped unread. A command's bound holds both of its arrays full."""
+    received: list = []
+    inputs = guard()
+    on_bytes = size_limited(inputs, "/topic", message_class, bound(), received.append)
+    fields = ({"given_up": [GivenUpTarget()] * 4, "meetings": [Meeting()] * 4}
+              if message_class is MotionCommand else {})
+    for frame_chars in (FRAME_ID_ROOM, FRAME_ID_ROOM + 4):
+        on_bytes(serialize_message(message_class(
+            header=Header(frame_id="x" * frame_chars), **fields)))
+    assert len(received) == 1 and len(received[0].header.frame_id) == FRAME_ID_ROOM
+    assert inputs.dropped == 1
 
 
 class RecordingLogger:

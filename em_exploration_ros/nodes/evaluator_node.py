@@ -43,6 +43,7 @@ from em_exploration_ros.core.records.team_data import (MAX_LANDMARKS_PER_UPDATE,
                                                      InvalidTeamUpdate, LandmarkEstimate)
 from em_exploration_ros.core.records.readings import UNIDENTIFIED, LandmarkReading
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
+from em_exploration_ros.core.records.update_screening import only_sender
 from em_exploration_ros.core.records.wire_model import sim_time_s
 from em_exploration_ros.core.sessions.effects import Dropped, LogLine, warn
 from em_exploration_ros.core.world.sensors import CLUTTER
@@ -67,6 +68,7 @@ from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_updat
 from em_exploration_ros.nodes.evaluator_outputs import (draw_pictures, metrics_to_msg,
                                                         replace_summary)
 from em_exploration_ros.nodes.lean_node import LeanNode
+from em_exploration_ros.nodes.message_bounds import motion_command_bytes
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.log_lines import LineWriter
 from em_exploration_ros.nodes.node_main import run_node
@@ -183,11 +185,13 @@ class EvaluatorNode(LeanNode):
                 ESTIMATE_READER_QOS, raw=True)
             updates_topic = f"/{ns}/team/updates"  # read raw: a flood is screened first
             self.create_subscription(TeamUpdate, updates_topic, screened_team_updates(
-                self.inputs, updates_topic, robot, self.session.run_problem,
+                self.inputs, updates_topic, self.session.run_problem, only_sender(robot),
                 self.session.next_expected, lambda m, r=robot: self._on_team_update(r, m)),
                 TEAM_QOS, raw=True)
-            self.create_subscription(MotionCommand, f"/{ns}/motion_command",
-                                     lambda m, r=robot: self._on_command(r, m), COMMAND_QOS)
+            command_topic = f"/{ns}/motion_command"
+            self.create_subscription(MotionCommand, command_topic, size_limited(
+                self.inputs, command_topic, MotionCommand, motion_command_bytes(),
+                lambda m, r=robot: self._on_command(r, m)), COMMAND_QOS, raw=True)
         if self.session.association is not None:
             self._subscribe_association()
         watch_liveliness(self, list(range(self.num_robots)), lambda robot, alive, restarted:

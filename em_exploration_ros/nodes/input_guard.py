@@ -6,8 +6,8 @@
 message: the header's stamp and frame; every floating-point number and every time it
 carries; ``checked_team_update`` adds a team update's array sizes.
 ``size_limited`` drops a serialized message longer than the topic's largest valid one
-before it is deserialized; ``screened_team_updates`` reads a serialized team update's head
-(run, sender, sequence, number of keyframes) and deserializes only one that passes.
+before it is deserialized; ``screened_team_updates`` deserializes a team update only once
+its head passed ``core.records.update_screening``.
 ``publish_or_log`` publishes and logs, never raises, when the middleware refuses (silently
 once the node's context is shut down: the process is stopping).
 """
@@ -16,7 +16,6 @@ from __future__ import annotations
 import functools
 import importlib
 import operator
-import struct
 import time
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -31,10 +30,9 @@ from rclpy.serialization import deserialize_message, serialize_message
 
 from em_exploration_ros.core.agent.input_checks import (RejectionLog, array_problem, frame_problem,
                                                         reason_kind, stamp_problem)
-from em_exploration_ros.core.records.limits import MAX_HELD_RECORD_READ_BYTES
-from em_exploration_ros.core.records.team_data import (MAX_SEQUENCE_LEAD, InvalidTeamUpdate,
-                                                       TeamUpdate, check_record_sizes)
+from em_exploration_ros.core.records.team_data import InvalidTeamUpdate, TeamUpdate
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
+from em_exploration_ros.core.records.update_screening import screen_team_update
 from em_exploration_ros.core.records.wire_model import NANOSECONDS_PER_SECOND
 from em_exploration_ros.nodes.conversions import team_update_from_msg
 from em_exploration_ros.nodes.path_cdr import DecodedPath
@@ -74,113 +72,66 @@ class InputGuard:
 
 
 def size_limited(guard: InputGuard, topic: str, message_class: type, max_bytes: int,
-                 callback: Callable[[Any], None], raw: bool = False) -> Callable[[bytes], None]:
+                 callback: Callable[..., None], raw: bool = False,
+                 with_info: bool = False) -> Callable[..., None]:
     """The callback of a raw subscription (``create_subscription(..., raw=True)``) that
     drops a serialized message longer than ``max_bytes`` (the largest valid message of the
-    topic) before it is deserialized, and hands the others, deserialized, to ``callback``.
+    topic) before it is deserialized, and hands the others, deserialized, to ``callback``
+    (with the message info too, with ``with_info``).
     rclpy takes 30-60 ms to turn a message with thousands of nested messages into Python
     objects; under a flood of them a node fell behind while the middleware's queues held
     what it had not taken yet (tens of MB). Bytes that do not deserialize (a raw writer
     can send anything) are dropped too. With ``raw``, ``callback`` gets the bytes themselves
     (it reads them its own way)."""
-    def on_serialized(data: bytes) -> None:
+    def taken(data: bytes) -> Any | None:
         if len(data) > max_bytes:
             guard.drop(topic, f"{len(data)} bytes, more than the {max_bytes} of the largest "
                               "valid message")
-            return
-        if raw:
-            callback(data)
-            return
-        message = deserialized(guard, topic, message_class, data)
-        if message is not None:
-            callback(message)
-    return on_serialized
+            return None
+        return data if raw else deserialized(guard, topic, message_class, data)
+    return _raw_callback(taken, callback, with_info)
 
 
-@dataclass(frozen=True)
-class TeamUpdateHead:
-    """The fixed fields that open a serialized em_exploration_msgs/TeamUpdate: its run, its
-    sequence number, its sender and how many keyframes follow."""
-
-    run_id: int
-    sequence: int
-    robot_id: int
-    keyframes: int
-
-
-#: CDR offsets [B] after the 4-byte encapsulation header: run_id (uint64) at 4, step and
-#: sequence (uint32) at 12 and 16, robot_id (uint8) at 20, finished at 21, the keyframes'
-#: count (uint32, aligned) at 24.
-_HEAD_FORMAT = "Q4xIB3xI"
-_HEAD_SIZE = 4 + struct.calcsize("<" + _HEAD_FORMAT)
-
-
-def team_update_head(data: bytes) -> TeamUpdateHead | None:
-    """The head of a serialized TeamUpdate (little- or big-endian CDR), read without
-    deserializing the rest; None if the bytes are too short or not plain CDR."""
-    if len(data) < _HEAD_SIZE or data[0] != 0 or data[1] > 1:
-        return None
-    run_id, sequence, robot_id, keyframes = struct.unpack_from(
-        ("<" if data[1] else ">") + _HEAD_FORMAT, data, 4)
-    return TeamUpdateHead(run_id, sequence, robot_id, keyframes)
-
-
-def screened_team_updates(guard: InputGuard, topic: str, sender: int,
+def screened_team_updates(guard: InputGuard, topic: str,
                           run_problem: Callable[[int], str | None],
+                          owner_problem: Callable[[int], str | None],
                           next_expected: Callable[[int], int] | None,
                           callback: Callable[..., None], with_info: bool = False
                           ) -> Callable[..., None]:
-    """The callback of a raw subscription (``raw=True``) of robot ``sender``'s team updates
-    that deserializes a message only once its head passed: of this run (``run_problem``),
-    from ``sender``, at most ``MAX_KEYFRAMES_PER_UPDATE`` keyframes, and, with
-    ``next_expected`` (the receiver's next sequence number of a robot), not implausibly far
-    ahead nor a record the receiver already holds that is longer than
-    ``MAX_HELD_RECORD_READ_BYTES`` (ignored unread, without a line, as the receiver ignores
-    a record it holds after reading it: a teammate's re-sends reach every receiver; a
-    shorter one is still read, to say what is wrong with it). The others are dropped with
-    the reason the receiver gives after reading them, and ``callback`` gets the message (and, with
-    ``with_info``, the message info). rclpy took 30-180 ms to deserialize a team update with
-    thousands of nested messages; under em-fuzz's flood of the team topics every robot fell
-    tens of seconds behind the barrier."""
+    """The callback of a raw subscription (``raw=True``) of team updates that deserializes a
+    message only once its head passed ``core.records.update_screening.screen_team_update``
+    (the run, the owner the topic may carry, the number of keyframes, the sequence number
+    against ``next_expected``); the others are dropped with the reason the receiver gives
+    after reading them, or ignored without a line (a long copy of a record already held).
+    ``callback`` gets the message (and, with ``with_info``, the message info). rclpy took
+    30-180 ms to deserialize a team update with thousands of nested messages; under
+    em-fuzz's flood of the team topics every robot fell tens of seconds behind the
+    barrier."""
     def screened(data: bytes) -> Any | None:
-        head = team_update_head(data)
-        if head is None:
-            guard.drop(topic, f"malformed TeamUpdate: {len(data)} bytes")
+        screening = screen_team_update(data, run_problem, owner_problem, next_expected)
+        if not screening.read:
+            if screening.problem is not None:
+                guard.drop(topic, screening.problem)
             return None
-        if not guard.check(topic, run_problem(head.run_id),
-                           team_update_head_problem(head, sender)):
-            return None
-        if next_expected is not None:
-            expected = next_expected(sender)
-            if head.sequence < expected and len(data) > MAX_HELD_RECORD_READ_BYTES:
-                return None
-            if head.sequence > expected + MAX_SEQUENCE_LEAD:
-                guard.drop(topic, f"rejected a team update: sequence {head.sequence} of robot "
-                                  f"{sender} is implausibly far ahead of the expected {expected}")
-                return None
         return deserialized(guard, topic, TeamUpdateMessage, data)
+    return _raw_callback(screened, callback, with_info)
 
+
+def _raw_callback(take: Callable[[bytes], Any | None], callback: Callable[..., None],
+                  with_info: bool) -> Callable[..., None]:
+    """A raw subscription's callback: ``callback`` gets what ``take`` makes of the bytes
+    unless that is None (and the message info, with ``with_info``: rclpy passes it to a
+    callback of two parameters)."""
     def on_serialized(data: bytes) -> None:
-        message = screened(data)
+        message = take(data)
         if message is not None:
             callback(message)
 
     def on_serialized_with_info(data: bytes, info: Any) -> None:
-        message = screened(data)
+        message = take(data)
         if message is not None:
             callback(message, info)
     return on_serialized_with_info if with_info else on_serialized
-
-
-def team_update_head_problem(head: TeamUpdateHead, sender: int) -> str | None:
-    """Why a team update on robot ``sender``'s topic is refused from its head alone."""
-    if head.robot_id != sender:
-        return f"rejected a team update: robot_id {head.robot_id} on robot {sender}'s topic"
-    try:
-        check_record_sizes(head.keyframes, 0, 0)
-    except InvalidTeamUpdate as error:
-        return f"rejected a team update: {error}"
-    return None
 
 
 def deserialized(guard: InputGuard, topic: str, message_class: type, data: bytes) -> Any | None:

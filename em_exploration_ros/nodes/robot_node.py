@@ -43,6 +43,7 @@ from em_exploration_ros.core.records.team_data import (MAX_READINGS_PER_KEYFRAME
                                                        InvalidTeamUpdate)
 from em_exploration_ros.core.records.team_data import TeamUpdate as TeamRecord
 from em_exploration_ros.core.records.team_wire import TeamWireFormat
+from em_exploration_ros.core.records.update_screening import only_sender, team_member
 from em_exploration_ros.core.records.wire_model import nanoseconds_to_seconds
 from em_exploration_ros.core.sessions import robot_effects as fx
 from em_exploration_ros.core.sessions.effects import Dropped, LogLine
@@ -58,6 +59,7 @@ from em_exploration_ros.nodes.input_guard import (LOG_PERIOD_S, InputGuard,
 from em_exploration_ros.nodes.lean_node import LeanNode
 from em_exploration_ros.nodes.liveliness import offer_liveliness, watch_liveliness
 from em_exploration_ros.nodes.log_lines import LineWriter
+from em_exploration_ros.nodes.message_bounds import request_bytes
 from em_exploration_ros.nodes.message_info import MessageInfo, publication_sequence
 from em_exploration_ros.nodes.node_main import run_node
 from em_exploration_ros.nodes.odometry_cdr import PlanarOdometry
@@ -126,23 +128,32 @@ class RobotNode(LeanNode):
         self.create_subscription(Odometry, odom_topic, size_limited(
             self.inputs, odom_topic, Odometry, self._odom_codec.size, self._on_odometry_data,
             raw=True), SENSOR_QOS, raw=True)
-        self.create_subscription(TeamUpdateRequest, "/team/update_requests",
-                                 self._on_update_request, TEAM_QOS)
+        # Team topics are read raw: requests longer than the largest valid one are dropped
+        # unread, records are screened by their head before they are read.
+        requests_topic = "/team/update_requests"
+        self.create_subscription(TeamUpdateRequest, requests_topic, size_limited(
+            self.inputs, requests_topic, TeamUpdateRequest, request_bytes(),
+            self._on_update_request), TEAM_QOS, raw=True)
         teammates = [r for r in range(self.num_robots) if r != self.robot_id]
+        run_problem = self.session.run_problem
         if self.relay_mode:
-            self.create_subscription(TeamUpdate, delivered_updates_topic(self.robot_id),
-                                     self._on_delivered_update, TEAM_QOS)
-            self.create_subscription(TeamUpdateRequest, delivered_requests_topic(self.robot_id),
-                                     self._on_delivered_request, TEAM_QOS)
+            updates_topic = delivered_updates_topic(self.robot_id)
+            self.create_subscription(TeamUpdate, updates_topic, screened_team_updates(
+                self.inputs, updates_topic, run_problem, team_member(self.num_robots), None,
+                self._on_delivered_update, with_info=True), TEAM_QOS, raw=True)
+            requests_topic = delivered_requests_topic(self.robot_id)
+            self.create_subscription(TeamUpdateRequest, requests_topic, size_limited(
+                self.inputs, requests_topic, TeamUpdateRequest, request_bytes(),
+                self._on_delivered_request, with_info=True), TEAM_QOS, raw=True)
         else:
-            history_topic = f"/{ns}/team/history"  # read raw, screened as the updates are
+            history_topic = f"/{ns}/team/history"
             self.create_subscription(TeamUpdate, history_topic, screened_team_updates(
-                self.inputs, history_topic, self.robot_id, self.session.run_problem, None,
+                self.inputs, history_topic, run_problem, only_sender(self.robot_id), None,
                 self._on_own_history), TEAM_QOS, raw=True)
-            for teammate in teammates:  # read raw: a flood is screened before it is read
+            for teammate in teammates:
                 topic = f"/{robot_namespace(teammate)}/team/updates"
                 self.create_subscription(TeamUpdate, topic, screened_team_updates(
-                    self.inputs, topic, teammate, self.session.run_problem,
+                    self.inputs, topic, run_problem, only_sender(teammate),
                     self.session.inbox.next_expected,
                     lambda message, sender=teammate: self._on_team_update(sender, message)),
                     TEAM_QOS, raw=True)
@@ -198,8 +209,7 @@ class RobotNode(LeanNode):
                                  if not 0 <= r.robot_id < self.num_robots
                                  or r.robot_id == robot))
 
-    def _of_this_run(self, topic: str, message: SonarScan | TeamUpdate | TeamUpdateRequest
-                     ) -> bool:
+    def _of_this_run(self, topic: str, message: SonarScan | TeamUpdateRequest) -> bool:
         """False for a message of another run (dropped, with the throttled WARN)."""
         return self.inputs.check(topic, self.session.run_problem(int(message.run_id)))
 
@@ -255,8 +265,7 @@ class RobotNode(LeanNode):
                       topic)
 
     def _on_delivered_update(self, message: TeamUpdate, info: MessageInfo) -> None:
-        if not self._of_this_run(delivered_updates_topic(self.robot_id), message):
-            return
+        """A record the links delivered whose head ``screened_team_updates`` passed."""
         self._perform(self.session.delivered_update(
             int(message.robot_id), self._record(message), publication_sequence(info),
             *self._times()), delivered_updates_topic(self.robot_id))

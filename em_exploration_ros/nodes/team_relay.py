@@ -6,12 +6,14 @@ is the world's session's (``core.sessions.world_session.WorldSession``, with
 node, checks and converts every message for the session, and publishes the deliveries and
 link counts it returns. Topics (QoS ``TEAM_QOS``):
 
-- hears ``/robot_<i>/team/updates`` (TeamUpdate: new updates and re-sends; read raw, and
-  deserialized only when its head passes: ``input_guard.screened_team_updates``),
+- hears ``/robot_<i>/team/updates`` (TeamUpdate: new updates and re-sends),
   ``/team/update_requests`` (TeamUpdateRequest from robots; the evaluator's requests, with
   the OBSERVER id, are not link traffic and are left to the robots) and
   ``/robot_<s>/team/history_copies`` (robot s's copies of a restarted teammate's records,
-  relay mode's form of ``/robot_<i>/team/history``, which does not say who sent a copy);
+  relay mode's form of ``/robot_<i>/team/history``, which does not say who sent a copy),
+  each read raw: a record deserialized only when its head passes
+  (``input_guard.screened_team_updates``), a request only when it is no longer than the
+  largest valid one;
 - delivers on ``/robot_<i>/team/delivered_updates`` (TeamUpdate) and
   ``/robot_<i>/team/delivered_requests`` (TeamUpdateRequest);
 - publishes ``/world/link_counts`` (TeamLinkCounts, ``GROUND_TRUTH_QOS``: the evaluator may
@@ -33,11 +35,14 @@ from em_exploration_ros.core.links.link_model import Delivery, FrameKind
 from em_exploration_ros.core.records import team_data
 from em_exploration_ros.core.records.team_data import InvalidTeamUpdate
 from em_exploration_ros.core.records.team_wire import TeamWireFormat, cdr_size, request_cdr_size
+from em_exploration_ros.core.records.update_screening import only_sender
 from em_exploration_ros.core.sessions.world_effects import PublishLinkCounts
 from em_exploration_ros.core.sessions.world_session import WorldSession
 from em_exploration_ros.nodes.conversions import robot_namespace
 from em_exploration_ros.nodes.input_guard import (InputGuard, checked_team_update,
-                                                  publish_or_log, screened_team_updates)
+                                                  publish_or_log, screened_team_updates,
+                                                  size_limited)
+from em_exploration_ros.nodes.message_bounds import request_bytes
 from em_exploration_ros.nodes.message_info import MessageInfo, publication_sequence
 from em_exploration_ros.nodes.qos import GROUND_TRUTH_QOS, TEAM_QOS
 from em_exploration_ros.nodes.team_topics import (LINK_COUNTS_TOPIC, REQUESTS_TOPIC,
@@ -64,53 +69,50 @@ class TeamRelay:
             TeamUpdateRequest, delivered_requests_topic(r), TEAM_QOS) for r in robots]
         self.counts_pub = node.create_publisher(TeamLinkCounts, LINK_COUNTS_TOPIC,
                                                 GROUND_TRUTH_QOS)
+        # Every topic is read raw: records are screened by their head, requests longer than
+        # the largest valid one dropped, before anything is deserialized.
         for robot in robots:
-            ns = robot_namespace(robot)
-            topic = f"/{ns}/team/updates"  # read raw: a flood is screened before it is read
+            topic = f"/{robot_namespace(robot)}/team/updates"
             node.create_subscription(TeamUpdate, topic, screened_team_updates(
-                inputs, topic, robot, session.run_problem, None,
+                inputs, topic, session.run_problem, only_sender(robot), None,
                 lambda message, info, sender=robot: self._on_update(sender, message, info),
                 with_info=True), TEAM_QOS, raw=True)
-            node.create_subscription(
-                TeamUpdate, history_copies_topic(robot),
-                lambda message, sender=robot: self._on_history(sender, message), TEAM_QOS)
-        node.create_subscription(TeamUpdateRequest, REQUESTS_TOPIC, self._on_request, TEAM_QOS)
+            topic = history_copies_topic(robot)
+            node.create_subscription(TeamUpdate, topic, screened_team_updates(
+                inputs, topic, session.run_problem,
+                lambda owner, sender=robot: session.history_problem(sender, owner), None,
+                lambda message, sender=robot: self._on_history(sender, message)),
+                TEAM_QOS, raw=True)
+        node.create_subscription(TeamUpdateRequest, REQUESTS_TOPIC, size_limited(
+            inputs, REQUESTS_TOPIC, TeamUpdateRequest, request_bytes(), self._on_request,
+            with_info=True), TEAM_QOS, raw=True)
 
     def robot_listens(self, robot: int) -> bool:
         """True when ``robot`` subscribes to both of its delivered topics."""
         return (self.update_pubs[robot].get_subscription_count() >= 1
                 and self.request_pubs[robot].get_subscription_count() >= 1)
 
-    def _checked(self, topic: str, message: TeamUpdate,
-                 robot_id: int) -> team_data.TeamUpdate | None:
-        """The message as core data if it is a valid record of ``robot_id``'s stream."""
-        if not self.inputs.check(topic, self.session.run_problem(int(message.run_id))):
-            return None
+    def _checked(self, topic: str, message: TeamUpdate) -> team_data.TeamUpdate | None:
+        """The message (its head screened: of this run, of a robot the topic may carry) as
+        core data, if its content is valid."""
         try:
-            update = checked_team_update(message, self.wire)
+            return checked_team_update(message, self.wire)
         except InvalidTeamUpdate as error:
             self.inputs.drop(topic, f"rejected a team update: {error}")
             return None
-        if update.robot_id != robot_id:
-            self.inputs.drop(topic, f"robot_id {update.robot_id} on robot {robot_id}'s topic")
-            return None
-        return update
 
     def _on_update(self, sender: int, message: TeamUpdate, info: MessageInfo) -> None:
-        update = self._checked(f"/{robot_namespace(sender)}/team/updates", message, sender)
+        update = self._checked(f"/{robot_namespace(sender)}/team/updates", message)
         if update is not None:
             self._perform(self.session.update_heard(
                 sender, update.sequence, cdr_size(update), message, publication_sequence(info),
                 time.monotonic()))
 
     def _on_history(self, sender: int, message: TeamUpdate) -> None:
-        """``sender``'s copy of a record of a restarted teammate's stream."""
-        topic = history_copies_topic(sender)
+        """``sender``'s copy of a record of a restarted teammate's stream (its head passed:
+        of this run, of a teammate of ``sender``)."""
         owner = int(message.robot_id)
-        if not self.inputs.check(topic, self.session.run_problem(int(message.run_id)),
-                                 self.session.history_problem(sender, owner)):
-            return
-        update = self._checked(topic, message, owner)
+        update = self._checked(history_copies_topic(sender), message)
         if update is not None:
             self.session.history_heard(sender, owner, update.sequence, cdr_size(update),
                                        message)

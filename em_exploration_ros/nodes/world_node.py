@@ -31,8 +31,10 @@ from em_exploration_ros.core.sessions.world_effects import (Dropped, PublishCloc
                                                             PublishTruth, StartTicking)
 from em_exploration_ros.core.sessions.world_session import TeamConnections, WorldSession
 from em_exploration_ros.nodes.conversions import WORLD_NODE_NAME, robot_namespace
-from em_exploration_ros.nodes.input_guard import InputGuard, content_problem, header_problem
+from em_exploration_ros.nodes.input_guard import (InputGuard, content_problem, header_problem,
+                                                  size_limited)
 from em_exploration_ros.nodes.lean_node import LeanNode
+from em_exploration_ros.nodes.message_bounds import motion_command_bytes
 from em_exploration_ros.nodes.liveliness import watch_liveliness
 from em_exploration_ros.nodes.log_lines import LineWriter
 from em_exploration_ros.nodes.node_main import run_node
@@ -65,10 +67,14 @@ class WorldNode(LeanNode):
         self.outputs = WorldOutputs(self, self.params, self.settings.run_id)
         self.relay = (None if self.session.relay is None
                       else TeamRelay(self, self.session, self.inputs, self._perform))
-        self.command_subs = [self.create_subscription(
-            MotionCommand, f"/{robot_namespace(robot)}/motion_command",
-            lambda message, robot=robot: self._on_command(robot, message), SENSOR_QOS)
-            for robot in range(self.num_robots)]
+        # Read raw: a command longer than the largest valid one is dropped unread.
+        self.command_subs = []
+        for robot in range(self.num_robots):
+            topic = f"/{robot_namespace(robot)}/motion_command"
+            self.command_subs.append(self.create_subscription(MotionCommand, topic, size_limited(
+                self.inputs, topic, MotionCommand, motion_command_bytes(),
+                lambda message, robot=robot: self._on_command(robot, message)),
+                SENSOR_QOS, raw=True))
         watch_liveliness(self, list(range(self.num_robots)), self._on_liveliness)
         self.outputs.mission(self.session.sim.world, self.session.sim.stamp_s)
         self._poll_timer = self.create_timer(_POLL_PERIOD_S, self._poll)
