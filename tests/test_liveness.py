@@ -142,3 +142,22 @@ def test_a_flood_of_liveliness_identities_is_bounded_and_told_once():
     restarted, note = writers.gained(1, [b"robot"] + [b"g%d" % i for i in range(10)])
     assert restarted and "robot 1's liveliness" in note
     assert writers.gained(1, [b"robot"]) == (False, None)
+
+
+def test_a_flood_of_restarts_lists_the_first_and_latest_changes_and_counts_every_downtime():
+    """Each new liveliness identity is a restart: a lost and a rejoined change. The list
+    keeps the first and latest half of ``max_changes``, says how many it left out, and the
+    downtime still sums every lost interval."""
+    team = TeamLiveness(1, grace_s=4.0, max_changes=6)
+    for restart in range(10):  # lost at 10 k, rejoined at 10 k + 2 (simulated and wall)
+        assert team.liveliness_back(0, True, 10.0 * restart, 10.0 * restart)
+        assert team.heard(0, 10.0 * restart + 2.0, 10.0 * restart + 2.0, "answers")
+    changes = team.changes(0)
+    assert len(changes) == 6 and team.omitted_changes(0) == 20 - 6
+    assert [c.sim_time_s for c in changes] == [0.0, 2.0, 10.0, 82.0, 90.0, 92.0]
+    assert [c.status for c in changes] == [LOST, REJOINED, LOST, REJOINED, LOST, REJOINED]
+    assert team.status(0) == REJOINED
+    assert team.downtime_s(0, 500.0, 500.0) == (20.0, 20.0)
+    team.liveliness_back(0, True, 100.0, 100.0)
+    assert team.status(0) == LOST and team.omitted_changes(0) == 15
+    assert team.downtime_s(0, 105.0, 103.0) == (25.0, 23.0)

@@ -5,15 +5,19 @@ lost (its process died, was stopped or wedged: its participant no longer asserts
 liveliness within the lease) and did not report it back within ``grace_s`` (on a lossy
 network a liveliness assertion can miss its lease while the robot works on); ``rejoined``
 when it is heard again after being lost; ``finished`` when it reports that it has nothing
-left to explore. Every change is kept with the simulation time and the wall time (seconds
-since the caller's start) at which it happened, so a run's summary can show downtimes.
+left to explore. Every change is listed with the simulation time and the wall time (seconds
+since the caller's start) at which it happened, so a run's summary can show downtimes: the
+first and the latest ``MAX_STATUS_CHANGES // 2`` of a robot's changes, with the number left
+out between them (a flood of liveliness identities makes a lost and a rejoined change for
+each); the downtimes count every change.
 """
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from em_exploration_ros.core.records.limits import MAX_LIVELINESS_WRITERS
+from em_exploration_ros.core.records.limits import MAX_LIVELINESS_WRITERS, MAX_STATUS_CHANGES
 
 ACTIVE, FINISHED, LOST, REJOINED = "active", "finished", "lost", "rejoined"
 
@@ -31,10 +35,21 @@ class StatusChange:
 class TeamLiveness:
     """Status of every robot of a team (see module docstring); no clock of its own."""
 
-    def __init__(self, num_robots: int, grace_s: float) -> None:
-        """``grace_s``: wall seconds a liveliness loss must last to count as lost."""
+    def __init__(self, num_robots: int, grace_s: float,
+                 max_changes: int = MAX_STATUS_CHANGES) -> None:
+        """``grace_s``: wall seconds a liveliness loss must last to count as lost;
+        ``max_changes``: status changes listed per robot (the first and latest half)."""
         self.grace_s = grace_s
-        self._changes: list[list[StatusChange]] = [[] for _ in range(num_robots)]
+        self._first_changes: list[list[StatusChange]] = [[] for _ in range(num_robots)]
+        self._latest_changes = [deque(maxlen=max_changes - max_changes // 2)
+                                for _ in range(num_robots)]
+        self._first_kept = max_changes // 2
+        self._omitted = [0] * num_robots
+        # Per robot: (simulated, wall) seconds lost in closed intervals, and the times of
+        # the loss that is still open (None: not lost).
+        self._lost_closed = [(0.0, 0.0)] * num_robots
+        self._lost_since: list[tuple[float, float] | None] = [None] * num_robots
+        self._status = [ACTIVE] * num_robots
         self._unconfirmed: dict[int, tuple[float, float]] = {}
         # Per robot: processes whose liveliness was lost and whose successor has not
         # reported its own yet.
@@ -42,12 +57,16 @@ class TeamLiveness:
 
     def status(self, robot: int) -> str:
         """The robot's current status."""
-        changes = self._changes[robot]
-        return changes[-1].status if changes else ACTIVE
+        return self._status[robot]
 
     def changes(self, robot: int) -> list[StatusChange]:
-        """The robot's status changes in order (empty: active all along)."""
-        return list(self._changes[robot])
+        """The robot's status changes in order (empty: active all along): the first and the
+        latest, ``omitted_changes`` of them left out between."""
+        return self._first_changes[robot] + list(self._latest_changes[robot])
+
+    def omitted_changes(self, robot: int) -> int:
+        """How many of the robot's status changes ``changes`` leaves out."""
+        return self._omitted[robot]
 
     def liveliness_lost(self, robot: int, sim_time_s: float, wall_s: float) -> None:
         """The middleware reported the robot's liveliness lost at these times [s]."""
@@ -105,24 +124,32 @@ class TeamLiveness:
                    ) -> tuple[float, float]:
         """(simulation, wall) seconds the robot spent lost up to the given times [s]. The
         simulated downtime is 0 when the world waited for the robot."""
-        return (self._lost_for(robot, "sim_time_s", until_sim_time_s),
-                self._lost_for(robot, "wall_s", until_wall_s))
-
-    def _lost_for(self, robot: int, clock: str, until_s: float) -> float:
-        total, lost_since = 0.0, None
-        for change in self._changes[robot]:
-            if change.status == LOST and lost_since is None:
-                lost_since = getattr(change, clock)
-            elif change.status != LOST and lost_since is not None:
-                total += getattr(change, clock) - lost_since
-                lost_since = None
-        if lost_since is not None:
-            total += max(until_s - lost_since, 0.0)
-        return total
+        closed_sim_s, closed_wall_s = self._lost_closed[robot]
+        since = self._lost_since[robot]
+        if since is None:
+            return closed_sim_s, closed_wall_s
+        return (closed_sim_s + max(until_sim_time_s - since[0], 0.0),
+                closed_wall_s + max(until_wall_s - since[1], 0.0))
 
     def _change(self, robot: int, status: str, sim_time_s: float, wall_s: float,
                 reason: str) -> bool:
-        self._changes[robot].append(StatusChange(status, sim_time_s, wall_s, reason))
+        since = self._lost_since[robot]
+        if status == LOST and since is None:
+            self._lost_since[robot] = (sim_time_s, wall_s)
+        elif status != LOST and since is not None:
+            closed_sim_s, closed_wall_s = self._lost_closed[robot]
+            self._lost_closed[robot] = (closed_sim_s + sim_time_s - since[0],
+                                        closed_wall_s + wall_s - since[1])
+            self._lost_since[robot] = None
+        self._status[robot] = status
+        change = StatusChange(status, sim_time_s, wall_s, reason)
+        if len(self._first_changes[robot]) < self._first_kept:
+            self._first_changes[robot].append(change)
+            return True
+        latest = self._latest_changes[robot]
+        if len(latest) == latest.maxlen:
+            self._omitted[robot] += 1
+        latest.append(change)
         return True
 
 

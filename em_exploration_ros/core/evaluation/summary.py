@@ -6,7 +6,8 @@ Top-level keys (units in the names): ``explored_ratio``, ``distance_m`` (all rob
 ``distance_m``, ``decisions``, ``targets`` (in order: ``x``, ``y`` [m, map frame],
 ``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``, ``status``
 (active / finished / lost / rejoined at the end), ``status_changes`` (``status``,
-``sim_time_s``, ``wall_s``, ``reason``), ``downtime_s`` and ``downtime_wall_s`` (simulated and
+``sim_time_s``, ``wall_s``, ``reason``; the first and latest 100, with
+``status_changes_omitted`` left out between them), ``downtime_s`` and ``downtime_wall_s`` (simulated and
 wall seconds lost), ``given_up`` (targets the robot gave up, in order: ``x``, ``y`` [m, map
 frame], ``stamp_s``, ``reason``: blocked / no progress / deadline), ``blocked_s``
 (simulation time during which the robot's odometry showed it blocked while it commanded
@@ -74,6 +75,7 @@ class RobotSummary:
     decision_times_s: list[float] = field(default_factory=list)
     status: str = ACTIVE
     status_changes: list[StatusChange] = field(default_factory=list)
+    status_changes_omitted: int = 0
     downtime_s: float = 0.0
     downtime_wall_s: float = 0.0
     given_up: list[GivenUpEntry] | None = None

@@ -17,3 +17,6 @@ MAX_HELD_RECORD_READ_BYTES = 16_384
 #: from one whose liveliness came back: a run restarts a robot a few times at most; a flood
 #: of identities on its alive topic makes the watcher forget those absent longest.
 MAX_LIVELINESS_WRITERS = 64
+#: Status changes (lost, rejoined, finished) of a robot a run's summary lists: the first and
+#: the latest half; a run has a few, a flood of liveliness identities two for each.
+MAX_STATUS_CHANGES = 200

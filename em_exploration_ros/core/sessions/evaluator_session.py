@@ -884,6 +884,7 @@ class EvaluatorSession:
         for entry in summary.robots:
             entry.status = self.liveness.status(entry.id)
             entry.status_changes = self.liveness.changes(entry.id)
+            entry.status_changes_omitted = self.liveness.omitted_changes(entry.id)
             entry.downtime_s, entry.downtime_wall_s = self.liveness.downtime_s(entry.id,
                                                                                *until_s)
         return summary, notes
