@@ -242,3 +242,23 @@ def test_shutting_the_context_down_ends_the_spin(executor_class: type) -> None:
         spinner.join(timeout=DEADLINE_S)
         assert not spinner.is_alive()
         assert outcome in (["external shutdown"], ["returned"])
+
+
+def test_spinning_until_a_future_adds_one_wake_up_to_it_not_one_per_callback() -> None:
+    """rclpy's executor adds a done-callback to the future at every ``spin_once``, so the
+    future holds one closure per callback run until it completes (15 MB in a flooded
+    evaluator); the team's executor adds one. The future's callbacks are read from rclpy's
+    ``Future._callbacks``, where a pending future keeps them."""
+    with node_on(LeanExecutor) as (node, executor):
+        done: Future = Future()
+        count = {"n": 0}
+
+        def on_tick() -> None:
+            count["n"] += 1
+            if count["n"] == 200:
+                assert len(done._callbacks) <= 2  # spin_until_future_complete's and ours
+                done.set_result(True)
+
+        node.create_timer(0.001, on_tick)
+        executor.spin_until_future_complete(done, timeout_sec=DEADLINE_S)
+        assert done.done() and count["n"] == 200

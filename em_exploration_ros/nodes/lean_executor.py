@@ -18,6 +18,8 @@ in benchmarks/MEASUREMENTS.md), with the same targets.
 - a ready subscription or timer whose callback is a plain function is taken and called
   directly, inside its callback group's ``beginning_execution`` / ``ending_execution`` and
   the executor's work tracker, without a ``Task`` and without waking the executor again;
+- a future spun until wakes the executor through one done-callback, not one per
+  ``spin_once`` as rclpy's (a closure kept per callback run until the future completes);
 - everything else (services, clients, node guard conditions, waitables such as liveliness
   events, coroutine callbacks) goes through rclpy's own handler, and while such a handler
   or a future's done-callback is unfinished, the executor works exactly as rclpy's does
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import inspect
 import threading
+import weakref
 from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable, Optional, Union
@@ -100,6 +103,20 @@ class LeanExecutor(SingleThreadedExecutor):
         self._release_after_wait = False
         #: an entity was found destroyed (its node may still list it): rebuild the plan
         self._stale = False
+        #: futures that already wake this executor when done
+        self._waking_futures: weakref.WeakSet[Future] = weakref.WeakSet()
+
+    def spin_once_until_future_complete(
+            self, future: Future,
+            timeout_sec: Optional[Union[float, TimeoutObject]] = None) -> None:
+        """As rclpy's, but ``future`` wakes the executor through one done-callback, added
+        the first time: rclpy's adds one at every call, so a process spinning until a future
+        completes (every node of the team) kept a closure for every callback it ran, 15 MB
+        (144 000 closures) in an evaluator after a 60 s flood of every topic."""
+        if future not in self._waking_futures:
+            self._waking_futures.add(future)
+            future.add_done_callback(lambda _: self.wake())
+        self._spin_once_impl(timeout_sec, future.done)
 
     def shutdown(self, timeout_sec: Optional[float] = None) -> bool:
         with self._plan_lock:
