@@ -1,7 +1,8 @@
 """The common life cycle of the system's node processes (the ``main()`` of each node).
 
 Start rclpy, build the node, spin until Ctrl-C / SIGTERM / shutdown (or until the node's
-own ``done`` future completes), then let the node wrap up, destroy it and shut down. A
+own ``done`` future completes), handing the memory it freed back to the system now and then
+(``memory_return``), then let the node wrap up, destroy it and shut down. A
 node that refuses its parameters (``ValueError`` or one of rclpy's ``ParameterException``s
 from its constructor: wrong type, outside the declared range) ends the process with exit
 code 2 and one fatal log line, no traceback. Only the constructor's errors mean bad
@@ -29,6 +30,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 
 from em_exploration_ros.nodes import lean_executor
+from em_exploration_ros.nodes.memory_return import return_freed_memory
 
 #: The error rclpy raises when a call into its C library fails (e.g. publishing after the
 #: context was shut down).
@@ -82,6 +84,7 @@ def _spin_node(make_node: Callable[[], NodeType], logger_name: str,
         except (ValueError, ParameterException) as error:
             rclpy.logging.get_logger(logger_name).fatal(f"cannot start: {error}")
             return EXIT_BAD_PARAMETERS
+        return_freed_memory(node)
         lean_executor.spin(node, until=getattr(node, "done", None))
     except ExternalShutdownException:
         pass
