@@ -4,10 +4,11 @@ from __future__ import annotations
 import time
 
 import pytest
-import rclpy
 
 from em_exploration_ros.nodes.lean_executor import LeanExecutor
 from em_exploration_ros.nodes.memory_return import _malloc_trim, return_freed_memory
+
+from test_lean_executor import node_on
 
 
 def rss_mb() -> float:
@@ -19,12 +20,7 @@ def rss_mb() -> float:
 def test_memory_freed_below_a_live_allocation_goes_back_to_the_system():
     """100 MB of 2 kB buffers, one in 50 kept: glibc keeps the freed memory below the kept
     ones until the node's timer trims it."""
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node("memory_return_test", context=context)
-    executor = LeanExecutor(context=context)
-    executor.add_node(node)
-    try:
+    with node_on(LeanExecutor) as (node, executor):
         buffers = [bytearray(2000) for _ in range(50_000)]
         kept = buffers[::50]
         del buffers
@@ -36,7 +32,3 @@ def test_memory_freed_below_a_live_allocation_goes_back_to_the_system():
             executor.spin_once(timeout_sec=0.1)
         assert rss_mb() <= held_mb - 50.0, f"{held_mb:.0f} MB held, {rss_mb():.0f} MB now"
         assert len(kept) == 1000
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
