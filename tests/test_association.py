@@ -185,3 +185,18 @@ def test_a_track_is_dropped_when_not_seen_within_the_window():
     assert len(tracks) == 0
     with pytest.raises(ValueError):
         TentativeTracks(confirm_hits=4, window_keyframes=3, gate_probability=0.99)
+
+
+def test_a_confirmed_track_hands_back_its_earlier_sightings():
+    """What the caller gave with each sighting comes back, oldest first, with the detection
+    that confirms the track: the caller names those sightings' landmark too."""
+    tracks = TentativeTracks(confirm_hits=3, window_keyframes=5, gate_probability=0.99)
+    point, covariance = np.array([[2.0, 1.0]]), np.eye(2)[None] * 1e-4
+    clutter = np.array([[-5.0, 3.0]])
+    assert tracks.observe_sightings(0, point, covariance, ["a0"]) == [None]
+    assert tracks.observe_sightings(1, clutter, covariance, ["c1"]) == [None]
+    assert tracks.observe_sightings(2, np.vstack([clutter * -1, point]),
+                                    np.repeat(covariance, 2, axis=0), ["c2", "a2"]) == [None, None]
+    assert tracks.observe_sightings(4, point, covariance, ["a4"]) == [("a0", "a2")]
+    assert len(tracks) == 2  # the two clutter tracks, not the confirmed one
+    assert tracks.observe(5, point, covariance) == [False]  # a new track starts

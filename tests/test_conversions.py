@@ -10,7 +10,9 @@ from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.planning.progress import GivenUpTarget, GiveUpReason
 from em_exploration_ros.core.records.team_data import (FrontierType, InvalidTeamUpdate,
                                                        LandmarkEstimate, TargetRecord, TeamUpdate)
-from em_exploration_ros.core.records.team_wire import TeamWireFormat
+from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
+                                                      LateReading)
+from em_exploration_ros.core.records.team_wire import TeamWireFormat, cdr_size
 from em_exploration_ros.core.records.wire_model import sim_time_s
 from em_exploration_ros.core.sessions.team_runner import TeamRunner, sensor_inputs
 from em_exploration_ros.nodes import conversions as conv
@@ -75,7 +77,7 @@ def _assert_same_update(a, b):
             (my.robot_id, my.index, my.stamp_s, my.is_first, my.previous_index)
         for name in ("odom_delta", "odom_covariance"):
             assert np.array_equal(getattr(mx, name), getattr(my, name))
-        assert mx.landmarks == my.landmarks
+        assert mx.landmarks == my.landmarks and mx.late_landmarks == my.late_landmarks
         assert [t.robot_id for t in mx.teammates] == [t.robot_id for t in my.teammates]
         for tx, ty in zip(mx.teammates, my.teammates):
             assert np.array_equal(tx.relative_pose, ty.relative_pose)
@@ -102,6 +104,34 @@ def test_team_updates_survive_the_wire(running_team):
     for update in sent:
         message = through_dds(conv.team_update_to_msg(update, wire))
         _assert_same_update(conv.team_update_from_msg(message, wire), update)
+
+
+def test_late_readings_travel_as_entries_after_their_keyframe():
+    """A keyframe's late readings go as one LATE_READINGS entry per earlier keyframe after
+    it, and come back joined to it; such an entry before any keyframe is refused."""
+    wire = TeamWireFormat(PARAMS)
+    stamp = wire.step_time_s(70)
+
+    def reading(landmark: int, range_m: float) -> LandmarkReading:
+        return wire.landmark_reading(landmark, range_m, 0.25)
+
+    keyframes = tuple(wire.keyframe(KeyframeMeasurements(
+        1, index, wire.keyframe_time_s(index), False, index - 1, np.zeros(3), np.eye(3) * 1e-4,
+        (reading(5, 3.0),), (), late)) for index, late in (
+            (6, (LateReading(3, reading(5, 3.5)), LateReading(4, reading(5, 3.25)),
+                 LateReading(3, reading(6, 7.0)))),
+            (7, ())))
+    assert [late.keyframe_index for late in keyframes[0].late_landmarks] == [3, 3, 4]
+    update = TeamUpdate(1, 9, stamp, keyframes)
+    message = through_dds(conv.team_update_to_msg(update, wire))
+    late = conv.em_msg.Keyframe.LATE_READINGS
+    assert [(k.index, k.previous_index, len(k.landmarks)) for k in message.keyframes] == [
+        (6, 5, 1), (3, late, 2), (4, late, 1), (7, 6, 1)]
+    _assert_same_update(conv.team_update_from_msg(message, wire), update)
+    assert cdr_size(update) == len(serialize_message(message))
+    message.keyframes = message.keyframes[1:]
+    with pytest.raises(InvalidTeamUpdate, match="late readings before any keyframe"):
+        conv.team_update_from_msg(message, wire)
 
 
 def test_an_update_off_the_step_grid_cannot_be_sent():

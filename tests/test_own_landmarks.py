@@ -123,11 +123,27 @@ def test_own_detections_are_associated_rightly_despite_misses_and_clutter(explor
     summary = team_association(explored.slams, explored.scans, explored.interval)
     print(association_line(summary))
     assert summary["precision"] >= 0.99
-    assert summary["recall"] >= 0.6  # misses (p = 0.8) and the first sightings of a track
+    assert summary["recall"] >= 0.9  # a track's first sightings are named when it is confirmed
     assert summary["spurious_landmarks"] == 0
     for robot in summary["robots"]:
         assert robot["correct"] > 20
     assert summary["correspondences_correct"] >= 1 and summary["correspondences_wrong"] == 0
+
+
+def test_a_new_landmark_carries_its_first_sightings_as_late_readings(explored):
+    """Each own landmark's first readings in the graph are of the keyframes before it was
+    confirmed (its track's sightings), attached when the keyframe that confirmed it came."""
+    for slam in explored.slams:
+        first_seen: dict[int, list[int]] = {}
+        for robot, index, landmark, _, _ in slam.landmark_readings():
+            if robot == slam.robot_id:
+                first_seen.setdefault(landmark, []).append(index)
+        assert first_seen
+        for indices in first_seen.values():
+            # the keyframe that confirmed the landmark added it first, then the track's
+            # earlier sightings (at least confirm_hits - 1 = 2), all before it
+            confirming = indices[0]
+            assert len(indices) >= 3 and indices[1] < confirming and indices[2] < confirming
 
 
 def test_every_readings_id_is_the_robot_s_own(explored):

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
-                                                      TeammateReading)
+                                                      LateReading, TeammateReading)
 from em_exploration_ros.core.records.team_data import (MAX_SEQUENCE_LEAD, MAX_TARGETS_PER_UPDATE,
                                                        FrontierType, InvalidTeamUpdate,
-                                                       MissingRange, TargetRecord, TeamUpdateInbox,
+                                                       MissingRange, TargetRecord, TeamUpdate,
+                                                       TeamUpdateInbox,
                                                        TeamUpdateOutbox, validate_team_update)
 
 NUM_ROBOTS = 3
@@ -163,3 +164,19 @@ def test_records_given_up_on_are_not_waited_for_again_until_they_arrive():
     inbox.receive(streams[1][3])
     inbox.pop_ready()
     assert inbox.holds_up_to({1: 4, 2: 2})
+
+
+def test_a_late_reading_must_be_of_an_earlier_keyframe():
+    reading = LandmarkReading(3, 4.0, 0.1, 0.01, 0.001)
+    for index in (5, 9, -1):
+        keyframe = KeyframeMeasurements(1, 5, 10.0, False, 4, np.zeros(3), np.eye(3) * 1e-4,
+                                        (), (), (LateReading(index, reading),))
+        with pytest.raises(InvalidTeamUpdate, match="not an earlier one"):
+            validate_team_update(TeamUpdate(1, 1, 10.0, (keyframe,)), 3)
+    keyframe = KeyframeMeasurements(1, 5, 10.0, False, 4, np.zeros(3), np.eye(3) * 1e-4,
+                                    (), (), (LateReading(4, reading),))
+    validate_team_update(TeamUpdate(1, 1, 10.0, (keyframe,)), 3)
+    bad = LateReading(4, LandmarkReading(3, -4.0, 0.1, 0.01, 0.001))
+    with pytest.raises(InvalidTeamUpdate, match="negative range"):
+        validate_team_update(TeamUpdate(1, 1, 10.0, (KeyframeMeasurements(
+            1, 5, 10.0, False, 4, np.zeros(3), np.eye(3) * 1e-4, (), (), (bad,)),)), 3)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Iterable
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -19,13 +21,13 @@ from nav_msgs.msg import Odometry, Path
 from em_exploration_ros.core.evaluation.summary import GivenUpEntry, MeetingEntry
 from em_exploration_ros.core.planning.progress import GivenUpTarget, GiveUpReason
 from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
-                                                      TeammateReading)
+                                                      LateReading, TeammateReading)
 from em_exploration_ros.core.records.team_data import (FrontierType, InvalidTeamUpdate,
                                                        LandmarkEstimate, RendezvousEvent,
                                                        RendezvousState, TargetRecord, TeamUpdate,
                                                        check_record_sizes)
 from em_exploration_ros.core.records.team_wire import (TeamWireFormat, covariance_from_upper,
-                                                       covariance_upper)
+                                                       covariance_upper, late_groups)
 from em_exploration_ros.core.records.wire_model import (NANOSECONDS_PER_SECOND,
                                                         nanoseconds_to_seconds,
                                                         planar_covariance_from_6x6,
@@ -188,21 +190,54 @@ def planar_odometry_from_msg(message: Odometry) -> PlanarOdometry:
 # shared parameters a receiver rebuilds the rest from. A record the core made goes through
 # ``to_msg`` and back unchanged: the sender already rounded it (core/records/team_wire.py).
 
-def _keyframe_to_msg(kf: KeyframeMeasurements) -> em_msg.Keyframe:
+def _landmarks_to_msg(readings: Iterable[LandmarkReading]) -> list[em_msg.KeyframeLandmark]:
+    return [em_msg.KeyframeLandmark(landmark_id=int(r.landmark_id), range=float(r.range_m),
+                                    bearing=float(r.bearing_rad)) for r in readings]
+
+
+def _keyframe_to_msgs(kf: KeyframeMeasurements) -> list[em_msg.Keyframe]:
+    """The keyframe's entry, then one ``LATE_READINGS`` entry per earlier keyframe its late
+    readings are of (``team_wire.late_groups``)."""
     previous = em_msg.Keyframe.NO_PREVIOUS if kf.is_first else kf.previous_index
-    return em_msg.Keyframe(
+    entries = [em_msg.Keyframe(
         index=kf.index, previous_index=int(previous),
         odom_x=float(kf.odom_delta[0]), odom_y=float(kf.odom_delta[1]),
         odom_theta=float(kf.odom_delta[2]),
         odom_covariance=[float(v) for v in covariance_upper(kf.odom_covariance)],
-        landmarks=[em_msg.KeyframeLandmark(landmark_id=int(r.landmark_id),
-                                           range=float(r.range_m), bearing=float(r.bearing_rad))
-                   for r in kf.landmarks],
+        landmarks=_landmarks_to_msg(kf.landmarks),
         teammates=[em_msg.KeyframeTeammate(robot_id=int(r.robot_id),
                                            x=float(r.relative_pose[0]),
                                            y=float(r.relative_pose[1]),
                                            theta=float(r.relative_pose[2]))
-                   for r in kf.teammates])
+                   for r in kf.teammates])]
+    entries.extend(em_msg.Keyframe(index=group[0].keyframe_index,
+                                   previous_index=em_msg.Keyframe.LATE_READINGS,
+                                   landmarks=_landmarks_to_msg(late.reading for late in group))
+                   for group in late_groups(kf))
+    return entries
+
+
+def _keyframes_from_msg(messages: Iterable[em_msg.Keyframe], robot_id: int,
+                        wire: TeamWireFormat) -> tuple[KeyframeMeasurements, ...]:
+    """The keyframes of an update's entries, each ``LATE_READINGS`` entry joined to the
+    keyframe before it as its late readings; InvalidTeamUpdate if one comes first or holds
+    more than landmarks."""
+    keyframes: list[KeyframeMeasurements] = []
+    for message in messages:
+        if message.previous_index != em_msg.Keyframe.LATE_READINGS:
+            keyframes.append(_keyframe_from_msg(message, robot_id, wire))
+            continue
+        if not keyframes:
+            raise InvalidTeamUpdate("late readings before any keyframe of the update")
+        if message.teammates:
+            raise InvalidTeamUpdate(f"late readings of keyframe {message.index} with "
+                                    "teammate readings")
+        carrier = keyframes[-1]
+        late = tuple(LateReading(int(message.index),
+                                 wire.landmark_reading(r.landmark_id, r.range, r.bearing))
+                     for r in message.landmarks)
+        keyframes[-1] = replace(carrier, late_landmarks=carrier.late_landmarks + late)
+    return tuple(keyframes)
 
 
 def _keyframe_from_msg(message: em_msg.Keyframe, robot_id: int,
@@ -323,7 +358,7 @@ def team_update_to_msg(update: TeamUpdate, wire: TeamWireFormat) -> em_msg.TeamU
     return em_msg.TeamUpdate(
         step=step, sequence=update.sequence, robot_id=update.robot_id,
         finished=bool(update.finished),
-        keyframes=[_keyframe_to_msg(k) for k in update.keyframes],
+        keyframes=[entry for k in update.keyframes for entry in _keyframe_to_msgs(k)],
         targets=[target_to_msg(t) for t in update.targets],
         rendezvous=[_rendezvous_to_msg(r) for r in update.rendezvous])
 
@@ -338,7 +373,7 @@ def team_update_from_msg(message: em_msg.TeamUpdate, wire: TeamWireFormat) -> Te
     try:
         return TeamUpdate(
             robot_id=robot_id, sequence=int(message.sequence), stamp_s=stamp_s,
-            keyframes=tuple(_keyframe_from_msg(k, robot_id, wire) for k in message.keyframes),
+            keyframes=_keyframes_from_msg(message.keyframes, robot_id, wire),
             targets=tuple(target_from_msg(t, robot_id, stamp_s) for t in message.targets),
             rendezvous=tuple(rendezvous_from_msg(r) for r in message.rendezvous),
             finished=bool(message.finished))

@@ -8,7 +8,8 @@ em-evaluator and in em-sim) takes:
   where each came from, a landmark id or ``sensors.CLUTTER``; em-world publishes it on
   /world/sonar_truth/robot_i, which no robot reads);
 * the landmark readings of every keyframe in each robot's team stream (``team_update``),
-  named by the team graph's landmark ids as every robot's ``TeamSlam`` names them;
+  named by the team graph's landmark ids as every robot's ``TeamSlam`` names them, the
+  late readings of earlier keyframes with the keyframe that carried them;
 * the teammates' landmarks each robot tied to its own and the step it did
   (``correspondences``; /robot_i/landmark_correspondences).
 
@@ -48,8 +49,10 @@ class AssociationRecord:
         #: (robot, step) -> (the scan's readings, the source of each): the world's truth.
         self.scans: dict[tuple[int, int], tuple[tuple[LandmarkReading, ...],
                                                 tuple[int, ...]]] = {}
-        #: robot -> keyframe index -> its landmark readings (graph id, bearing, range).
-        self._keyframes: list[dict[int, tuple[tuple[int, float, float], ...]]] = [
+        #: robot -> keyframe index -> the landmark readings it adds to the graph (the
+        #: keyframe index each is of: its own or, for a late reading, an earlier one; graph
+        #: id, bearing, range).
+        self._keyframes: list[dict[int, tuple[tuple[int, int, float, float], ...]]] = [
             {} for _ in range(num_robots)]
         #: robot -> (own landmark id, teammate's landmark id) -> the step it was tied at.
         self._ties: list[dict[tuple[int, int], int]] = [{} for _ in range(num_robots)]
@@ -68,9 +71,12 @@ class AssociationRecord:
         """A record of a robot's stream, in sequence order: its keyframes' readings."""
         robot = update.robot_id
         for keyframe in update.keyframes:
+            readings = [(keyframe.index, reading) for reading in keyframe.landmarks]
+            readings.extend((late.keyframe_index, late.reading)
+                            for late in keyframe.late_landmarks)
             self._keyframes[robot].setdefault(keyframe.index, tuple(
-                (graph_landmark_id(robot, reading.landmark_id, self._shared),
-                 reading.bearing_rad, reading.range_m) for reading in keyframe.landmarks))
+                (index, graph_landmark_id(robot, reading.landmark_id, self._shared),
+                 reading.bearing_rad, reading.range_m) for index, reading in readings))
 
     def correspondences(self, robot: int, step: int, pairs: Iterable[tuple[int, int]]
                         ) -> None:
@@ -107,6 +113,7 @@ class AssociationRecord:
             for index in indices.get(owner, []):
                 if owner != robot and index * self.interval >= end_step:
                     continue
-                readings.extend((owner, index, landmark, bearing, range_m)
-                                for landmark, bearing, range_m in keyframes.get(index, ()))
+                readings.extend((owner, of_index, landmark, bearing, range_m)
+                                for of_index, landmark, bearing, range_m
+                                in keyframes.get(index, ()))
         return readings

@@ -69,6 +69,17 @@ class OdometryReading:
 
 
 @dataclass(frozen=True)
+class LateReading:
+    """A sonar return of the same robot's earlier keyframe ``keyframe_index`` that names its
+    landmark only at a later keyframe: a sighting of a tentative track, carried by the
+    keyframe at which the track was confirmed as a landmark (without landmark identities,
+    ``core.slam.own_landmarks``)."""
+
+    keyframe_index: int
+    reading: LandmarkReading
+
+
+@dataclass(frozen=True)
 class KeyframeMeasurements:
     """Everything one robot measured at one keyframe, as shared with its teammates.
 
@@ -78,7 +89,9 @@ class KeyframeMeasurements:
     (``x [m], y [m], theta [rad]``), and ``odom_covariance`` the covariance of its
     additive coordinate errors. A robot's first keyframe has ``is_first=True``,
     ``previous_index=-1`` and its odometry fields are ignored. Every teammate reading
-    refers to the observed teammate's keyframe with the same ``index``.
+    refers to the observed teammate's keyframe with the same ``index``. ``late_landmarks``
+    are readings of earlier keyframes of the robot that named their landmark only at this
+    one (a tentative track's sightings before it was confirmed).
     """
 
     robot_id: int
@@ -90,6 +103,7 @@ class KeyframeMeasurements:
     odom_covariance: np.ndarray
     landmarks: tuple[LandmarkReading, ...]
     teammates: tuple[TeammateReading, ...]
+    late_landmarks: tuple[LateReading, ...] = ()
 
     @property
     def keyframe_id(self) -> KeyframeId:

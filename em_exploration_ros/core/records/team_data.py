@@ -18,7 +18,7 @@ from enum import IntEnum
 import numpy as np
 
 from em_exploration_ros.core.records.limits import MAX_ABS_VALUE, MAX_ID
-from em_exploration_ros.core.records.readings import KeyframeMeasurements
+from em_exploration_ros.core.records.readings import KeyframeMeasurements, LandmarkReading
 
 #: Records further ahead of the expected sequence number than this are rejected as
 #: implausible (a hostile or corrupted sender), instead of opening a huge gap. It also
@@ -129,18 +129,18 @@ def validate_team_update(update: TeamUpdate, num_robots: int) -> None:
         if not 0 <= kf.index <= MAX_ID or (
                 not kf.is_first and not 0 <= kf.previous_index < kf.index):
             raise InvalidTeamUpdate(f"keyframe {kf.index}: bad previous index {kf.previous_index}")
-        _check_size(len(kf.landmarks) + len(kf.teammates), MAX_READINGS_PER_KEYFRAME,
-                    "readings in a keyframe")
+        _check_size(len(kf.landmarks) + len(kf.teammates) + len(kf.late_landmarks),
+                    MAX_READINGS_PER_KEYFRAME, "readings in a keyframe")
         _check_finite(kf.stamp_s, "keyframe stamp")
         _check_vector(kf.odom_delta, 3, "odometry")
         _check_covariance(kf.odom_covariance, 3, "odometry covariance")
         for reading in kf.landmarks:
-            _check_id(reading.landmark_id, "landmark id")
-            _check_finite(reading.range_m, "landmark range")
-            _check_finite(reading.bearing_rad, "landmark bearing")
-            if reading.range_m < 0 or reading.range_variance <= 0 or reading.bearing_variance <= 0:
-                raise InvalidTeamUpdate("landmark reading with negative range or variance <= 0")
-            _check_finite(reading.range_variance + reading.bearing_variance, "landmark variance")
+            _check_landmark_reading(reading)
+        for late in kf.late_landmarks:
+            if not 0 <= late.keyframe_index < kf.index:
+                raise InvalidTeamUpdate(f"keyframe {kf.index}: a late reading of keyframe "
+                                        f"{late.keyframe_index}, not an earlier one")
+            _check_landmark_reading(late.reading)
         for reading in kf.teammates:
             _check_robot_id(reading.robot_id, num_robots, "observed teammate id")
             if reading.robot_id == update.robot_id:
@@ -175,6 +175,16 @@ def check_record_sizes(keyframes: int, targets: int, rendezvous: int) -> None:
                               (targets, MAX_TARGETS_PER_UPDATE, "targets"),
                               (rendezvous, MAX_RENDEZVOUS_PER_UPDATE, "rendezvous")):
         _check_size(size, limit, what)
+
+
+def _check_landmark_reading(reading: LandmarkReading) -> None:
+    """A landmark reading's id, finite range and bearing, positive variances."""
+    _check_id(reading.landmark_id, "landmark id")
+    _check_finite(reading.range_m, "landmark range")
+    _check_finite(reading.bearing_rad, "landmark bearing")
+    if reading.range_m < 0 or reading.range_variance <= 0 or reading.bearing_variance <= 0:
+        raise InvalidTeamUpdate("landmark reading with negative range or variance <= 0")
+    _check_finite(reading.range_variance + reading.bearing_variance, "landmark variance")
 
 
 def _check_partner(target: TargetRecord, num_robots: int) -> None:

@@ -29,6 +29,7 @@ import numpy as np
 
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
+                                                      LateReading,
                                                       TeammateReading, sonar_variances,
                                                       teammate_covariance)
 from em_exploration_ros.core.records.team_data import TargetRecord, TeamUpdate
@@ -108,7 +109,8 @@ class TeamWireFormat:
     # -- records -------------------------------------------------------------------------
 
     def keyframe(self, keyframe: KeyframeMeasurements) -> KeyframeMeasurements:
-        """``keyframe`` exactly as its receivers rebuild it from the wire."""
+        """``keyframe`` exactly as its receivers rebuild it from the wire (its late readings
+        in the order the wire carries them: grouped by the keyframe they are of)."""
         if keyframe.is_first:
             delta, covariance = np.zeros(3), np.zeros((3, 3))
         else:
@@ -121,13 +123,26 @@ class TeamWireFormat:
             landmarks=tuple(self.landmark_reading(r.landmark_id, r.range_m, r.bearing_rad)
                             for r in keyframe.landmarks),
             teammates=tuple(self.teammate_reading(r.robot_id, r.relative_pose)
-                            for r in keyframe.teammates))
+                            for r in keyframe.teammates),
+            late_landmarks=tuple(LateReading(late.keyframe_index, self.landmark_reading(
+                late.reading.landmark_id, late.reading.range_m, late.reading.bearing_rad))
+                for group in late_groups(keyframe) for late in group))
 
     @staticmethod
     def target(target: TargetRecord) -> TargetRecord:
         """``target`` exactly as its receivers rebuild it from the wire (float32 planning
         time; its stamp is the update's, which the sender publishes at the same step)."""
         return replace(target, planning_time_s=to_float32(target.planning_time_s))
+
+
+def late_groups(keyframe: KeyframeMeasurements) -> list[list[LateReading]]:
+    """The keyframe's late readings grouped by the keyframe they are of, in the order of
+    first appearance: on the wire each group is one more entry of the update's keyframes
+    (``Keyframe.LATE_READINGS`` as its previous index), after the keyframe that carries it."""
+    groups: dict[int, list[LateReading]] = {}
+    for late in keyframe.late_landmarks:
+        groups.setdefault(late.keyframe_index, []).append(late)
+    return list(groups.values())
 
 
 #: The encapsulation header in front of every serialized ROS 2 message [bytes].
@@ -156,9 +171,11 @@ def cdr_size(update: TeamUpdate) -> int:
     cdr.add(1, 2)  # robot_id, finished
     cdr.add(4)  # keyframes length
     for keyframe in update.keyframes:
-        cdr.add(4, 2 + 3 + 6)  # index, previous_index, odometry, covariance upper triangle
-        cdr.add(4, 1 + 3 * len(keyframe.landmarks))  # length; id, range, bearing each
-        cdr.add(4, 1 + 4 * len(keyframe.teammates))  # length; id, x, y, theta each
+        for landmarks, teammates in ((len(keyframe.landmarks), len(keyframe.teammates)),
+                                     *((len(group), 0) for group in late_groups(keyframe))):
+            cdr.add(4, 2 + 3 + 6)  # index, previous_index, odometry, covariance upper triangle
+            cdr.add(4, 1 + 3 * landmarks)  # length; id, range, bearing each
+            cdr.add(4, 1 + 4 * teammates)  # length; id, x, y, theta each
     cdr.add(4)  # targets length
     for _ in update.targets:
         cdr.add(4, 2)  # decision_index, partner_id

@@ -14,7 +14,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -214,6 +214,8 @@ class _Track:
     point: FloatArray
     covariance: FloatArray
     seen_at: list[int] = field(default_factory=list)
+    #: what the caller gave with each sighting, in the order of ``seen_at``
+    sightings: list[Any] = field(default_factory=list)
 
 
 class TentativeTracks:
@@ -249,7 +251,17 @@ class TentativeTracks:
         ``(U, 2)`` and covariances ``(U, 2, 2)`` of detections that matched no landmark.
         Returns, per detection, whether it confirmed its track at this keyframe (the track
         is then removed here: the caller adds the landmark at that detection)."""
+        return [earlier is not None
+                for earlier in self.observe_sightings(index, points, covariances)]
+
+    def observe_sightings(self, index: int, points: FloatArray, covariances: FloatArray,
+                          sightings: Sequence[Any] | None = None) -> list[tuple | None]:
+        """:meth:`observe`, with what the caller gives with each detection (``sightings``,
+        one per point; e.g. the keyframe and the reading): returns, per detection, None if
+        it did not confirm its track, else what was given with the track's earlier
+        sightings, oldest first (the caller names their landmark now)."""
         points = np.asarray(points, dtype=float).reshape(-1, 2)
+        sightings = list(sightings) if sightings is not None else [None] * len(points)
         covariances = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
         self._tracks = [track for track in self._tracks
                         if track.seen_at[-1] > index - self.window_keyframes]
@@ -265,11 +277,12 @@ class TentativeTracks:
                 break
             if detection not in matched and track not in matched.values():
                 matched[int(detection)] = int(track)
-        confirmed = [False] * len(points)
+        confirmed: list[tuple | None] = [None] * len(points)
         finished: set[int] = set()
         for detection in range(len(points)):
             if detection not in matched:
-                self._tracks.append(_Track(points[detection], covariances[detection], [index]))
+                self._tracks.append(_Track(points[detection], covariances[detection], [index],
+                                           [sightings[detection]]))
                 continue
             track = self._tracks[matched[detection]]
             track_information = np.linalg.inv(track.covariance)
@@ -279,9 +292,10 @@ class TentativeTracks:
                                    + detection_information @ points[detection])
             track.covariance = fused
             track.seen_at.append(index)
+            track.sightings.append(sightings[detection])
             recent = [seen for seen in track.seen_at if seen > index - self.window_keyframes]
             if len(recent) >= self.confirm_hits:
-                confirmed[detection] = True
+                confirmed[detection] = tuple(track.sightings[:-1])
                 finished.add(matched[detection])
         self._tracks = [track for t, track in enumerate(self._tracks) if t not in finished]
         return confirmed

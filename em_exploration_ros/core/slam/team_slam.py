@@ -381,25 +381,33 @@ class _TeamGraph:
 
     def _add_landmarks(self, keyframe: KeyframeMeasurements, pose: np.ndarray,
                        batch: _Batch) -> None:
-        """Bearing-range factors; unseen landmarks start at the first reading's point."""
-        key = pose_key(*keyframe.keyframe_id)
+        """Bearing-range factors of the keyframe's readings, then of its late readings
+        (from the robot's earlier keyframes, each in the graph already; one that is not is
+        left out); unseen landmarks start at the first reading's point."""
         for reading in keyframe.landmarks:
-            landmark_id = graph_landmark_id(keyframe.robot_id, reading.landmark_id,
-                                            self.shared_landmark_ids)
-            point_key = landmark_key(landmark_id)
-            if landmark_id not in self._landmark_set:
-                in_body = reading.range_m * np.array([np.cos(reading.bearing_rad),
-                                                      np.sin(reading.bearing_rad)])
-                point = transform_points(pose, in_body)
-                batch.values.insert(point_key, gtsam.Point2(point))
-                bisect.insort(self.landmark_ids, landmark_id)
-                self._landmark_set.add(landmark_id)
-            self.landmark_readings.append((keyframe.robot_id, keyframe.index, landmark_id,
-                                           reading.bearing_rad, reading.range_m))
-            landmark_noise = self.noise.bearing_range(reading)
-            batch.factors.push_back(gtsam.BearingRangeFactor2D(
-                key, point_key, gtsam.Rot2.fromAngle(reading.bearing_rad), reading.range_m,
-                landmark_noise))
+            self._add_reading(keyframe.keyframe_id, pose, reading, batch)
+        for late in keyframe.late_landmarks:
+            earlier = (keyframe.robot_id, late.keyframe_index)
+            if earlier in self._in_graph:
+                self._add_reading(earlier, batch.pose(earlier), late.reading, batch)
+
+    def _add_reading(self, observer: KeyframeId, pose: np.ndarray, reading: LandmarkReading,
+                     batch: _Batch) -> None:
+        """One bearing-range factor from keyframe ``observer`` (at ``pose``)."""
+        robot, index = observer
+        landmark_id = graph_landmark_id(robot, reading.landmark_id, self.shared_landmark_ids)
+        point_key = landmark_key(landmark_id)
+        if landmark_id not in self._landmark_set:
+            in_body = reading.range_m * np.array([np.cos(reading.bearing_rad),
+                                                  np.sin(reading.bearing_rad)])
+            batch.values.insert(point_key, gtsam.Point2(transform_points(pose, in_body)))
+            bisect.insort(self.landmark_ids, landmark_id)
+            self._landmark_set.add(landmark_id)
+        self.landmark_readings.append((robot, index, landmark_id, reading.bearing_rad,
+                                       reading.range_m))
+        batch.factors.push_back(gtsam.BearingRangeFactor2D(
+            pose_key(robot, index), point_key, gtsam.Rot2.fromAngle(reading.bearing_rad),
+            reading.range_m, self.noise.bearing_range(reading)))
 
     def _add_observation(self, observer: KeyframeId, reading: TeammateReading,
                          batch: _Batch) -> None:
