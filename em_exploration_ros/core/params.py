@@ -226,6 +226,10 @@ class SlamParams:
         1.345, "Without landmark identities: Huber threshold (whitened residual) of a "
         "correspondence factor; beyond it the factor pulls linearly, not quadratically.",
         0.01, 100.0)
+    landmark_cauchy_k: float = param_field(
+        4.0, "Without landmark identities: Cauchy threshold (whitened residual) of every "
+        "bearing-range factor; a reading far beyond it (a wrong association) pulls less the "
+        "further it is off. 0: Gaussian, as with identities.", 0.0, 100.0)
 
 
 @dataclass(frozen=True)
