@@ -164,8 +164,8 @@ def test_tentative_tracks_confirm_a_landmark_and_never_clutter():
             points.append(landmark + rng.normal(0, 0.02, 2))
         if not points:
             continue
-        answer = tracks.observe(index, np.array(points),
-                                np.repeat(covariance[None], len(points), axis=0))
+        answer = [confirmed is not None for confirmed in tracks.observe(
+            index, np.array(points), np.repeat(covariance[None], len(points), axis=0))]
         if seen and answer[-1]:
             confirmed_landmark.append(index)
         confirmed_clutter += sum(answer[:-1] if seen else answer)
@@ -177,11 +177,11 @@ def test_tentative_tracks_confirm_a_landmark_and_never_clutter():
 def test_a_track_is_dropped_when_not_seen_within_the_window():
     tracks = TentativeTracks(confirm_hits=2, window_keyframes=3, gate_probability=0.99)
     point, covariance = np.array([[1.0, 1.0]]), np.eye(2)[None] * 1e-4
-    assert tracks.observe(0, point, covariance) == [False]
+    assert tracks.observe(0, point, covariance) == [None]
     assert tracks.observe(3, np.zeros((0, 2)), np.zeros((0, 2, 2))) == []
     assert len(tracks) == 0
-    assert tracks.observe(4, point, covariance) == [False]
-    assert tracks.observe(6, point, covariance) == [True]
+    assert tracks.observe(4, point, covariance, ["at 4"]) == [None]
+    assert tracks.observe(6, point, covariance, ["at 6"]) == [("at 4",)]
     assert len(tracks) == 0
     with pytest.raises(ValueError):
         TentativeTracks(confirm_hits=4, window_keyframes=3, gate_probability=0.99)
@@ -193,10 +193,10 @@ def test_a_confirmed_track_hands_back_its_earlier_sightings():
     tracks = TentativeTracks(confirm_hits=3, window_keyframes=5, gate_probability=0.99)
     point, covariance = np.array([[2.0, 1.0]]), np.eye(2)[None] * 1e-4
     clutter = np.array([[-5.0, 3.0]])
-    assert tracks.observe_sightings(0, point, covariance, ["a0"]) == [None]
-    assert tracks.observe_sightings(1, clutter, covariance, ["c1"]) == [None]
-    assert tracks.observe_sightings(2, np.vstack([clutter * -1, point]),
+    assert tracks.observe(0, point, covariance, ["a0"]) == [None]
+    assert tracks.observe(1, clutter, covariance, ["c1"]) == [None]
+    assert tracks.observe(2, np.vstack([clutter * -1, point]),
                                     np.repeat(covariance, 2, axis=0), ["c2", "a2"]) == [None, None]
-    assert tracks.observe_sightings(4, point, covariance, ["a4"]) == [("a0", "a2")]
+    assert tracks.observe(4, point, covariance, ["a4"]) == [("a0", "a2")]
     assert len(tracks) == 2  # the two clutter tracks, not the confirmed one
-    assert tracks.observe(5, point, covariance) == [False]  # a new track starts
+    assert tracks.observe(5, point, covariance) == [None]  # a new track starts

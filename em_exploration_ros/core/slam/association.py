@@ -245,21 +245,15 @@ class TentativeTracks:
         """Tentative tracks held."""
         return len(self._tracks)
 
-    def observe(self, index: int, points: FloatArray, covariances: FloatArray
-                ) -> list[bool]:
+    def observe(self, index: int, points: FloatArray, covariances: FloatArray,
+                sightings: Sequence[Any] | None = None) -> list[tuple | None]:
         """Sightings at keyframe ``index`` (increasing between calls): map-frame points
-        ``(U, 2)`` and covariances ``(U, 2, 2)`` of detections that matched no landmark.
-        Returns, per detection, whether it confirmed its track at this keyframe (the track
-        is then removed here: the caller adds the landmark at that detection)."""
-        return [earlier is not None
-                for earlier in self.observe_sightings(index, points, covariances)]
-
-    def observe_sightings(self, index: int, points: FloatArray, covariances: FloatArray,
-                          sightings: Sequence[Any] | None = None) -> list[tuple | None]:
-        """:meth:`observe`, with what the caller gives with each detection (``sightings``,
-        one per point; e.g. the keyframe and the reading): returns, per detection, None if
-        it did not confirm its track, else what was given with the track's earlier
-        sightings, oldest first (the caller names their landmark now)."""
+        ``(U, 2)`` and covariances ``(U, 2, 2)`` of detections that matched no landmark,
+        with what the caller gives with each (``sightings``, one per point; e.g. the
+        keyframe and the reading). Returns, per detection, None if it did not confirm its
+        track at this keyframe, else what was given with the track's earlier sightings,
+        oldest first (the track is then removed here: the caller adds the landmark at that
+        detection and names those sightings' landmark too)."""
         points = np.asarray(points, dtype=float).reshape(-1, 2)
         sightings = list(sightings) if sightings is not None else [None] * len(points)
         covariances = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)

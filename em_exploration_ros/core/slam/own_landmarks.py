@@ -120,7 +120,7 @@ class OwnLandmarks:
         window = self._relative_covariance(keyframe.index - self._window, keyframe.index)
         track_points, track_covariances = detection_points(
             pose, window, measurements[unpaired], noise[unpaired])
-        confirmed = dict(zip(unpaired, self._tracks.observe_sightings(
+        confirmed = dict(zip(unpaired, self._tracks.observe(
             keyframe.index, track_points, track_covariances,
             [(keyframe.index, readings[d]) for d in unpaired])))
         named, late = [], []
