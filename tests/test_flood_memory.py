@@ -20,9 +20,10 @@ import json
 import re
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from ros_process import NodeProcess, start_team_run
+from ros_process import NodeProcess, ProcessSet, start_team_run
 from test_fuzz import RUN_PROCESSES, MemoryWatch
 
 #: Bound of one team run [s]; the flood's length [s] and rate [messages/s] (more than em-fuzz
@@ -45,11 +46,13 @@ def sim_time_s(output: str) -> float:
     return float(times[-1]) if times else 0.0
 
 
-def run(tmp_path: Path, name: str, flood: bool) -> dict:
-    """One team run, flooded or not: each process's last VmRSS [MB] before it exited, the
-    fuzzer's report and the simulated times the flood ended and the run ended at."""
+def run(tmp_path: Path, name: str, flood: bool, beside: ProcessSet | None = None) -> dict:
+    """One team run, flooded or not (``beside`` another one: ``start_team_run``): each
+    process's last VmRSS [MB] before it exited, the fuzzer's report and the simulated times
+    the flood ended and the run ended at."""
     summary_path = tmp_path / name / "summary.json"
-    team, domain = start_team_run(tmp_path / name, *TEAM, "--summary", str(summary_path))
+    team, domain = start_team_run(tmp_path / name, *TEAM, "--summary", str(summary_path),
+                                  beside=beside)
     memory, last_mb = MemoryWatch(domain), {}
     report, flood_end_s = None, 0.0
 
@@ -89,8 +92,11 @@ def run(tmp_path: Path, name: str, flood: bool) -> dict:
 
 
 def test_memory_comes_back_after_a_flood_of_team_updates(tmp_path):
-    clean = run(tmp_path, "clean", flood=False)
-    flooded = run(tmp_path, "flooded", flood=True)
+    # The clean run goes on beside the flooded one, in a domain of its own.
+    with ThreadPoolExecutor(max_workers=1) as thread, ProcessSet() as beside:
+        clean_run = thread.submit(run, tmp_path, "clean", flood=False, beside=beside)
+        flooded = run(tmp_path, "flooded", flood=True)
+        clean = clean_run.result()
 
     sent = flooded["report"]["messages"]
     assert set(flooded["report"]["topics"]) == set(FLOODED_TOPICS)
