@@ -28,7 +28,12 @@ def request_bytes() -> int:
 
 @functools.lru_cache(maxsize=None)
 def motion_command_bytes() -> int:
-    """Largest valid em_exploration_msgs/MotionCommand [B]: both bounded arrays full."""
+    """Largest valid em_exploration_msgs/MotionCommand [B]: both bounded arrays full (to
+    the bounds the message definition gives them)."""
+    bounds = {name: slot.maximum_size for name, slot in zip(
+        MotionCommand.get_fields_and_field_types(), MotionCommand.SLOT_TYPES)
+        if hasattr(slot, "maximum_size")}
     return serialized_size(MotionCommand(
-        header=Header(frame_id="x" * FRAME_ID_ROOM), given_up=[GivenUpTarget()] * 4,
-        meetings=[Meeting()] * 4))
+        header=Header(frame_id="x" * FRAME_ID_ROOM),
+        given_up=[GivenUpTarget()] * bounds["given_up"],
+        meetings=[Meeting()] * bounds["meetings"]))

@@ -49,15 +49,15 @@ class TeamLiveness:
         # the loss that is still open (None: not lost).
         self._lost_closed = [(0.0, 0.0)] * num_robots
         self._lost_since: list[tuple[float, float] | None] = [None] * num_robots
-        self._status = [ACTIVE] * num_robots
         self._unconfirmed: dict[int, tuple[float, float]] = {}
         # Per robot: processes whose liveliness was lost and whose successor has not
         # reported its own yet.
         self._successors_due: dict[int, int] = {}
 
     def status(self, robot: int) -> str:
-        """The robot's current status."""
-        return self._status[robot]
+        """The robot's current status: its latest change's (active with none)."""
+        latest = self._latest_changes[robot] or self._first_changes[robot]
+        return latest[-1].status if latest else ACTIVE
 
     def changes(self, robot: int) -> list[StatusChange]:
         """The robot's status changes in order (empty: active all along): the first and the
@@ -141,7 +141,6 @@ class TeamLiveness:
             self._lost_closed[robot] = (closed_sim_s + sim_time_s - since[0],
                                         closed_wall_s + wall_s - since[1])
             self._lost_since[robot] = None
-        self._status[robot] = status
         change = StatusChange(status, sim_time_s, wall_s, reason)
         if len(self._first_changes[robot]) < self._first_kept:
             self._first_changes[robot].append(change)

@@ -129,14 +129,13 @@ class OwnLandmarks:
                 landmark = int(ids[pairing[d]])
             elif confirmed[d] is not None:
                 landmark = owned_landmark_id(self._robot, self._new_own_number())
-                number = landmark % OWNED_LANDMARK_STRIDE
-                late.extend(LateReading(index, dataclasses.replace(earlier, landmark_id=number))
-                            for index, earlier in confirmed[d])
             else:
                 continue
             self._last_seen[landmark] = keyframe.index
-            named.append(dataclasses.replace(reading,
-                                             landmark_id=landmark % OWNED_LANDMARK_STRIDE))
+            number = landmark % OWNED_LANDMARK_STRIDE
+            named.append(dataclasses.replace(reading, landmark_id=number))
+            late.extend(LateReading(index, dataclasses.replace(earlier, landmark_id=number))
+                        for index, earlier in confirmed.get(d) or ())
         return dataclasses.replace(keyframe, landmarks=tuple(named), late_landmarks=tuple(late))
 
     def _new_own_number(self) -> int:
