@@ -200,3 +200,17 @@ def test_a_confirmed_track_hands_back_its_earlier_sightings():
     assert tracks.observe(4, point, covariance, ["a4"]) == [("a0", "a2")]
     assert len(tracks) == 2  # the two clutter tracks, not the confirmed one
     assert tracks.observe(5, point, covariance) == [None]  # a new track starts
+
+
+def test_a_track_needs_the_fewest_confirmations_any_of_its_sightings_asked_for():
+    """A loop closure's detection asks for fewer sightings (``loop_closure_confirm_hits``)
+    than a new landmark's: its track confirms at its second sighting, another at its
+    third."""
+    tracks = TentativeTracks(confirm_hits=3, window_keyframes=5, gate_probability=0.99)
+    points, covariances = np.array([[2.0, 1.0], [-4.0, 3.0]]), np.repeat(
+        np.eye(2)[None] * 1e-4, 2, axis=0)
+    assert tracks.observe(0, points, covariances, ["loop 0", "new 0"], [3, 3]) == [None, None]
+    assert tracks.observe(1, points, covariances, ["loop 1", "new 1"], [2, 3]) == [
+        ("loop 0",), None]
+    assert tracks.observe(2, points[1:], covariances[1:], ["new 2"]) == [("new 0", "new 1")]
+    assert len(tracks) == 0

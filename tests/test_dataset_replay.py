@@ -66,7 +66,7 @@ def test_segments_cut_the_poses_consecutively():
     assert segments(5, 1) == [range(0, 5)]
 
 
-@pytest.mark.parametrize("robots, precision, recall", [(1, 0.95, 0.88), (2, 0.96, 0.86)])
+@pytest.mark.parametrize("robots, precision, recall", [(1, 0.95, 0.87), (2, 0.96, 0.86)])
 def test_a_prefix_is_associated_without_identities(prefix, robots, precision, recall):
     dataset, batch = prefix
     sigma = calibrated_heading_sigma(dataset, replay_params(dataset).slam.prior_sigmas)
@@ -78,9 +78,10 @@ def test_a_prefix_is_associated_without_identities(prefix, robots, precision, re
     assert len(association["robots"]) == robots
     assert association["true_detections"] == summary["detections"] == 386
     # Floors of what the association reaches on this prefix with the calibrated heading
-    # sigma (measured: precision 0.958 and 0.970, recall 0.891 and 0.870, landmark RMS to
-    # the batch 1.82 m and 0.81 m; recall 0.736 and 0.663 before a track's earlier
-    # sightings were named), not the goal of 0.98 and 0.9 (docs/results.md).
+    # sigma (measured: precision 0.960 and 0.970, recall 0.878 and 0.868, landmark RMS to
+    # the batch 1.80 m and 0.80 m; recall 0.736 and 0.663 before a track's earlier
+    # sightings were named, 0.891 and 0.870 before a loop closure waited for its track),
+    # not the goal of 0.98 and 0.9 (docs/results.md).
     assert association["precision"] >= precision and association["recall"] >= recall
     assert 20 <= summary["landmarks_created"] <= 60
     assert summary["landmark_rms_to_batch_m"] < 2.0

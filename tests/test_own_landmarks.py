@@ -178,6 +178,52 @@ def test_an_unanchored_robot_leaves_its_detections_out():
     assert associator.associate(keyframe).landmarks == ()
 
 
+def test_a_loop_closure_waits_for_its_track_so_clutter_in_its_wide_gate_is_not_named():
+    """A landmark not seen for more than ``RECENT_KEYFRAMES`` keyframes is gated on the
+    marginals, wide after an excursion. A robot maps a landmark at (5, 0), drives 14 m out
+    and back (about 0.5 m of drift per axis in its marginal), waits where the landmark is
+    missed, then sees a clutter point 1 m from it (inside that gate) and the landmark
+    itself at the next three keyframes. The clutter point is never named; the landmark's
+    re-sighting names the old landmark once its track was seen twice
+    (``loop_closure_confirm_hits``), the first sighting as a late reading, and the third
+    at once (the landmark is recent again); no new landmark is made."""
+    slam = TeamSlam(0, 1, SlamParams(), np.zeros(3), landmark_ids=False)
+    associator = OwnLandmarks(slam, ExplorationParams().sensors)
+    landmark = LandmarkReading(UNIDENTIFIED, 5.0, 0.0, 1e-4, 1e-5)
+    clutter = LandmarkReading(UNIDENTIFIED, float(np.hypot(5.8, 0.6)),
+                              float(np.arctan2(0.6, 5.8)), 1e-4, 1e-5)
+    still, driving = np.eye(3) * 1e-8, np.diag([0.02, 0.02, 1e-6])
+    plan = ([((0.0, 0.0), still, [])]                        # keyframe 0: the anchor
+            + [((0.0, 0.0), still, [landmark])] * 3          # 1-3: mapped
+            + [((0.0, 2.0), driving, [])] * 7 + [((0.0, -2.0), driving, [])] * 7  # 4-17
+            + [((0.0, 0.0), still, [])] * 6                  # 18-23: the landmark missed
+            + [((0.0, 0.0), still, [clutter])]                # 24: clutter in the gate
+            + [((0.0, 0.0), still, [landmark])] * 3)          # 25-27: seen again
+    named, mapped = [], owned_landmark_id(0, 0)
+    for index, (delta, covariance, readings) in enumerate(plan):
+        if readings == [clutter]:  # the gate the clutter point meets
+            gate = slam.landmark_covariance(mapped) + slam.pose_covariance(0, index - 1)[:2, :2]
+        keyframe = KeyframeMeasurements(
+            robot_id=0, index=index, stamp_s=float(index), is_first=index == 0,
+            previous_index=index - 1, odom_delta=np.array([*delta, 0.0]),
+            odom_covariance=covariance, landmarks=tuple(readings), teammates=())
+        keyframe = associator.associate(keyframe)
+        named.append(keyframe)
+        slam.add_keyframe(keyframe)
+        slam.update()
+    assert [r.landmark_id for r in named[3].landmarks] == [0]
+    offset = np.array([0.8, 0.6])
+    assert offset @ np.linalg.solve(gate, offset) < 9.21  # inside the 0.99 gate
+    assert all(named[i].landmarks == () for i in range(4, 26))
+    assert [r.landmark_id for r in named[26].landmarks] == [0]
+    assert [(late.keyframe_index, late.reading.landmark_id)
+            for late in named[26].late_landmarks] == [(25, 0)]
+    assert [r.landmark_id for r in named[27].landmarks] == [0]
+    assert named[27].late_landmarks == ()
+    assert list(slam.landmark_estimates()) == [mapped]
+    assert [r[1] for r in slam.landmark_readings()] == [3, 1, 2, 26, 25, 27]
+
+
 class _FakeSlam:
     """The parts of TeamSlam that match_teammates uses, with landmarks placed by hand: each
     with ``sigma_m`` of its own, and the teammate's with ``drift_m`` in common (their map's

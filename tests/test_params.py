@@ -253,6 +253,21 @@ def test_explored_thresholds_must_leave_unknown_cells_unexplored(free_below, occ
             ExplorationParams().replace(map=thresholds)
 
 
+@pytest.mark.parametrize("slam, valid", [
+    ({"track_confirm_hits": 6}, False), ({"loop_closure_confirm_hits": 6}, False),
+    ({"track_window_keyframes": 2}, False), ({"track_window_keyframes": 3}, True),
+    ({"track_confirm_hits": 5, "loop_closure_confirm_hits": 5}, True)])
+def test_a_track_must_be_confirmable_within_its_window(slam, valid):
+    """A track is seen at most once per keyframe: a confirmation asking for more sightings
+    than the window's keyframes is refused when the parameters are made, not when a robot
+    first builds its tracks."""
+    if valid:
+        assert ExplorationParams().replace(slam=slam).slam.track_window_keyframes >= 3
+    else:
+        with pytest.raises(ValueError, match="must be at most track_window_keyframes"):
+            ExplorationParams().replace(slam=slam)
+
+
 @pytest.mark.parametrize("width_m, height_m, cell_size_m, valid", [
     (40.0, 40.0, 50.0, False), (40.0, 40.0, 10.5, False), (100.0, 30.0, 8.0, False),
     (40.0, 40.0, 10.0, True), (10.0, 10.0, 2.0, True)])

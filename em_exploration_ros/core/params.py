@@ -218,6 +218,11 @@ class SlamParams:
     track_window_keyframes: int = param_field(
         5, "Without landmark identities: the window of keyframes of a tentative track; a "
         "track not seen for this many keyframes is dropped.", 1, 100)
+    loop_closure_confirm_hits: int = param_field(
+        2, "Without landmark identities: a detection paired with a landmark not seen for "
+        "a while (gated on the wide marginals: a loop closure) names it only once its track "
+        "was seen in this many of the last track_window_keyframes keyframes (one clutter "
+        "point in that gate bends a map).", 1, 100)
     correspondence_sigma_m: float = param_field(
         0.01, "Without landmark identities: sigma per axis [m] of the factor that ties a "
         "teammate's landmark to the robot's own (the same point), under a Huber loss.",
@@ -230,6 +235,16 @@ class SlamParams:
         4.0, "Without landmark identities: Cauchy threshold (whitened residual) of every "
         "bearing-range factor; a reading far beyond it (a wrong association) pulls less the "
         "further it is off. 0: Gaussian, as with identities.", 0.0, 100.0)
+
+    def __post_init__(self) -> None:
+        """``ValueError`` unless a tentative track can be confirmed within its window:
+        ``track_confirm_hits`` and ``loop_closure_confirm_hits`` at most
+        ``track_window_keyframes``."""
+        for name in ("track_confirm_hits", "loop_closure_confirm_hits"):
+            if getattr(self, name) > self.track_window_keyframes:
+                raise ValueError(f"SlamParams.{name} ({getattr(self, name)}) must be at most "
+                                 f"track_window_keyframes ({self.track_window_keyframes}): a "
+                                 f"track is seen at most once per keyframe of its window")
 
 
 @dataclass(frozen=True)

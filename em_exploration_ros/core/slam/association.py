@@ -213,6 +213,8 @@ class _Track:
 
     point: FloatArray
     covariance: FloatArray
+    #: sightings in the window that confirm it (the fewest any of its sightings asked for)
+    confirm_hits: int
     seen_at: list[int] = field(default_factory=list)
     #: what the caller gave with each sighting, in the order of ``seen_at``
     sightings: list[Any] = field(default_factory=list)
@@ -246,16 +248,21 @@ class TentativeTracks:
         return len(self._tracks)
 
     def observe(self, index: int, points: FloatArray, covariances: FloatArray,
-                sightings: Sequence[Any] | None = None) -> list[tuple | None]:
+                sightings: Sequence[Any] | None = None,
+                confirm_hits: Sequence[int] | None = None) -> list[tuple | None]:
         """Sightings at keyframe ``index`` (increasing between calls): map-frame points
         ``(U, 2)`` and covariances ``(U, 2, 2)`` of detections that matched no landmark,
         with what the caller gives with each (``sightings``, one per point; e.g. the
-        keyframe and the reading). Returns, per detection, None if it did not confirm its
+        keyframe and the reading) and how many sightings in the window confirm its track
+        (``confirm_hits``, one per point; default ``self.confirm_hits``: a track needs the
+        fewest any of its sightings asked for). Returns, per detection, None if it did not confirm its
         track at this keyframe, else what was given with the track's earlier sightings,
         oldest first (the track is then removed here: the caller adds the landmark at that
         detection and names those sightings' landmark too)."""
         points = np.asarray(points, dtype=float).reshape(-1, 2)
         sightings = list(sightings) if sightings is not None else [None] * len(points)
+        needs = (list(confirm_hits) if confirm_hits is not None
+                 else [self.confirm_hits] * len(points))
         covariances = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
         self._tracks = [track for track in self._tracks
                         if track.seen_at[-1] > index - self.window_keyframes]
@@ -275,8 +282,8 @@ class TentativeTracks:
         finished: set[int] = set()
         for detection in range(len(points)):
             if detection not in matched:
-                self._tracks.append(_Track(points[detection], covariances[detection], [index],
-                                           [sightings[detection]]))
+                self._tracks.append(_Track(points[detection], covariances[detection],
+                                           needs[detection], [index], [sightings[detection]]))
                 continue
             track = self._tracks[matched[detection]]
             track_information = np.linalg.inv(track.covariance)
@@ -285,10 +292,11 @@ class TentativeTracks:
             track.point = fused @ (track_information @ track.point
                                    + detection_information @ points[detection])
             track.covariance = fused
+            track.confirm_hits = min(track.confirm_hits, needs[detection])
             track.seen_at.append(index)
             track.sightings.append(sightings[detection])
             recent = [seen for seen in track.seen_at if seen > index - self.window_keyframes]
-            if len(recent) >= self.confirm_hits:
+            if len(recent) >= track.confirm_hits:
                 confirmed[detection] = tuple(track.sightings[:-1])
                 finished.add(matched[detection])
         self._tracks = [track for t, track in enumerate(self._tracks) if t not in finished]

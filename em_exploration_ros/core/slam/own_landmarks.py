@@ -45,6 +45,17 @@ RECENT_KEYFRAMES = 10
 FIRST_CORRESPONDENCES = 2
 
 
+@dataclasses.dataclass(frozen=True)
+class _Sighting:
+    """One detection held in a tentative track: the own keyframe that saw it, its reading,
+    and the own landmark (graph id) it was paired with while that landmark waited for its
+    track (a landmark gated on the marginals), else None."""
+
+    index: int
+    reading: LandmarkReading
+    landmark: int | None
+
+
 class OwnLandmarks:
     """Data association of one robot without landmark identities.
 
@@ -69,6 +80,15 @@ class OwnLandmarks:
     both since). The marginals hold the drift from the mission's start, common to pose and
     landmarks (about 0.3 m after 250 steps): as gates of every landmark and track they let
     clutter in where the landmark was missed.
+
+    Such a wide gate still has to judge the loop closures, so a detection paired with a
+    landmark gated on the marginals is not named at once: it goes to the tentative tracks
+    with that landmark, and names it only once its track was seen in
+    ``loop_closure_confirm_hits`` of the window's keyframes (then with its earlier
+    sightings, as late readings; a track paired with several landmarks names the one paired
+    most often). One clutter point inside such a gate, where the landmark was missed, bent
+    a robot's map by 1.7 m under the Cauchy loss: the pose, held only by the odometry since
+    the landmark was last seen, gave way to it.
     """
 
     def __init__(self, slam: TeamSlam, sensor_params: SensorParams) -> None:
@@ -78,6 +98,8 @@ class OwnLandmarks:
         self._probability = params.association_gate_probability
         self._floor = params.covariance_floor_sigma ** 2
         self._window = params.track_window_keyframes
+        self._confirm_hits = params.track_confirm_hits
+        self._loop_closure_hits = params.loop_closure_confirm_hits
         self._tracks = TentativeTracks(params.track_confirm_hits, self._window,
                                        self._probability)
         self._reach_m = sensor_params.sonar_max_range_m + CANDIDATE_MARGIN_M
@@ -111,32 +133,47 @@ class OwnLandmarks:
         measurements = np.array([[r.bearing_rad, r.range_m] for r in readings])
         noise = np.array([np.diag([r.bearing_variance + self._floor,
                                    r.range_variance + self._floor]) for r in readings])
-        ids, points, covariances = self._own_landmarks_near(previous, pose, keyframe,
-                                                            noise[0])
+        ids, points, covariances, old = self._own_landmarks_near(previous, pose, keyframe,
+                                                                 noise[0])
         pairing = jcbb(ScanCompatibility(ScanPrediction(pose, pose_covariance, points,
                                                         covariances), measurements, noise),
                        self._probability)
-        unpaired = [d for d, row in enumerate(pairing) if row is None]
+        # A pairing with a landmark gated on the marginals waits for its track (class doc).
+        waiting = {d: int(ids[row]) for d, row in enumerate(pairing)
+                   if row is not None and old[row]}
+        tracked = [d for d, row in enumerate(pairing) if row is None or d in waiting]
         window = self._relative_covariance(keyframe.index - self._window, keyframe.index)
         track_points, track_covariances = detection_points(
-            pose, window, measurements[unpaired], noise[unpaired])
-        confirmed = dict(zip(unpaired, self._tracks.observe(
+            pose, window, measurements[tracked], noise[tracked])
+        confirmed = dict(zip(tracked, self._tracks.observe(
             keyframe.index, track_points, track_covariances,
-            [(keyframe.index, readings[d]) for d in unpaired])))
+            [_Sighting(keyframe.index, readings[d], waiting.get(d)) for d in tracked],
+            [self._loop_closure_hits if d in waiting else self._confirm_hits
+             for d in tracked])))
         named, late = [], []
         for d, reading in enumerate(readings):
-            if pairing[d] is not None:
+            if pairing[d] is not None and d not in waiting:
                 landmark = int(ids[pairing[d]])
             elif confirmed[d] is not None:
-                landmark = owned_landmark_id(self._robot, self._new_own_number())
+                landmark = self._confirmed_landmark(
+                    [*confirmed[d], _Sighting(keyframe.index, reading, waiting.get(d))])
             else:
                 continue
             self._last_seen[landmark] = keyframe.index
             number = landmark % OWNED_LANDMARK_STRIDE
             named.append(dataclasses.replace(reading, landmark_id=number))
-            late.extend(LateReading(index, dataclasses.replace(earlier, landmark_id=number))
-                        for index, earlier in confirmed.get(d) or ())
+            late.extend(LateReading(earlier.index,
+                                    dataclasses.replace(earlier.reading, landmark_id=number))
+                        for earlier in confirmed.get(d) or ())
         return dataclasses.replace(keyframe, landmarks=tuple(named), late_landmarks=tuple(late))
+
+    def _confirmed_landmark(self, sightings: list[_Sighting]) -> int:
+        """The landmark (graph id) a confirmed track stands for: the own landmark its
+        sightings were paired with most often (the earliest such on a tie), else a new one."""
+        paired = [sighting.landmark for sighting in sightings if sighting.landmark is not None]
+        if paired:
+            return max(dict.fromkeys(paired), key=paired.count)
+        return owned_landmark_id(self._robot, self._new_own_number())
 
     def _new_own_number(self) -> int:
         """The next own landmark number: after every own landmark of the graph too (a
@@ -176,11 +213,12 @@ class OwnLandmarks:
 
     def _own_landmarks_near(self, previous: np.ndarray, pose: np.ndarray,
                             keyframe: KeyframeMeasurements, noise: np.ndarray
-                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Ids (L,), points (L, 2) and covariances (L, 2, 2) of this robot's own landmarks
-        within the sonar's range (plus a margin) of ``pose``: each the motion's covariance
-        from the keyframe that last saw it to ``previous``, moved to the landmark, plus the
-        sonar's ``noise`` (2, 2) there."""
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Ids (L,), points (L, 2), covariances (L, 2, 2) and whether each is gated on the
+        marginals (L,) bool, of this robot's own landmarks within the sonar's range (plus a
+        margin) of ``pose``: a recent one's covariance is the motion's from the keyframe
+        that last saw it to ``previous``, moved to the landmark, plus the sonar's ``noise``
+        (2, 2) there; an older one's the marginals' (class docstring)."""
         near = [(landmark_id, point) for landmark_id, point
                 in self._slam.landmark_estimates().items()
                 if landmark_owner(landmark_id) == self._robot
@@ -188,6 +226,7 @@ class OwnLandmarks:
         ids = np.array([landmark_id for landmark_id, _ in near], dtype=np.int64)
         points = np.array([point for _, point in near], dtype=float).reshape(-1, 2)
         covariances = np.zeros((len(near), 2, 2))
+        old = np.zeros(len(near), dtype=bool)
         for row, (landmark_id, point) in enumerate(near):
             lever = point - previous[:2]
             moved = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]]])
@@ -198,11 +237,12 @@ class OwnLandmarks:
                 point_part = detection_points(previous, np.zeros((3, 3)), measured,
                                               noise[None])[1][0]
             else:
+                old[row] = True
                 motion = body_to_map_covariance(previous, self._slam.pose_covariance(
                     self._robot, keyframe.previous_index))
                 point_part = self._slam.landmark_covariance(int(landmark_id))
             covariances[row] = moved @ motion @ moved.T + point_part
-        return ids, points, covariances
+        return ids, points, covariances, old
 
     def match_teammates(self) -> list[tuple[int, int]]:
         """Find teammates' landmarks that are this robot's own and tie them in the graph
