@@ -178,42 +178,61 @@ def test_an_unanchored_robot_leaves_its_detections_out():
     assert associator.associate(keyframe).landmarks == ()
 
 
-def test_a_loop_closure_waits_for_its_track_so_clutter_in_its_wide_gate_is_not_named():
-    """A landmark not seen for more than ``RECENT_KEYFRAMES`` keyframes is gated on the
-    marginals, wide after an excursion. A robot maps a landmark at (5, 0), drives 14 m out
-    and back (about 0.5 m of drift per axis in its marginal), waits where the landmark is
-    missed, then sees a clutter point 1 m from it (inside that gate) and the landmark
-    itself at the next three keyframes. The clutter point is never named; the landmark's
-    re-sighting names the old landmark once its track was seen twice
-    (``loop_closure_confirm_hits``), the first sighting as a late reading, and the third
-    at once (the landmark is recent again); no new landmark is made."""
-    slam = TeamSlam(0, 1, SlamParams(), np.zeros(3), landmark_ids=False)
-    associator = OwnLandmarks(slam, ExplorationParams().sensors)
-    landmark = LandmarkReading(UNIDENTIFIED, 5.0, 0.0, 1e-4, 1e-5)
-    clutter = LandmarkReading(UNIDENTIFIED, float(np.hypot(5.8, 0.6)),
-                              float(np.arctan2(0.6, 5.8)), 1e-4, 1e-5)
-    still, driving = np.eye(3) * 1e-8, np.diag([0.02, 0.02, 1e-6])
-    plan = ([((0.0, 0.0), still, [])]                        # keyframe 0: the anchor
-            + [((0.0, 0.0), still, [landmark])] * 3          # 1-3: mapped
-            + [((0.0, 2.0), driving, [])] * 7 + [((0.0, -2.0), driving, [])] * 7  # 4-17
-            + [((0.0, 0.0), still, [])] * 6                  # 18-23: the landmark missed
-            + [((0.0, 0.0), still, [clutter])]                # 24: clutter in the gate
-            + [((0.0, 0.0), still, [landmark])] * 3)          # 25-27: seen again
-    named, mapped = [], owned_landmark_id(0, 0)
-    for index, (delta, covariance, readings) in enumerate(plan):
-        if readings == [clutter]:  # the gate the clutter point meets
-            gate = slam.landmark_covariance(mapped) + slam.pose_covariance(0, index - 1)[:2, :2]
-        keyframe = KeyframeMeasurements(
+_LANDMARK = LandmarkReading(UNIDENTIFIED, 5.0, 0.0, 1e-4, 1e-5)  # at (5, 0) from the origin
+_STILL, _DRIVING = np.eye(3) * 1e-8, np.diag([0.02, 0.02, 1e-6])
+#: Keyframe 0 anchors; 1-3 map the landmark; 4-17 drive 14 m out and back along y (about
+#: 0.5 m of drift per axis in the marginal at the end).
+_MAP_AND_RETURN = ([((0.0, 0.0), _STILL, [])] + [((0.0, 0.0), _STILL, [_LANDMARK])] * 3
+                   + [((0.0, 2.0), _DRIVING, [])] * 7 + [((0.0, -2.0), _DRIVING, [])] * 7)
+
+
+def _reading_at(x: float, y: float) -> LandmarkReading:
+    return LandmarkReading(UNIDENTIFIED, float(np.hypot(x, y)), float(np.arctan2(y, x)),
+                           1e-4, 1e-5)
+
+
+def _drive(slam, associator, plan, first_index=0, before=None):
+    """Robot 0's keyframes from ``plan`` (odometry delta (x, y), its covariance, readings),
+    each associated, added and updated; ``before(index)`` is called before each. Returns
+    the associated keyframes."""
+    named = []
+    for index, (delta, covariance, readings) in enumerate(plan, start=first_index):
+        if before is not None:
+            before(index)
+        keyframe = associator.associate(KeyframeMeasurements(
             robot_id=0, index=index, stamp_s=float(index), is_first=index == 0,
             previous_index=index - 1, odom_delta=np.array([*delta, 0.0]),
-            odom_covariance=covariance, landmarks=tuple(readings), teammates=())
-        keyframe = associator.associate(keyframe)
+            odom_covariance=covariance, landmarks=tuple(readings), teammates=()))
         named.append(keyframe)
         slam.add_keyframe(keyframe)
         slam.update()
+    return named
+
+
+def test_a_loop_closure_waits_for_its_track_so_clutter_in_its_wide_gate_is_not_named():
+    """A landmark not seen for more than ``RECENT_KEYFRAMES`` keyframes is gated on the
+    marginals, wide after an excursion. A robot maps a landmark at (5, 0), drives 14 m out
+    and back, waits where the landmark is missed, then sees a clutter point 1 m from it
+    (inside that gate) and the landmark itself at the next three keyframes. The clutter
+    point is never named; the landmark's re-sighting names the old landmark once its track
+    was seen twice (``loop_closure_confirm_hits``), the first sighting as a late reading,
+    and the third at once (the landmark is recent again); no new landmark is made."""
+    slam = TeamSlam(0, 1, SlamParams(), np.zeros(3), landmark_ids=False)
+    associator = OwnLandmarks(slam, ExplorationParams().sensors)
+    mapped, gate = owned_landmark_id(0, 0), []
+
+    def gate_at_the_clutter(index):
+        if index == 24:
+            gate.append(slam.landmark_covariance(mapped)
+                        + slam.pose_covariance(0, index - 1)[:2, :2])
+
+    plan = (_MAP_AND_RETURN + [((0.0, 0.0), _STILL, [])] * 6  # 18-23: the landmark missed
+            + [((0.0, 0.0), _STILL, [_reading_at(5.8, 0.6)])]  # 24: clutter in the gate
+            + [((0.0, 0.0), _STILL, [_LANDMARK])] * 3)         # 25-27: seen again
+    named = _drive(slam, associator, plan, before=gate_at_the_clutter)
     assert [r.landmark_id for r in named[3].landmarks] == [0]
     offset = np.array([0.8, 0.6])
-    assert offset @ np.linalg.solve(gate, offset) < 9.21  # inside the 0.99 gate
+    assert offset @ np.linalg.solve(gate[0], offset) < 9.21  # inside the 0.99 gate
     assert all(named[i].landmarks == () for i in range(4, 26))
     assert [r.landmark_id for r in named[26].landmarks] == [0]
     assert [(late.keyframe_index, late.reading.landmark_id)
@@ -222,6 +241,24 @@ def test_a_loop_closure_waits_for_its_track_so_clutter_in_its_wide_gate_is_not_n
     assert named[27].late_landmarks == ()
     assert list(slam.landmark_estimates()) == [mapped]
     assert [r[1] for r in slam.landmark_readings()] == [3, 1, 2, 26, 25, 27]
+
+
+def test_a_restarted_robot_gates_the_landmarks_of_its_journal_on_the_marginals():
+    """A restarted robot's association starts afresh over the graph its journal rebuilt:
+    it does not know when it last saw a landmark. Gated as if seen just before (the
+    sonar's noise alone), a landmark re-seen 0.5 m off after the excursion was made anew
+    (a duplicate); gated on the marginals, it is the old one, named once its track was
+    seen twice."""
+    slam = TeamSlam(0, 1, SlamParams(), np.zeros(3), landmark_ids=False)
+    _drive(slam, OwnLandmarks(slam, ExplorationParams().sensors), _MAP_AND_RETURN)
+    restarted = OwnLandmarks(slam, ExplorationParams().sensors)
+    named = _drive(slam, restarted, [((0.0, 0.0), _STILL, [_reading_at(5.4, 0.3)])] * 3,
+                   first_index=len(_MAP_AND_RETURN))
+    assert named[0].landmarks == ()
+    assert [r.landmark_id for r in named[1].landmarks] == [0]
+    assert [late.keyframe_index for late in named[1].late_landmarks] == [18]
+    assert [r.landmark_id for r in named[2].landmarks] == [0]
+    assert list(slam.landmark_estimates()) == [owned_landmark_id(0, 0)]
 
 
 class _FakeSlam:

@@ -255,10 +255,10 @@ class TentativeTracks:
         with what the caller gives with each (``sightings``, one per point; e.g. the
         keyframe and the reading) and how many sightings in the window confirm its track
         (``confirm_hits``, one per point; default ``self.confirm_hits``: a track needs the
-        fewest any of its sightings asked for). Returns, per detection, None if it did not confirm its
-        track at this keyframe, else what was given with the track's earlier sightings,
-        oldest first (the track is then removed here: the caller adds the landmark at that
-        detection and names those sightings' landmark too)."""
+        fewest any of its sightings asked for). Returns, per detection, None if it did not
+        confirm its track at this keyframe, else what was given with the track's earlier
+        sightings, oldest first (the track is then removed here: the caller adds the
+        landmark at that detection and names those sightings' landmark too)."""
         points = np.asarray(points, dtype=float).reshape(-1, 2)
         sightings = list(sightings) if sightings is not None else [None] * len(points)
         needs = (list(confirm_hits) if confirm_hits is not None

@@ -18,7 +18,8 @@ import numpy as np
 
 from em_exploration_ros.core.geometry import compose, compose_jacobians
 from em_exploration_ros.core.params import SensorParams
-from em_exploration_ros.core.records.readings import KeyframeMeasurements, LateReading
+from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
+                                                      LateReading)
 from em_exploration_ros.core.slam.association import (ScanCompatibility, ScanPrediction,
                                                       TentativeTracks, detection_points, jcbb,
                                                       predict_measurements,
@@ -218,7 +219,9 @@ class OwnLandmarks:
         marginals (L,) bool, of this robot's own landmarks within the sonar's range (plus a
         margin) of ``pose``: a recent one's covariance is the motion's from the keyframe
         that last saw it to ``previous``, moved to the landmark, plus the sonar's ``noise``
-        (2, 2) there; an older one's the marginals' (class docstring)."""
+        (2, 2) there; an older one's the marginals' (class docstring), as is one this
+        association has not named (a restarted robot's, from its journal: gated on the
+        sonar's noise alone, as if seen just before, a re-seen one was made anew)."""
         near = [(landmark_id, point) for landmark_id, point
                 in self._slam.landmark_estimates().items()
                 if landmark_owner(landmark_id) == self._robot
@@ -230,8 +233,8 @@ class OwnLandmarks:
         for row, (landmark_id, point) in enumerate(near):
             lever = point - previous[:2]
             moved = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]]])
-            last_seen = self._last_seen.get(landmark_id, keyframe.previous_index)
-            if keyframe.previous_index - last_seen <= RECENT_KEYFRAMES:
+            last_seen = self._last_seen.get(landmark_id)
+            if last_seen is not None and keyframe.previous_index - last_seen <= RECENT_KEYFRAMES:
                 motion = self._relative_covariance(last_seen, keyframe.previous_index)
                 measured = predict_measurements(previous, point[None])[0]
                 point_part = detection_points(previous, np.zeros((3, 3)), measured,
