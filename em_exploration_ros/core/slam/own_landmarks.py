@@ -99,7 +99,6 @@ class OwnLandmarks:
         self._probability = params.association_gate_probability
         self._floor = params.covariance_floor_sigma ** 2
         self._window = params.track_window_keyframes
-        self._confirm_hits = params.track_confirm_hits
         self._loop_closure_hits = params.loop_closure_confirm_hits
         self._tracks = TentativeTracks(params.track_confirm_hits, self._window,
                                        self._probability)
@@ -149,7 +148,7 @@ class OwnLandmarks:
         confirmed = dict(zip(tracked, self._tracks.observe(
             keyframe.index, track_points, track_covariances,
             [_Sighting(keyframe.index, readings[d], waiting.get(d)) for d in tracked],
-            [self._loop_closure_hits if d in waiting else self._confirm_hits
+            [self._loop_closure_hits if d in waiting else self._tracks.confirm_hits
              for d in tracked])))
         named, late = [], []
         for d, reading in enumerate(readings):
