@@ -220,7 +220,7 @@ def command_latency(args: argparse.Namespace) -> int:
     header = "".join(f"{name:>18}{'/cand':>7}" for name in args.planners)
     print(f"{'poses':>6} {'vars':>5} {'cands':>5}{header} {'oracle/cand [ms]':>17} "
           f"{'fast vs oracle':>14} {'approx. U_M err':>15} {'argmin moved':>12} "
-          f"{'approx. CPU [ms]':>16}")
+          f"{'approx. CPU [ms]':>16}", flush=True)
     variables, per_candidate = [], {name: ([], []) for name in args.planners}
     for size in args.sizes:
         ctx = build_context(size, args.seed)
