@@ -261,6 +261,27 @@ def test_a_restarted_robot_gates_the_landmarks_of_its_journal_on_the_marginals()
     assert list(slam.landmark_estimates()) == [owned_landmark_id(0, 0)]
 
 
+def test_a_recent_landmark_s_gate_turns_with_the_robot():
+    """The gate of a landmark seen lately holds the odometry's errors since then, which are
+    in the robot's body frame: heading along map y, the robot's along-track error is along
+    map y. A robot facing +y maps a landmark 7 m ahead, then drives 4 keyframes with an
+    odometry of 1 m each (0.3 m along-track sigma, little across) that were 1.3 m: the
+    landmark re-seen 1.2 m nearer is inside its 0.6 m gate and named. Gated as if those
+    errors were along map x (not turned), it was 4 sigma off and refused."""
+    facing_y = np.array([0.0, 0.0, np.pi / 2])
+    slam = TeamSlam(0, 1, SlamParams(), facing_y, landmark_ids=False)
+    associator = OwnLandmarks(slam, ExplorationParams().sensors)
+    ahead = LandmarkReading(UNIDENTIFIED, 7.0, 0.0, 1e-4, 1e-5)  # at (0, 7)
+    along_track = np.diag([0.09, 1e-6, 1e-8])
+    nearer = LandmarkReading(UNIDENTIFIED, 7.0 - 4 * 1.3, 0.0, 1e-4, 1e-5)
+    plan = ([((0.0, 0.0), _STILL, [])] + [((0.0, 0.0), _STILL, [ahead])] * 3
+            + [((1.0, 0.0), along_track, [])] * 3 + [((1.0, 0.0), along_track, [nearer])])
+    named = _drive(slam, associator, plan)
+    assert [r.landmark_id for r in named[3].landmarks] == [0]
+    assert [r.landmark_id for r in named[7].landmarks] == [0]
+    assert list(slam.landmark_estimates()) == [owned_landmark_id(0, 0)]
+
+
 class _FakeSlam:
     """The parts of TeamSlam that match_teammates uses, with landmarks placed by hand: each
     with ``sigma_m`` of its own, and the teammate's with ``drift_m`` in common (their map's

@@ -142,7 +142,8 @@ class OwnLandmarks:
         waiting = {d: int(ids[row]) for d, row in enumerate(pairing)
                    if row is not None and old[row]}
         tracked = [d for d, row in enumerate(pairing) if row is None or d in waiting]
-        window = self._relative_covariance(keyframe.index - self._window, keyframe.index)
+        window = self._relative_covariance(keyframe.index - self._window, keyframe.index,
+                                           pose[2])
         track_points, track_covariances = detection_points(
             pose, window, measurements[tracked], noise[tracked])
         confirmed = dict(zip(tracked, self._tracks.observe(
@@ -197,9 +198,13 @@ class OwnLandmarks:
         covariance = j_delta @ np.asarray(keyframe.odom_covariance) @ j_delta.T
         return previous, compose(previous, keyframe.odom_delta), covariance
 
-    def _relative_covariance(self, since: int, until: int) -> np.ndarray:
-        """Covariance (3, 3) of the motion from own keyframe ``since`` to ``until`` (body
-        frame of ``since``; first order, from the recorded odometry in between)."""
+    def _relative_covariance(self, since: int, until: int, until_heading: float
+                             ) -> np.ndarray:
+        """Covariance (3, 3) of the motion from own keyframe ``since`` to ``until`` (first
+        order, from the recorded odometry in between), as additive map-frame errors of
+        ``until``'s pose given ``since``'s: the odometry's errors are in the body frame of
+        ``since``, which is rotated from the map by ``until_heading`` [rad] less the
+        motion's turn."""
         delta, covariance = np.zeros(3), np.zeros((3, 3))
         for index in range(max(since, 0) + 1, until + 1):
             step = self._motion.get(index)
@@ -209,7 +214,8 @@ class OwnLandmarks:
             covariance = j_accumulated @ covariance @ j_accumulated.T + \
                 j_step @ step[1] @ j_step.T
             delta = compose(delta, step[0])
-        return covariance
+        return body_to_map_covariance(np.array([0.0, 0.0, until_heading - delta[2]]),
+                                      covariance)
 
     def _own_landmarks_near(self, previous: np.ndarray, pose: np.ndarray,
                             keyframe: KeyframeMeasurements, noise: np.ndarray
@@ -234,7 +240,8 @@ class OwnLandmarks:
             moved = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]]])
             last_seen = self._last_seen.get(landmark_id)
             if last_seen is not None and keyframe.previous_index - last_seen <= RECENT_KEYFRAMES:
-                motion = self._relative_covariance(last_seen, keyframe.previous_index)
+                motion = self._relative_covariance(last_seen, keyframe.previous_index,
+                                                   previous[2])
                 measured = predict_measurements(previous, point[None])[0]
                 point_part = detection_points(previous, np.zeros((3, 3)), measured,
                                               noise[None])[1][0]
