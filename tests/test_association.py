@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from em_exploration_ros.core.geometry import wrap_angle
-from em_exploration_ros.core.slam.association import (ScanCompatibility, ScanPrediction,
-                                                      TentativeTracks, chi2_quantile,
+from em_exploration_ros.core.slam.association import (RobotMotion, ScanCompatibility,
+                                                      ScanPrediction, TentativeTracks,
+                                                      chi2_quantile,
                                                       detection_points, jcbb,
                                                       predict_measurements)
 
@@ -214,3 +215,28 @@ def test_a_track_needs_the_fewest_confirmations_any_of_its_sightings_asked_for()
         ("loop 0",), None]
     assert tracks.observe(2, points[1:], covariances[1:], ["new 2"]) == [("new 0", "new 1")]
     assert len(tracks) == 0
+
+
+def test_a_track_s_gate_holds_the_robot_s_motion_since_that_track_was_last_seen():
+    """Tracks A (last seen at keyframe 0) and B (at 2) are 0.7 m from this keyframe's
+    detections (keyframe 3). The robot's motion adds 0.04 m^2 per axis and keyframe since:
+    A's gate holds three keyframes of it (0.7 m is 2.0 sigma: a sighting), B's one (3.5
+    sigma: a new track). A gate widened by the whole window for both took both."""
+    tracks = TentativeTracks(confirm_hits=3, window_keyframes=5, gate_probability=0.99)
+    a, b = np.array([[0.0, 5.0]]), np.array([[10.0, 5.0]])
+    covariance = np.eye(2)[None] * 1e-4
+    asked = []
+
+    def motion_since(since):
+        asked.append(since)
+        return np.diag([0.04, 0.04, 0.0]) * (3 - since)
+
+    assert tracks.observe(0, a, covariance, ["a0"]) == [None]
+    assert tracks.observe(2, b, covariance, ["b2"]) == [None]
+    moved_away = np.vstack([a + [0.7, 0.0], b + [0.7, 0.0]])
+    motion = RobotMotion(np.array([5.0, 0.0, 0.0]), motion_since)
+    assert tracks.observe(3, moved_away, np.repeat(covariance, 2, axis=0), ["a3", "b3"],
+                          motion=motion) == [None, None]
+    assert sorted(asked) == [0, 2]
+    assert len(tracks) == 3  # A seen twice now, B once, and the new track at B + 0.7 m
+    assert tracks.observe(4, a + [0.7, 0.0], covariance, ["a4"]) == [("a0", "a3")]

@@ -6,15 +6,16 @@ Frames and units: the ``map`` frame. A pose is ``(x [m], y [m], theta [rad])`` w
 ``(3, 3)`` covariance of its additive coordinate errors; a landmark is a point ``(x, y)
 [m]`` with its ``(2, 2)`` marginal covariance [m^2]; a detection is ``(bearing [rad, body
 frame], range [m])``, GTSAM's BearingRange order, with its ``(2, 2)`` noise covariance
-[rad^2, m^2]. Everything here is plain NumPy on arrays: the robot's SLAM supplies the
-prediction (``ScanPrediction``) and turns the answers into graph landmarks.
+[rad^2, m^2]. Tentative tracks are in whatever frame the caller's poses are (a robot's
+dead-reckoned odometry frame). Everything here is plain NumPy on arrays: the robot's SLAM
+supplies the prediction (``ScanPrediction``) and turns the answers into graph landmarks.
 """
 from __future__ import annotations
 
 import functools
 import math
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -208,8 +209,9 @@ def jcbb(compatibility: ScanCompatibility, gate_probability: float) -> tuple[Pai
 
 @dataclass
 class _Track:
-    """A tentative landmark: its map-frame point ``(2,)`` and covariance ``(2, 2)`` fused
-    from its sightings, and the keyframe indices it was seen at."""
+    """A tentative landmark: its point ``(2,)`` fused from its sightings (in the frame of
+    the robot's poses), its covariance ``(2, 2)`` given the robot's pose at its latest
+    sighting, and the keyframe indices it was seen at."""
 
     point: FloatArray
     covariance: FloatArray
@@ -220,17 +222,33 @@ class _Track:
     sightings: list[Any] = field(default_factory=list)
 
 
+@dataclass(frozen=True)
+class RobotMotion:
+    """Where a robot is at a keyframe, ``pose`` ``(3,)``, and how well it knows its motion
+    since an earlier keyframe of its own: ``covariance_since(index)`` ``(3, 3)``, additive
+    errors of ``pose`` given that keyframe's pose (both in one frame, such as its
+    dead-reckoned odometry frame)."""
+
+    pose: FloatArray
+    covariance_since: Callable[[int], FloatArray]
+
+
 class TentativeTracks:
     """Detections that match no landmark, kept until they are seen consistently.
 
-    A detection within the gate (Mahalanobis distance of its point to a track's, under the
-    sum of their covariances, below the ``gate_probability`` quantile of chi-square with 2
-    degrees of freedom) of a track is another sighting of it (each track takes at most one
-    detection per keyframe, the nearest first); any other detection starts a track. A track
-    seen at ``confirm_hits`` of the last ``window_keyframes`` keyframes is confirmed: the
-    caller makes it a landmark. A track not seen in the last ``window_keyframes`` keyframes
-    is dropped. Clutter, uniform over the sonar's field of view, seldom falls twice within
-    a gate of centimetres, so it does not become a landmark.
+    A track is a point ``(2,)`` with its covariance relative to the robot's pose at the
+    keyframe that last saw it. At a later keyframe, the robot's motion since then
+    (``RobotMotion``) widens it, moved to the point; a detection within the gate
+    (Mahalanobis distance of its point to the track's, under the sum of their covariances,
+    below the ``gate_probability`` quantile of chi-square with 2 degrees of freedom) is
+    another sighting of it (each track takes at most one detection per keyframe, the
+    nearest first); any other detection starts a track. A track seen at ``confirm_hits``
+    of the last ``window_keyframes`` keyframes is confirmed: the caller makes it a
+    landmark. A track not seen in the last ``window_keyframes`` keyframes is dropped.
+    Clutter, uniform over the sonar's field of view, seldom falls twice within a gate of
+    centimetres, so it does not become a landmark. A gate holding the motion of the whole
+    window for every track, however lately seen, was about twice as wide: three clutter
+    points 0.3 m apart made a landmark in the sparse scenario.
     """
 
     def __init__(self, confirm_hits: int, window_keyframes: int,
@@ -249,16 +267,19 @@ class TentativeTracks:
 
     def observe(self, index: int, points: FloatArray, covariances: FloatArray,
                 sightings: Sequence[Any] | None = None,
-                confirm_hits: Sequence[int] | None = None) -> list[tuple | None]:
-        """Sightings at keyframe ``index`` (increasing between calls): map-frame points
-        ``(U, 2)`` and covariances ``(U, 2, 2)`` of detections that matched no landmark,
-        with what the caller gives with each (``sightings``, one per point; e.g. the
-        keyframe and the reading) and how many sightings in the window confirm its track
-        (``confirm_hits``, one per point; default ``self.confirm_hits``: a track needs the
-        fewest any of its sightings asked for). Returns, per detection, None if it did not
-        confirm its track at this keyframe, else what was given with the track's earlier
-        sightings, oldest first (the track is then removed here: the caller adds the
-        landmark at that detection and names those sightings' landmark too)."""
+                confirm_hits: Sequence[int] | None = None,
+                motion: RobotMotion | None = None) -> list[tuple | None]:
+        """Sightings at keyframe ``index`` (increasing between calls): points ``(U, 2)`` of
+        detections that matched no landmark, seen from ``motion.pose``, and their
+        covariances ``(U, 2, 2)`` given that pose (the sonar's noise), with what the caller
+        gives with each (``sightings``, one per point; e.g. the keyframe and the reading)
+        and how many sightings in the window confirm its track (``confirm_hits``, one per
+        point; default ``self.confirm_hits``: a track needs the fewest any of its
+        sightings asked for). ``motion`` None: the robot has not moved since any track was
+        seen. Returns, per detection, None if it did not confirm its track at this
+        keyframe, else what was given with the track's earlier sightings, oldest first (the
+        track is then removed here: the caller adds the landmark at that detection and
+        names those sightings' landmark too)."""
         points = np.asarray(points, dtype=float).reshape(-1, 2)
         sightings = list(sightings) if sightings is not None else [None] * len(points)
         needs = (list(confirm_hits) if confirm_hits is not None
@@ -266,10 +287,11 @@ class TentativeTracks:
         covariances = np.asarray(covariances, dtype=float).reshape(-1, 2, 2)
         self._tracks = [track for track in self._tracks
                         if track.seen_at[-1] > index - self.window_keyframes]
+        predicted = [self._moved(track, motion) for track in self._tracks]
         distances = np.full((len(points), len(self._tracks)), np.inf)
-        for t, track in enumerate(self._tracks):
+        for t, (track, covariance) in enumerate(zip(self._tracks, predicted)):
             difference = points - track.point
-            combined = np.linalg.inv(covariances + track.covariance)
+            combined = np.linalg.inv(covariances + covariance)
             distances[:, t] = np.einsum("ui,uij,uj->u", difference, combined, difference)
         matched: dict[int, int] = {}
         for flat in np.argsort(distances, axis=None, kind="stable"):
@@ -286,7 +308,7 @@ class TentativeTracks:
                                            needs[detection], [index], [sightings[detection]]))
                 continue
             track = self._tracks[matched[detection]]
-            track_information = np.linalg.inv(track.covariance)
+            track_information = np.linalg.inv(predicted[matched[detection]])
             detection_information = np.linalg.inv(covariances[detection])
             fused = np.linalg.inv(track_information + detection_information)
             track.point = fused @ (track_information @ track.point
@@ -301,6 +323,16 @@ class TentativeTracks:
                 finished.add(matched[detection])
         self._tracks = [track for t, track in enumerate(self._tracks) if t not in finished]
         return confirmed
+
+    @staticmethod
+    def _moved(track: _Track, motion: RobotMotion | None) -> FloatArray:
+        """The track's covariance ``(2, 2)`` given the robot's pose now: its own plus the
+        robot's motion since the track was last seen, moved to the track's point."""
+        if motion is None:
+            return track.covariance
+        lever = track.point - motion.pose[:2]
+        moved = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]]])
+        return track.covariance + moved @ motion.covariance_since(track.seen_at[-1]) @ moved.T
 
 
 def pairwise_consistency(offsets: FloatArray, offset_covariance: FloatArray,

@@ -20,12 +20,13 @@ from em_exploration_ros.core.geometry import compose, compose_jacobians
 from em_exploration_ros.core.params import SensorParams
 from em_exploration_ros.core.records.readings import (KeyframeMeasurements, LandmarkReading,
                                                       LateReading)
-from em_exploration_ros.core.slam.association import (ScanCompatibility, ScanPrediction,
-                                                      TentativeTracks, detection_points, jcbb,
-                                                      predict_measurements,
+from em_exploration_ros.core.slam.association import (RobotMotion, ScanCompatibility,
+                                                      ScanPrediction, TentativeTracks,
+                                                      detection_points, jcbb,
                                                       maximum_consistent_set,
                                                       offsets_within_gate,
-                                                      pairwise_consistency)
+                                                      pairwise_consistency,
+                                                      predict_measurements)
 from em_exploration_ros.core.slam.team_slam import (OWNED_LANDMARK_STRIDE, TeamSlam,
                                                     body_to_map_covariance, landmark_owner,
                                                     owned_landmark_id)
@@ -80,7 +81,9 @@ class OwnLandmarks:
     landmark (the map-frame marginals from iSAM2, which hold what the team's graph did to
     both since). The marginals hold the drift from the mission's start, common to pose and
     landmarks (about 0.3 m after 250 steps): as gates of every landmark and track they let
-    clutter in where the landmark was missed.
+    clutter in where the landmark was missed. Tentative tracks live in the robot's
+    dead-reckoned odometry frame, where what the graph does to the map does not move them:
+    a track's gate holds the odometry's errors since its last sighting (``RobotMotion``).
 
     Such a wide gate still has to judge the loop closures, so a detection paired with a
     landmark gated on the marginals is not named at once: it goes to the tentative tracks
@@ -106,6 +109,9 @@ class OwnLandmarks:
         self._next_own = 0
         #: Own keyframe index -> (odometry delta (3,), covariance (3, 3)) from the previous.
         self._motion: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        #: Own keyframe index -> its pose (3,) in the dead-reckoned odometry frame, where
+        #: the tentative tracks are (their gates then hold the odometry's errors alone).
+        self._dead_reckoned: dict[int, np.ndarray] = {}
         #: Own landmark (graph id) -> the latest own keyframe index that saw it.
         self._last_seen: dict[int, int] = {}
         #: Accepted correspondences with each teammate: (own id, teammate's id).
@@ -122,9 +128,7 @@ class OwnLandmarks:
         """``keyframe`` (this robot's, detections unidentified) with its landmark readings
         named by own landmark numbers; detections of no landmark (yet) are left out, and all
         of them while the robot cannot predict its pose (not yet tied to the map)."""
-        if not keyframe.is_first:
-            self._motion[keyframe.index] = (np.asarray(keyframe.odom_delta, dtype=float),
-                                            np.asarray(keyframe.odom_covariance, dtype=float))
+        self._record_motion(keyframe)
         prediction = self._predicted_pose(keyframe)
         if prediction is None or not keyframe.landmarks:
             return dataclasses.replace(keyframe, landmarks=())
@@ -142,15 +146,16 @@ class OwnLandmarks:
         waiting = {d: int(ids[row]) for d, row in enumerate(pairing)
                    if row is not None and old[row]}
         tracked = [d for d, row in enumerate(pairing) if row is None or d in waiting]
-        window = self._relative_covariance(keyframe.index - self._window, keyframe.index,
-                                           pose[2])
+        odometry_pose = self._dead_reckoned[keyframe.index]
         track_points, track_covariances = detection_points(
-            pose, window, measurements[tracked], noise[tracked])
+            odometry_pose, np.zeros((3, 3)), measurements[tracked], noise[tracked])
         confirmed = dict(zip(tracked, self._tracks.observe(
             keyframe.index, track_points, track_covariances,
             [_Sighting(keyframe.index, readings[d], waiting.get(d)) for d in tracked],
             [self._loop_closure_hits if d in waiting else self._tracks.confirm_hits
-             for d in tracked])))
+             for d in tracked],
+            RobotMotion(odometry_pose, lambda since: self._relative_covariance(
+                since, keyframe.index, odometry_pose[2])))))
         named, late = [], []
         for d, reading in enumerate(readings):
             if pairing[d] is not None and d not in waiting:
@@ -167,6 +172,23 @@ class OwnLandmarks:
                                     dataclasses.replace(earlier.reading, landmark_id=number))
                         for earlier in confirmed.get(d) or ())
         return dataclasses.replace(keyframe, landmarks=tuple(named), late_landmarks=tuple(late))
+
+    def _record_motion(self, keyframe: KeyframeMeasurements) -> None:
+        """Keep the keyframe's odometry and its dead-reckoned pose (the odometry composed
+        since the first keyframe this association saw, or since the chain broke: a restart),
+        for the last ``max(RECENT_KEYFRAMES, track_window_keyframes)`` keyframes."""
+        before = self._dead_reckoned.get(keyframe.previous_index)
+        if keyframe.is_first or before is None:
+            self._dead_reckoned[keyframe.index] = np.zeros(3)
+        else:
+            delta = np.asarray(keyframe.odom_delta, dtype=float)
+            self._motion[keyframe.index] = (delta, np.asarray(keyframe.odom_covariance,
+                                                              dtype=float))
+            self._dead_reckoned[keyframe.index] = compose(before, delta)
+        kept = keyframe.index - max(RECENT_KEYFRAMES, self._window)
+        for history in (self._motion, self._dead_reckoned):
+            for index in [index for index in history if index < kept]:
+                del history[index]
 
     def _confirmed_landmark(self, sightings: list[_Sighting]) -> int:
         """The landmark (graph id) a confirmed track stands for: the own landmark its
