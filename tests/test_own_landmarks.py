@@ -1,7 +1,9 @@
 """Landmarks without identities (issue 38, points 2 and 3): a robot pairs its own detections
 (JCBB, tentative tracks) with landmark numbers of its own, ties teammates' landmarks to its
 own only when pairwise consistent (PCM), and the truth side counts the outcome."""
+import dataclasses
 import itertools
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,7 +16,8 @@ from em_exploration_ros.core.evaluation.association_stats import (AssociationCou
                                                                   team_association)
 from em_exploration_ros.core.params import ExplorationParams, SlamParams
 from em_exploration_ros.core.records.readings import (UNIDENTIFIED, KeyframeMeasurements,
-                                                      LandmarkReading, TeammateReading)
+                                                      LandmarkReading, LateReading,
+                                                      TeammateReading)
 from em_exploration_ros.core.slam.association import (maximum_consistent_set,
                                                       offsets_within_gate,
                                                       pairwise_consistency)
@@ -79,6 +82,23 @@ def test_a_wrong_reading_pulls_an_associated_landmark_less_under_the_cauchy_loss
     slam.converge()
     pull = np.linalg.norm(slam.landmark_estimates()[owned_landmark_id(0, 0)] - [5.0, 0.0])
     assert pull_range_m[0] <= pull <= pull_range_m[1]
+
+
+def test_a_late_reading_of_a_keyframe_not_in_the_graph_is_left_out_with_a_warning(caplog):
+    """Only a forged record names an earlier keyframe the graph does not hold (here 1, which
+    the stream skipped): its reading is left out, and said so."""
+    slam = TeamSlam(0, 1, SlamParams(), np.zeros(3), landmark_ids=False)
+    slam.add_keyframe(_keyframe(0, 0, []))
+    seen = LandmarkReading(0, 5.0, 0.0, 1e-4, 1e-5)
+    slam.add_keyframe(dataclasses.replace(
+        _keyframe(0, 2, [seen], previous=0),
+        late_landmarks=(LateReading(1, seen), LateReading(0, seen))))
+    with caplog.at_level(logging.WARNING):
+        slam.update()
+    assert [r[:3] for r in slam.landmark_readings()] == [(0, 2, owned_landmark_id(0, 0)),
+                                                         (0, 0, owned_landmark_id(0, 0))]
+    assert ("robot 0's keyframe 2: a late reading of its keyframe 1, which is not in the "
+            "graph, left out") in caplog.text
 
 
 @dataclass

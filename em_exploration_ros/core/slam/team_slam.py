@@ -24,6 +24,7 @@ and in the GTSAM body (tangent) frame with ``frame="body"``.
 from __future__ import annotations
 
 import bisect
+import logging
 import math
 from dataclasses import dataclass
 from typing import Iterable, Literal, Sequence
@@ -38,6 +39,8 @@ from em_exploration_ros.core.params import SlamParams
 from em_exploration_ros.core.records.readings import (KeyframeId, KeyframeMeasurements,
                                                       LandmarkReading, OdometryReading,
                                                       TeammateReading)
+
+_LOG = logging.getLogger(__name__)
 
 #: Covariance frame of pose accessors: ``"map"`` (additive x, y, theta errors in the map
 #: frame) or ``"body"`` (GTSAM Pose2 tangent space, x and y in the pose's body frame).
@@ -392,14 +395,19 @@ class _TeamGraph:
     def _add_landmarks(self, keyframe: KeyframeMeasurements, pose: np.ndarray,
                        batch: _Batch) -> None:
         """Bearing-range factors of the keyframe's readings, then of its late readings
-        (from the robot's earlier keyframes, each in the graph already; one that is not is
-        left out); unseen landmarks start at the first reading's point."""
+        (from the robot's earlier keyframes, each in the graph already; one that is not,
+        which only a forged record carries, is left out with a warning); unseen landmarks
+        start at the first reading's point."""
         for reading in keyframe.landmarks:
             self._add_reading(keyframe.keyframe_id, pose, reading, batch)
         for late in keyframe.late_landmarks:
             earlier = (keyframe.robot_id, late.keyframe_index)
             if earlier in self._in_graph:
                 self._add_reading(earlier, batch.pose(earlier), late.reading, batch)
+            else:
+                _LOG.warning("robot %d's keyframe %d: a late reading of its keyframe %d, "
+                             "which is not in the graph, left out", keyframe.robot_id,
+                             keyframe.index, late.keyframe_index)
 
     def _add_reading(self, observer: KeyframeId, pose: np.ndarray, reading: LandmarkReading,
                      batch: _Batch) -> None:
