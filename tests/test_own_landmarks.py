@@ -97,8 +97,8 @@ def test_a_late_reading_of_a_keyframe_not_in_the_graph_is_left_out_with_a_warnin
         slam.update()
     assert [r[:3] for r in slam.landmark_readings()] == [(0, 2, owned_landmark_id(0, 0)),
                                                          (0, 0, owned_landmark_id(0, 0))]
-    assert ("robot 0's keyframe 2: a late reading of its keyframe 1, which is not in the "
-            "graph, left out") in caplog.text
+    assert ("robot 0's keyframe 2: 1 late reading(s) of its keyframe(s) [1], which are not "
+            "in the graph, left out") in caplog.text
 
 
 @dataclass

@@ -92,6 +92,14 @@ def detection_points(pose: FloatArray, pose_covariance: FloatArray, measurements
     return points, covariances
 
 
+def point_pose_jacobian(pose: FloatArray, point: FloatArray) -> FloatArray:
+    """Jacobian ``(2, 3)`` of a map point fixed in the body of ``pose`` ``(3,)`` with
+    respect to that pose's additive map-frame errors: a pose error moves the point by its
+    translation and turns it about the pose by its heading error."""
+    lever = np.asarray(point, dtype=float) - np.asarray(pose, dtype=float)[:2]
+    return np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]]])
+
+
 @dataclass(frozen=True)
 class ScanPrediction:
     """What a robot expects before it associates one scan: its pose at the scan ``(3,)``
@@ -330,8 +338,7 @@ class TentativeTracks:
         robot's motion since the track was last seen, moved to the track's point."""
         if motion is None:
             return track.covariance
-        lever = track.point - motion.pose[:2]
-        moved = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]]])
+        moved = point_pose_jacobian(motion.pose, track.point)
         return track.covariance + moved @ motion.covariance_since(track.seen_at[-1]) @ moved.T
 
 

@@ -13,6 +13,7 @@ of additive coordinate errors; detections (bearing [rad, body frame], range [m])
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -26,6 +27,7 @@ from em_exploration_ros.core.slam.association import (RobotMotion, ScanCompatibi
                                                       maximum_consistent_set,
                                                       offsets_within_gate,
                                                       pairwise_consistency,
+                                                      point_pose_jacobian,
                                                       predict_measurements)
 from em_exploration_ros.core.slam.team_slam import (OWNED_LANDMARK_STRIDE, TeamSlam,
                                                     body_to_map_covariance, landmark_owner,
@@ -147,6 +149,9 @@ class OwnLandmarks:
                    if row is not None and old[row]}
         tracked = [d for d, row in enumerate(pairing) if row is None or d in waiting]
         odometry_pose = self._dead_reckoned[keyframe.index]
+        # Tracks last seen at one keyframe share the motion since it: computed once.
+        motion_since = functools.cache(lambda since: self._relative_covariance(
+            since, keyframe.index, odometry_pose[2]))
         track_points, track_covariances = detection_points(
             odometry_pose, np.zeros((3, 3)), measurements[tracked], noise[tracked])
         confirmed = dict(zip(tracked, self._tracks.observe(
@@ -154,8 +159,7 @@ class OwnLandmarks:
             [_Sighting(keyframe.index, readings[d], waiting.get(d)) for d in tracked],
             [self._loop_closure_hits if d in waiting else self._tracks.confirm_hits
              for d in tracked],
-            RobotMotion(odometry_pose, lambda since: self._relative_covariance(
-                since, keyframe.index, odometry_pose[2])))))
+            RobotMotion(odometry_pose, motion_since))))
         named, late = [], []
         for d, reading in enumerate(readings):
             if pairing[d] is not None and d not in waiting:
@@ -258,8 +262,7 @@ class OwnLandmarks:
         covariances = np.zeros((len(near), 2, 2))
         old = np.zeros(len(near), dtype=bool)
         for row, (landmark_id, point) in enumerate(near):
-            lever = point - previous[:2]
-            moved = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]]])
+            moved = point_pose_jacobian(previous, point)
             last_seen = self._last_seen.get(landmark_id)
             if last_seen is not None and keyframe.previous_index - last_seen <= RECENT_KEYFRAMES:
                 motion = self._relative_covariance(last_seen, keyframe.previous_index,

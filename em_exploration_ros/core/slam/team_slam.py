@@ -400,14 +400,17 @@ class _TeamGraph:
         start at the first reading's point."""
         for reading in keyframe.landmarks:
             self._add_reading(keyframe.keyframe_id, pose, reading, batch)
+        absent = []
         for late in keyframe.late_landmarks:
             earlier = (keyframe.robot_id, late.keyframe_index)
             if earlier in self._in_graph:
                 self._add_reading(earlier, batch.pose(earlier), late.reading, batch)
             else:
-                _LOG.warning("robot %d's keyframe %d: a late reading of its keyframe %d, "
-                             "which is not in the graph, left out", keyframe.robot_id,
-                             keyframe.index, late.keyframe_index)
+                absent.append(late.keyframe_index)
+        if absent:  # one line per keyframe, however many a forged record carries
+            _LOG.warning("robot %d's keyframe %d: %d late reading(s) of its keyframe(s) %s, "
+                         "which are not in the graph, left out", keyframe.robot_id,
+                         keyframe.index, len(absent), sorted(set(absent)))
 
     def _add_reading(self, observer: KeyframeId, pose: np.ndarray, reading: LandmarkReading,
                      batch: _Batch) -> None:
