@@ -2,7 +2,9 @@
 
 Start rclpy, build the node, spin until Ctrl-C / SIGTERM / shutdown (or until the node's
 own ``done`` future completes), handing the memory it freed back to the system now and then
-(``memory_return``), then let the node wrap up, destroy it and shut down. A
+(``memory_return``), then let the node wrap up, destroy it and shut down. While it spins
+and wraps up, the ROS-free core's Python log records go to the node's ROS logger
+(``core_log``). A
 node that refuses its parameters (``ValueError`` or one of rclpy's ``ParameterException``s
 from its constructor: wrong type, outside the declared range) ends the process with exit
 code 2 and one fatal log line, no traceback. Only the constructor's errors mean bad
@@ -30,6 +32,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 
 from em_exploration_ros.nodes import lean_executor
+from em_exploration_ros.nodes.core_log import core_logs_to
 from em_exploration_ros.nodes.memory_return import return_freed_memory
 
 #: The error rclpy raises when a call into its C library fails (e.g. publishing after the
@@ -85,7 +88,8 @@ def _spin_node(make_node: Callable[[], NodeType], logger_name: str,
             rclpy.logging.get_logger(logger_name).fatal(f"cannot start: {error}")
             return EXIT_BAD_PARAMETERS
         return_freed_memory(node)
-        lean_executor.spin(node, until=getattr(node, "done", None))
+        with core_logs_to(node.get_logger()):
+            lean_executor.spin(node, until=getattr(node, "done", None))
     except ExternalShutdownException:
         pass
     except RCLError:
@@ -97,7 +101,8 @@ def _spin_node(make_node: Callable[[], NodeType], logger_name: str,
         if node is not None:
             _console_logging_after_signal(node.context)
             if wrap_up is not None:
-                code = wrap_up(node)
+                with core_logs_to(node.get_logger()):
+                    code = wrap_up(node)
             node.destroy_node()
         rclpy.try_shutdown()
     return code
