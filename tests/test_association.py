@@ -18,7 +18,8 @@ NOISE = np.diag([(math.radians(0.5) / 1.96) ** 2, (0.002 / 1.96) ** 2])
 
 @pytest.mark.parametrize("dof, probability, value", [
     (2, 0.95, 5.991464547), (2, 0.99, 9.210340372), (4, 0.99, 13.27670414),
-    (6, 0.95, 12.59158724), (10, 0.999, 29.58829845)])
+    (6, 0.95, 12.59158724), (10, 0.999, 29.58829845), (1, 0.95, 3.841458821),
+    (3, 0.99, 11.34486673), (5, 0.99, 15.08627247), (7, 0.95, 14.06714045)])
 def test_chi2_quantile_matches_the_tables(dof, probability, value):
     assert chi2_quantile(dof, probability) == pytest.approx(value, rel=1e-8)
 

@@ -30,20 +30,28 @@ Pairing = int | None
 
 @functools.lru_cache(maxsize=256)
 def chi2_quantile(dof: int, probability: float) -> float:
-    """The ``probability`` quantile of the chi-square distribution with an even number
-    ``dof`` of degrees of freedom (every innovation here has two per detection), by
-    bisection on its closed-form CDF ``1 - exp(-x/2) sum_{i<dof/2} (x/2)^i / i!``."""
-    if dof <= 0 or dof % 2:
-        raise ValueError(f"dof must be even and positive, got {dof}")
+    """The ``probability`` quantile of the chi-square distribution with ``dof`` degrees of
+    freedom (two per detection; three for a relative pose), by bisection on its closed-form
+    CDF: ``1 - exp(-x/2) sum_{i<dof/2} (x/2)^i / i!`` for an even ``dof``, ``erf(sqrt(x/2))
+    - sqrt(2x/pi) exp(-x/2) sum_{i<(dof-1)/2} x^i / (3 5 ... (2i+1))`` for an odd one."""
+    if dof <= 0:
+        raise ValueError(f"dof must be positive, got {dof}")
     if not 0.0 < probability < 1.0:
         raise ValueError(f"probability must be in (0, 1), got {probability}")
 
     def cdf(x: float) -> float:
-        half, term, total = x / 2.0, 1.0, 1.0
-        for i in range(1, dof // 2):
-            term *= half / i
+        if dof % 2 == 0:
+            half, term, total = x / 2.0, 1.0, 1.0
+            for i in range(1, dof // 2):
+                term *= half / i
+                total += term
+            return 1.0 - math.exp(-half) * total
+        term, total = 1.0, 0.0
+        for i in range((dof - 1) // 2):
             total += term
-        return 1.0 - math.exp(-half) * total
+            term *= x / (2 * i + 3)
+        return math.erf(math.sqrt(x / 2.0)) \
+            - math.sqrt(2.0 * x / math.pi) * math.exp(-x / 2.0) * total
 
     low, high = 0.0, 1.0
     while cdf(high) < probability:
