@@ -12,7 +12,8 @@ Graph layout (all in the ``map`` frame, poses ``(x [m], y [m], theta [rad])``):
 * a ``BetweenFactorPose2`` per odometry link between consecutive keyframes of a robot;
 * a ``BearingRangeFactor2D`` per sonar landmark reading;
 * a ``BetweenFactorPose2`` per teammate reading (observer keyframe -> observed keyframe
-  with the same index).
+  with the same index); without landmark identities, once it agrees with other readings of
+  the same two robots (``robot_detections``).
 
 Noise convention: sensor covariances arrive as covariances of additive errors of the
 pose coordinates ``(x, y, theta)`` (the convention of :mod:`geometry`); they are rotated
@@ -39,6 +40,7 @@ from em_exploration_ros.core.params import SlamParams
 from em_exploration_ros.core.records.readings import (KeyframeId, KeyframeMeasurements,
                                                       LandmarkReading, OdometryReading,
                                                       TeammateReading)
+from em_exploration_ros.core.slam.robot_detections import RobotDetection, RobotDetectionScreen
 
 _LOG = logging.getLogger(__name__)
 
@@ -266,14 +268,20 @@ def _pose_array(pose: gtsam.Pose2) -> np.ndarray:
 class _TeamGraph:
     """Bookkeeping of the team graph: received keyframes, what is already in the graph,
     what still waits, and the construction of the factors and initial values of
-    everything that became connectable."""
+    everything that became connectable. ``detection_screen``, if given, holds back
+    robot-to-robot detections until they agree with others (``robot_detections``)."""
 
     def __init__(self, num_robots: int, noise: SlamNoise, anchor_pose: np.ndarray,
-                 shared_landmark_ids: bool = True) -> None:
+                 shared_landmark_ids: bool = True,
+                 detection_screen: RobotDetectionScreen | None = None) -> None:
         self.num_robots = num_robots
         self.noise = noise
         self.anchor_pose = np.asarray(anchor_pose, dtype=float)
         self.shared_landmark_ids = shared_landmark_ids
+        self.detection_screen = detection_screen
+        #: Keyframe in the graph -> (previous index, odometry delta (3,), covariance
+        #: (3, 3)) from it; robots' first keyframes have none. Kept only with a screen.
+        self._odometry: dict[KeyframeId, tuple[int, np.ndarray, np.ndarray]] = {}
         #: Every landmark reading in the graph: (robot, keyframe index, landmark id, bearing
         #: [rad], range [m]), in the order added.
         self.landmark_readings: list[tuple[int, int, int, float, float]] = []
@@ -339,6 +347,8 @@ class _TeamGraph:
                     continue
                 self._add(keyframe, initial, batch)
                 progress = True
+        if self.detection_screen is not None:
+            self._screen_detections(batch)
         self.factors.push_back(batch.factors)
         return batch.factors, batch.values, batch.added
 
@@ -379,6 +389,11 @@ class _TeamGraph:
                                                            self.noise.prior))
         elif not keyframe.is_first:
             previous_key = pose_key(keyframe.robot_id, keyframe.previous_index)
+            if self.detection_screen is not None:
+                self._odometry[keyframe_id] = (keyframe.previous_index,
+                                               np.asarray(keyframe.odom_delta, dtype=float),
+                                               np.asarray(keyframe.odom_covariance,
+                                                          dtype=float))
             odometry_noise = self.noise.odometry(keyframe.odom_delta, keyframe.odom_covariance)
             batch.factors.push_back(gtsam.BetweenFactorPose2(
                 previous_key, key, _pose2(keyframe.odom_delta), odometry_noise))
@@ -433,8 +448,59 @@ class _TeamGraph:
 
     def _add_observation(self, observer: KeyframeId, reading: TeammateReading,
                          batch: _Batch) -> None:
+        """A detection whose two keyframes are in the graph: its factor now, or, with a
+        screen, once the screen accepts it (at once at either robot's first keyframe)."""
+        detection = RobotDetection(observer, reading)
+        if self.detection_screen is None:
+            self._add_detection_factor(detection, batch)
+        elif self._is_first(observer) or self._is_first((reading.robot_id, observer[1])):
+            self.detection_screen.accept_unscreened(detection)
+            self._add_detection_factor(detection, batch)
+        else:
+            self.detection_screen.offer(detection)
+
+    def _is_first(self, keyframe_id: KeyframeId) -> bool:
+        """Whether a keyframe in the graph is its robot's first (it has no odometry)."""
+        return keyframe_id not in self._odometry
+
+    def _screen_detections(self, batch: _Batch) -> None:
+        """The screen's decisions: factors of the detections it accepted, a warning for
+        each it left out."""
+        accepted, left_out = self.detection_screen.screen(
+            self._odometry_between,
+            lambda robot: self.indices[robot][-1] if self.indices[robot] else -1)
+        for detection in accepted:
+            self._add_detection_factor(detection, batch)
+        for item in left_out:
+            detection = item.detection
+            _LOG.warning("robot %d's detection of robot %d at keyframe %d left out: %s",
+                         detection.observer[0], detection.reading.robot_id, detection.index,
+                         item.reason)
+
+    def _odometry_between(self, robot: int, since: int, until: int
+                          ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Robot ``robot``'s odometry from keyframe index ``since`` to ``until`` (in the
+        body frame of ``since``) with its covariance; None when the graph does not hold the
+        chain of its keyframes between them."""
+        chain = []
+        index = until
+        while index > since:
+            link = self._odometry.get((robot, index))
+            if link is None:
+                return None
+            index, delta, covariance = link
+            chain.append(OdometryReading(delta, covariance))
+        if index != since:
+            return None
+        accumulator = OdometryAccumulator()
+        for step in reversed(chain):
+            accumulator.add(step)
+        return accumulator.take()
+
+    def _add_detection_factor(self, detection: RobotDetection, batch: _Batch) -> None:
         """Between factor observer -> observed teammate keyframe (same index)."""
-        pair = (min(observer[0], reading.robot_id), max(observer[0], reading.robot_id))
+        observer, reading = detection.observer, detection.reading
+        pair = detection.robots
         self.observation_counts[pair] = self.observation_counts.get(pair, 0) + 1
         observation_noise = self.noise.robot_observation(reading)
         batch.factors.push_back(gtsam.BetweenFactorPose2(
@@ -542,7 +608,9 @@ class TeamSlam:
         self.num_robots = num_robots
         self.slam_params = slam_params
         self.noise = SlamNoise(slam_params)
-        self._graph = _TeamGraph(num_robots, self.noise, anchor_pose, landmark_ids)
+        screen = None if landmark_ids else RobotDetectionScreen(
+            slam_params.track_window_keyframes, slam_params.association_gate_probability)
+        self._graph = _TeamGraph(num_robots, self.noise, anchor_pose, landmark_ids, screen)
         #: Landmark pairs (own id, teammate's id) tied by a correspondence factor, in order.
         self.landmark_correspondences: list[tuple[int, int]] = []
         self._isam = gtsam.ISAM2(_isam_params(slam_params))

@@ -1,0 +1,167 @@
+"""Robot-to-robot detections screened by pairwise consistency (``core/slam/robot_detections``):
+the loop test, the screen's decisions, and a team graph without landmark identities that
+leaves a planted wrong detection out while the true ones go in."""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from em_exploration_ros.core.geometry import between, compose, inverse
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.records.readings import KeyframeMeasurements, TeammateReading
+from em_exploration_ros.core.slam.association import chi2_quantile
+from em_exploration_ros.core.slam.robot_detections import (RobotDetection,
+                                                           RobotDetectionScreen,
+                                                           detections_agree, inverse_jacobian)
+from em_exploration_ros.core.slam.team_slam import TeamSlam
+
+DETECTION_COVARIANCE = np.diag([0.05 ** 2, 0.05 ** 2, 0.01 ** 2])
+ODOMETRY_COVARIANCE = np.diag([0.02 ** 2, 0.02 ** 2, 0.005 ** 2])
+GATE = chi2_quantile(3, 0.99)
+STEP = np.array([2.0, 0.0, 0.05])  # each robot's motion per keyframe, in its body frame
+
+
+def trajectory(start, count: int) -> list[np.ndarray]:
+    """Poses of a robot driving ``STEP`` per keyframe from ``start``."""
+    poses = [np.asarray(start, dtype=float)]
+    for _ in range(count - 1):
+        poses.append(compose(poses[-1], STEP))
+    return poses
+
+
+def detection(observer: int, observed: int, index: int, poses: dict, error=(0.0, 0.0, 0.0)
+              ) -> RobotDetection:
+    """``observer``'s detection of ``observed`` at ``index``, exact unless ``error`` (added
+    to the relative pose)."""
+    relative = between(poses[observer][index], poses[observed][index]) + np.asarray(error)
+    return RobotDetection((observer, index),
+                          TeammateReading(observed, relative, DETECTION_COVARIANCE))
+
+
+def motion(poses: dict, robot: int, since: int, until: int):
+    """Exact odometry of ``robot`` between two indices, with ``ODOMETRY_COVARIANCE`` per
+    keyframe."""
+    return (between(poses[robot][since], poses[robot][until]),
+            (until - since) * ODOMETRY_COVARIANCE)
+
+
+POSES = {0: trajectory([0.0, 0.0, 0.0], 20), 1: trajectory([3.0, 4.0, 1.0], 20)}
+
+
+def test_the_inverse_s_jacobian_matches_finite_differences():
+    pose, step = np.array([1.5, -0.7, 2.2]), 1e-7
+    numeric = np.column_stack([(inverse(pose + step * axis) - inverse(pose - step * axis))
+                               / (2 * step) for axis in np.eye(3)])
+    assert inverse_jacobian(pose) == pytest.approx(numeric, abs=1e-6)
+
+
+def test_two_robots_seeing_each_other_agree_at_one_index_and_over_odometry():
+    same = (detection(0, 1, 3, POSES), detection(1, 0, 3, POSES))
+    assert detections_agree(*same, motion(POSES, 0, 3, 3), motion(POSES, 1, 3, 3), GATE)
+    later = detection(1, 0, 7, POSES)
+    assert detections_agree(same[0], later, motion(POSES, 0, 3, 7), motion(POSES, 1, 3, 7),
+                            GATE)
+
+
+@pytest.mark.parametrize("error", [(1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, 0.3)])
+def test_a_detection_off_by_a_metre_or_a_turn_does_not_agree(error):
+    wrong = detection(1, 0, 7, POSES, error)
+    assert not detections_agree(detection(0, 1, 3, POSES), wrong, motion(POSES, 0, 3, 7),
+                                motion(POSES, 1, 3, 7), GATE)
+
+
+def test_a_heading_error_the_odometry_s_drift_explains_agrees():
+    """Over a long stretch the odometry's covariance grows and holds a larger misfit."""
+    drifted = detection(1, 0, 11, POSES, (0.0, 0.0, 0.08))
+    assert not detections_agree(detection(0, 1, 10, POSES), drifted,
+                                motion(POSES, 0, 10, 11), motion(POSES, 1, 10, 11), GATE)
+    loose = (motion(POSES, 0, 1, 11)[0], 50 * ODOMETRY_COVARIANCE)
+    assert detections_agree(detection(0, 1, 1, POSES), drifted, loose,
+                            motion(POSES, 1, 1, 11), GATE)
+
+
+def screen_all(screen: RobotDetectionScreen, newest: int):
+    return screen.screen(lambda robot, since, until: motion(POSES, robot, since, until),
+                         lambda robot: newest)
+
+
+def test_the_screen_accepts_agreeing_detections_and_leaves_a_wrong_one_out_when_past():
+    screen = RobotDetectionScreen(window=5, gate_probability=0.99)
+    true = [detection(0, 1, 2, POSES), detection(1, 0, 2, POSES), detection(0, 1, 3, POSES)]
+    wrong = detection(1, 0, 3, POSES, (0.0, 2.0, 0.0))
+    for item in [*true, wrong]:
+        screen.offer(item)
+    accepted, left_out = screen_all(screen, newest=3)
+    assert accepted == true and left_out == []
+    assert screen.num_waiting == 1  # the wrong one, until both robots are 5 keyframes on
+    accepted, left_out = screen_all(screen, newest=7)
+    assert accepted == [] and screen.num_waiting == 1
+    accepted, left_out = screen_all(screen, newest=8)
+    assert accepted == [] and screen.num_waiting == 0
+    assert [item.detection for item in left_out] == [wrong]
+    assert left_out[0].reason == ("inconsistent with the other detections of these robots "
+                                  "within 5 keyframes")
+
+
+def test_a_lone_detection_waits_for_company_and_is_taken_with_it():
+    screen = RobotDetectionScreen(window=5, gate_probability=0.99)
+    screen.offer(detection(0, 1, 4, POSES))
+    assert screen_all(screen, newest=6) == ([], [])
+    screen.offer(detection(1, 0, 6, POSES))
+    accepted, _ = screen_all(screen, newest=6)
+    assert [item.index for item in accepted] == [4, 6]
+    lone = detection(0, 1, 12, POSES)  # more than 5 keyframes after the last one
+    screen.offer(lone)
+    accepted, left_out = screen_all(screen, newest=17)
+    assert accepted == [] and [item.detection for item in left_out] == [lone]
+    assert left_out[0].reason.startswith("no other detection of these robots")
+
+
+def test_held_detections_vouch_for_a_new_one_and_against_a_wrong_one():
+    screen = RobotDetectionScreen(window=5, gate_probability=0.99)
+    screen.accept_unscreened(detection(0, 1, 0, POSES))
+    screen.accept_unscreened(detection(1, 0, 0, POSES))
+    screen.offer(detection(0, 1, 1, POSES))
+    screen.offer(detection(1, 0, 1, POSES, (1.5, 0.0, 0.0)))
+    accepted, _ = screen_all(screen, newest=1)
+    assert [(item.observer, item.index) for item in accepted] == [((0, 1), 1)]
+
+
+def team_slam_with_a_planted_wrong_detection(landmark_ids: bool) -> TeamSlam:
+    """Robot 0's graph of two robots driving side by side (exact odometry and detections at
+    every keyframe), but robot 1's detection of robot 0 at keyframe 6 is 3 m off."""
+    params = ExplorationParams().slam
+    poses = {0: trajectory([0.0, 0.0, 0.0], 12), 1: trajectory([0.0, 6.0, 0.0], 12)}
+    slam = TeamSlam(0, 2, params, poses[0][0], landmark_ids=landmark_ids)
+    for index in range(12):
+        for robot, other in ((0, 1), (1, 0)):
+            relative = between(poses[robot][index], poses[other][index])
+            if (robot, index) == (1, 6):
+                relative = relative + np.array([3.0, 0.0, 0.0])
+            slam.add_keyframe(KeyframeMeasurements(
+                robot, index, float(index), index == 0, index - 1,
+                np.zeros(3) if index == 0 else between(poses[robot][index - 1],
+                                                       poses[robot][index]),
+                np.zeros((3, 3)) if index == 0 else ODOMETRY_COVARIANCE, (),
+                (TeammateReading(other, relative, DETECTION_COVARIANCE),)))
+            slam.update()
+    slam.truth = poses
+    return slam
+
+
+def test_a_graph_without_identities_leaves_the_planted_detection_out(caplog):
+    with caplog.at_level(logging.WARNING, logger="em_exploration_ros.core.slam.team_slam"):
+        screened = team_slam_with_a_planted_wrong_detection(landmark_ids=False)
+    assert screened.inter_robot_factors(0, 1) == 2 * 12 - 1
+    assert ("robot 1's detection of robot 0 at keyframe 6 left out: inconsistent with the "
+            "other detections of these robots within 5 keyframes") in caplog.text
+    errors = [np.linalg.norm(screened.pose(1, k)[:2] - screened.truth[1][k][:2])
+              for k in range(12)]
+    assert max(errors) < 1e-3
+    # The paper's ideal sensing takes every detection as it comes: the planted one bends
+    # robot 1's trajectory.
+    ideal = team_slam_with_a_planted_wrong_detection(landmark_ids=True)
+    assert ideal.inter_robot_factors(0, 1) == 2 * 12
+    assert np.linalg.norm(ideal.pose(1, 6)[:2] - ideal.truth[1][6][:2]) > 0.05
