@@ -72,6 +72,19 @@ def test_a_detection_off_by_a_metre_or_a_turn_does_not_agree(error):
                                 motion(POSES, 1, 3, 7), GATE)
 
 
+def test_readings_stated_exact_are_tested_on_the_floor():
+    exact = [RobotDetection(item.observer, TeammateReading(item.reading.robot_id,
+                                                           item.reading.relative_pose,
+                                                           np.zeros((3, 3))))
+             for item in (detection(0, 1, 3, POSES), detection(1, 0, 3, POSES))]
+    still = (np.zeros(3), np.zeros((3, 3)))
+    assert detections_agree(*exact, still, still, GATE, floor_variance=1e-6)
+    moved = RobotDetection((1, 3), TeammateReading(
+        0, exact[1].reading.relative_pose + [0.1, 0.0, 0.0], np.zeros((3, 3))))
+    assert not detections_agree(exact[0], moved, still, still, GATE, floor_variance=1e-6)
+    assert not detections_agree(*exact, still, still, GATE)  # singular: no test, no trust
+
+
 def test_a_heading_error_the_odometry_s_drift_explains_agrees():
     """Over a long stretch the odometry's covariance grows and holds a larger misfit."""
     drifted = detection(1, 0, 11, POSES, (0.0, 0.0, 0.08))
@@ -88,7 +101,7 @@ def screen_all(screen: RobotDetectionScreen, newest: int):
 
 
 def test_the_screen_accepts_agreeing_detections_and_leaves_a_wrong_one_out_when_past():
-    screen = RobotDetectionScreen(window=5, gate_probability=0.99)
+    screen = RobotDetectionScreen(window=5, gate_probability=0.99, floor_variance=1e-12)
     true = [detection(0, 1, 2, POSES), detection(1, 0, 2, POSES), detection(0, 1, 3, POSES)]
     wrong = detection(1, 0, 3, POSES, (0.0, 2.0, 0.0))
     for item in [*true, wrong]:
@@ -106,7 +119,7 @@ def test_the_screen_accepts_agreeing_detections_and_leaves_a_wrong_one_out_when_
 
 
 def test_a_lone_detection_waits_for_company_and_is_taken_with_it():
-    screen = RobotDetectionScreen(window=5, gate_probability=0.99)
+    screen = RobotDetectionScreen(window=5, gate_probability=0.99, floor_variance=1e-12)
     screen.offer(detection(0, 1, 4, POSES))
     assert screen_all(screen, newest=6) == ([], [])
     screen.offer(detection(1, 0, 6, POSES))
@@ -120,7 +133,7 @@ def test_a_lone_detection_waits_for_company_and_is_taken_with_it():
 
 
 def test_held_detections_vouch_for_a_new_one_and_against_a_wrong_one():
-    screen = RobotDetectionScreen(window=5, gate_probability=0.99)
+    screen = RobotDetectionScreen(window=5, gate_probability=0.99, floor_variance=1e-12)
     screen.accept_unscreened(detection(0, 1, 0, POSES))
     screen.accept_unscreened(detection(1, 0, 0, POSES))
     screen.offer(detection(0, 1, 1, POSES))

@@ -55,9 +55,11 @@ def inverse_jacobian(pose: np.ndarray) -> np.ndarray:
                      [0.0, 0.0, -1.0]])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class RobotDetection:
-    """One robot's detection of a teammate: ``reading`` made at keyframe ``observer``."""
+    """One robot's detection of a teammate: ``reading`` made at keyframe ``observer``.
+    Two detections are equal only when they are the same object (a robot may, in a forged
+    record, detect one teammate twice at one keyframe)."""
 
     observer: KeyframeId
     reading: TeammateReading
@@ -86,11 +88,13 @@ class RobotDetection:
 
 
 def detections_agree(first: RobotDetection, second: RobotDetection, lower_motion: tuple,
-                     higher_motion: tuple, gate: float) -> bool:
+                     higher_motion: tuple, gate: float, floor_variance: float = 0.0) -> bool:
     """Whether two detections of the same two robots close their loop within ``gate`` (a
     squared Mahalanobis distance, 3 degrees of freedom): ``z_1 ⊕ B`` against ``A ⊕ z_2``,
     with ``A`` (``lower_motion``) and ``B`` (``higher_motion``) each robot's odometry
-    ``(delta, covariance)`` from ``first``'s keyframe index to ``second``'s."""
+    ``(delta, covariance)`` from ``first``'s keyframe index to ``second``'s; the loop's
+    covariance gets ``floor_variance`` on its diagonal (the graph's floor, so that readings
+    stated exact still give a test)."""
     z_1, cov_1 = first.lower_to_higher()
     z_2, cov_2 = second.lower_to_higher()
     (a_delta, a_cov), (b_delta, b_cov) = lower_motion, higher_motion
@@ -105,8 +109,12 @@ def detections_agree(first: RobotDetection, second: RobotDetection, lower_motion
     j_second = j_inverse @ inverse_jacobian(via_second)
     error = compose(inverse(via_second), via_first)
     error[2] = wrap_angle(error[2])
-    covariance = (j_second @ cov_via_second @ j_second.T + j_end @ cov_via_first @ j_end.T)
-    return float(error @ np.linalg.solve(covariance, error)) <= gate
+    covariance = (j_second @ cov_via_second @ j_second.T + j_end @ cov_via_first @ j_end.T
+                  + floor_variance * np.eye(3))
+    try:
+        return float(error @ np.linalg.solve(covariance, error)) <= gate
+    except np.linalg.LinAlgError:  # readings stated exact with no floor: nothing to test by
+        return False
 
 
 @dataclass(frozen=True)
@@ -123,9 +131,10 @@ class RobotDetectionScreen:
     Bounded: waiting detections leave once both robots are ``window`` keyframes past them,
     and of the accepted ones each pair keeps the latest :data:`MAX_HELD_PER_PAIR`."""
 
-    def __init__(self, window: int, gate_probability: float) -> None:
+    def __init__(self, window: int, gate_probability: float, floor_variance: float) -> None:
         self.window = window
         self._gate = chi2_quantile(3, gate_probability)
+        self._floor = floor_variance
         self._waiting: dict[tuple[int, int], list[RobotDetection]] = {}
         self._held: dict[tuple[int, int], list[RobotDetection]] = {}
 
@@ -161,7 +170,8 @@ class RobotDetectionScreen:
             now = [pool[k] for k in chosen if k >= len(held)] if len(chosen) >= 2 else []
             accepted.extend(now)
             self._hold(robots, now)
-            undecided = [detection for detection in waiting if detection not in now]
+            undecided = [detection for detection in waiting
+                         if not any(detection is taken for taken in now)]
             past = min(newest_index(robot) for robot in robots)
             for detection in undecided:
                 if past < detection.index + self.window:
@@ -204,5 +214,5 @@ class RobotDetectionScreen:
                 if lower_motion is None or higher_motion is None:
                     continue
                 consistent[i, j] = consistent[j, i] = detections_agree(
-                    first, second, lower_motion, higher_motion, self._gate)
+                    first, second, lower_motion, higher_motion, self._gate, self._floor)
         return consistent
