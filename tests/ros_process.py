@@ -123,6 +123,16 @@ class NodeProcess:
         log = log_path or Path(REPO_ROOT / "build" / f"{module.rsplit('.', 1)[-1]}.log")
         return cls([sys.executable, "-m", module, *args], log, env)
 
+    @classmethod
+    def run_script(cls, source: str, log_path: Path, timeout_s: float) -> tuple[int, str]:
+        """Run Python ``source`` (``python -c``, the repository importable) to its end;
+        its exit code and output. Stopped (and the test failed) after ``timeout_s``."""
+        process = cls([sys.executable, "-c", source], log_path,
+                      env={"PYTHONPATH": str(REPO_ROOT)})
+        with process:
+            code = process.wait(timeout_s)
+        return code, process.output()
+
     @property
     def pid(self) -> int:
         """Process id, which is also the id of its process group."""

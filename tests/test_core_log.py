@@ -2,10 +2,9 @@
 from __future__ import annotations
 
 import logging
-import sys
 import textwrap
 
-from ros_process import REPO_ROOT, NodeProcess
+from ros_process import NodeProcess
 
 from em_exploration_ros.nodes.core_log import PACKAGE_LOGGER, core_logs_to
 
@@ -93,11 +92,7 @@ CORE_LOGGING_NODE = textwrap.dedent("""
 
 
 def test_a_node_process_logs_the_core_s_lines_under_its_name(tmp_path):
-    node = NodeProcess([sys.executable, "-c", CORE_LOGGING_NODE], tmp_path / "node.log",
-                       env={"PYTHONPATH": str(REPO_ROOT)})
-    with node:
-        code = node.wait(60.0)
-    output = node.output()
+    code, output = NodeProcess.run_script(CORE_LOGGING_NODE, tmp_path / "node.log", 60.0)
     assert code == 0, output
     for severity, text in (("INFO", "robot 4 finished: probe"),
                            ("WARN", "a keyframe's late readings left out"),

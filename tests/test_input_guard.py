@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import sys
 import textwrap
 import types
 
@@ -28,7 +27,7 @@ from em_exploration_ros.nodes.message_bounds import (FRAME_ID_ROOM, motion_comma
                                                      request_bytes)
 from em_exploration_ros.nodes.node_main import RCLError
 
-from ros_process import NodeProcess, REPO_ROOT
+from ros_process import NodeProcess
 
 
 def long_path(poses: int) -> Path:
@@ -223,11 +222,7 @@ LATE_PUBLISHING_NODE = textwrap.dedent("""
 
 
 def test_ctrl_c_during_a_callback_that_publishes_logs_no_error(tmp_path):
-    process = NodeProcess([sys.executable, "-c", LATE_PUBLISHING_NODE], tmp_path / "node.log",
-                          env={"PYTHONPATH": str(REPO_ROOT)})
-    with process:
-        code = process.wait(30.0)
-    output = process.output()
+    code, output = NodeProcess.run_script(LATE_PUBLISHING_NODE, tmp_path / "node.log", 30.0)
     assert code == 0, output
     assert "context ok: False; sent: False" in output, output
     assert "[ERROR]" not in output and "context is invalid" not in output, output

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import signal
-import sys
 import textwrap
 import time
 
@@ -30,7 +29,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.serialization import serialize_message
-from ros_process import REPO_ROOT, NodeProcess, loaded_modules, ros_args
+from ros_process import NodeProcess, loaded_modules, ros_args
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
@@ -426,11 +425,8 @@ SELF_INTERRUPTING_NODE = textwrap.dedent("""
 
 
 def test_ctrl_c_shuts_ros_down_without_raising_inside_a_callback(tmp_path):
-    node = NodeProcess([sys.executable, "-c", SELF_INTERRUPTING_NODE], tmp_path / "node.log",
-                       env={"PYTHONPATH": str(REPO_ROOT)})
-    with node:
-        code = node.wait(START_S)
-    output = node.output()
+    code, output = NodeProcess.run_script(SELF_INTERRUPTING_NODE, tmp_path / "node.log",
+                                          START_S)
     assert code == 0, output
     assert "KeyboardInterrupt" not in output and "Traceback" not in output, output
     assert "callback ended undisturbed" in output, output
