@@ -211,6 +211,13 @@ class SlamParams:
         "a scan's pairings together (JCBB), a detection against a tentative track, a "
         "teammate's landmark against an own one and two such correspondences together "
         "(pairwise consistency).", 0.5, 0.999999)
+    robot_detection_gate_probability: float = param_field(
+        0.999, "Without landmark identities: probability of the chi-square gate (3 degrees "
+        "of freedom) within which two detections of the same two robots must close their "
+        "loop through both robots' odometry to agree; a detection enters the graph only "
+        "once it agrees with another (pairwise consistency). Wider than "
+        "association_gate_probability: it is there to refuse gross errors, and a brief "
+        "meeting's one pair refused by chance loses the meeting.", 0.5, 0.999999)
     track_confirm_hits: int = param_field(
         3, "Without landmark identities: a detection that matches no landmark starts a "
         "tentative track, which becomes a landmark once seen in this many of the last "

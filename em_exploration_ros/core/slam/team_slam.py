@@ -609,7 +609,7 @@ class TeamSlam:
         self.slam_params = slam_params
         self.noise = SlamNoise(slam_params)
         screen = None if landmark_ids else RobotDetectionScreen(
-            slam_params.track_window_keyframes, slam_params.association_gate_probability,
+            slam_params.track_window_keyframes, slam_params.robot_detection_gate_probability,
             slam_params.covariance_floor_sigma ** 2)
         self._graph = _TeamGraph(num_robots, self.noise, anchor_pose, landmark_ids, screen)
         #: Landmark pairs (own id, teammate's id) tied by a correspondence factor, in order.
