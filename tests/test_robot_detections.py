@@ -114,7 +114,7 @@ def test_the_screen_accepts_agreeing_detections_and_leaves_a_wrong_one_out_when_
     accepted, left_out = screen_all(screen, newest=8)
     assert accepted == [] and screen.num_waiting == 0
     assert [item.detection for item in left_out] == [wrong]
-    assert left_out[0].reason == ("inconsistent with the other detections of these robots "
+    assert left_out[0].reason == ("agrees with 0 of the 3 other detections of these robots "
                                   "within 5 keyframes")
 
 
@@ -132,7 +132,7 @@ def test_a_lone_detection_waits_for_company_and_is_taken_with_it():
     assert left_out[0].reason.startswith("no other detection of these robots")
 
 
-def test_held_detections_vouch_for_a_new_one_and_against_a_wrong_one():
+def test_accepted_detections_vouch_for_a_new_one_and_against_a_wrong_one():
     screen = RobotDetectionScreen(window=5, gate_probability=0.99, floor_variance=1e-12)
     screen.accept_unscreened(detection(0, 1, 0, POSES))
     screen.accept_unscreened(detection(1, 0, 0, POSES))
@@ -168,8 +168,8 @@ def test_a_graph_without_identities_leaves_the_planted_detection_out(caplog):
     with caplog.at_level(logging.WARNING, logger="em_exploration_ros.core.slam.team_slam"):
         screened = team_slam_with_a_planted_wrong_detection(landmark_ids=False)
     assert screened.inter_robot_factors(0, 1) == 2 * 12 - 1
-    assert ("robot 1's detection of robot 0 at keyframe 6 left out: inconsistent with the "
-            "other detections of these robots within 5 keyframes") in caplog.text
+    assert "robot 1's detection of robot 0 at keyframe 6 left out: agrees with 0 of the " \
+        in caplog.text
     errors = [np.linalg.norm(screened.pose(1, k)[:2] - screened.truth[1][k][:2])
               for k in range(12)]
     assert max(errors) < 1e-3
@@ -178,3 +178,26 @@ def test_a_graph_without_identities_leaves_the_planted_detection_out(caplog):
     ideal = team_slam_with_a_planted_wrong_detection(landmark_ids=True)
     assert ideal.inter_robot_factors(0, 1) == 2 * 12
     assert np.linalg.norm(ideal.pose(1, 6)[:2] - ideal.truth[1][6][:2]) > 0.05
+
+
+@pytest.mark.parametrize("turn_after, taken", [(2, True), (3, False)])
+def test_a_detection_agreeing_with_half_of_the_others_is_taken_though_older_ones_disagree(
+        turn_after, taken):
+    """Accepted detections need not agree with each other: a new one at keyframe 6 that
+    agrees with those since a turn error in robot 1's odometry (after keyframe
+    ``turn_after``) but not with those before goes in when that is half of the 6 accepted
+    at keyframes 0-5 (3 of 6), not when fewer (2 of 6)."""
+    screen = RobotDetectionScreen(window=6, gate_probability=0.99, floor_variance=1e-12)
+    for index in range(6):
+        screen.accept_unscreened(detection(0, 1, index, POSES))
+
+    def motion_with_a_turn_error(robot, since, until):
+        delta, covariance = motion(POSES, robot, since, until)
+        if robot == 1 and since <= turn_after < until:
+            delta = compose(delta, [0.0, 0.0, 0.05])
+        return delta, covariance
+
+    new = detection(1, 0, 6, POSES)
+    screen.offer(new)
+    accepted, _ = screen.screen(motion_with_a_turn_error, lambda robot: 6)
+    assert accepted == ([new] if taken else [])

@@ -215,7 +215,8 @@ class SlamParams:
         0.999, "Without landmark identities: probability of the chi-square gate (3 degrees "
         "of freedom) within which two detections of the same two robots must close their "
         "loop through both robots' odometry to agree; a detection enters the graph only "
-        "once it agrees with another (pairwise consistency). Wider than "
+        "once it agrees with at least one, and half, of the others within "
+        "track_window_keyframes (pairwise consistency). Wider than "
         "association_gate_probability: it is there to refuse gross errors, and a brief "
         "meeting's one pair refused by chance loses the meeting.", 0.5, 0.999999)
     track_confirm_hits: int = param_field(

@@ -5,8 +5,8 @@ teammate's pose at the same keyframe index, in the observer's body frame) is an 
 loop closure. A wrong one (a misidentified vehicle, a multipath return) would bend every
 teammate's graph that holds it, as a wrong landmark correspondence would. Without landmark
 identities (field sensing) :class:`RobotDetectionScreen` keeps detections back until they
-agree with others of the same two robots, the test DRACo-SLAM and Swarm-SLAM apply to
-inter-robot loop closures (pairwise consistency maximization, Mangelson et al. 2018):
+agree with others of the same two robots, the pairwise consistency test DRACo-SLAM and
+Swarm-SLAM apply to inter-robot loop closures (Mangelson et al. 2018):
 
 * Two detections of robots ``a < b``, ``z_i`` at keyframe index ``i`` and ``z_j`` at ``j``
   (each the pose of b's keyframe in a's, whichever robot observed), are consistent when the
@@ -14,13 +14,17 @@ inter-robot loop closures (pairwise consistency maximization, Mangelson et al. 2
   ``A`` and ``B`` each robot's odometry from ``i`` to ``j`` (``detections_agree``). Two
   robots in sonar range see each other at the same keyframe, and those two detections test
   each other with no odometry between them.
-* A detection is accepted once it is in the largest set of mutually consistent detections of
-  its two robots within ``window`` keyframes (those accepted already and those waiting),
-  and that set holds two or more. A detection at either robot's first keyframe is accepted
-  as it comes: it is the robot's start in the team frame (its launch pose), and nothing
-  else places it.
-* A waiting detection that is in no such set once both robots are ``window`` keyframes past
-  it is left out, and the screen says why.
+* A detection is accepted once it agrees with at least one, and at least half, of the other
+  detections of its two robots within ``window`` keyframes of it (those accepted already
+  and those waiting). Accepted detections are not judged again, and they do not have to
+  agree with each other: over a few keyframes with a sharp turn the odometry's stated
+  covariance is tighter than its errors, so a true detection can disagree with one made 5
+  keyframes before (a largest mutually consistent set then left out true detections that
+  agreed with every recent one). A gross error agrees with none.
+* A detection at either robot's first keyframe is accepted as it comes: it is the robot's
+  start in the team frame (its launch pose), and nothing else places it.
+* A waiting detection not accepted once both robots are ``window`` keyframes past it is left
+  out, and the screen says why.
 
 Poses are ``(x [m], y [m], theta [rad])``; covariances are of additive coordinate errors
 (the convention of :mod:`geometry`).
@@ -34,10 +38,10 @@ import numpy as np
 
 from em_exploration_ros.core.geometry import compose, compose_jacobians, inverse, wrap_angle
 from em_exploration_ros.core.records.readings import KeyframeId, TeammateReading
-from em_exploration_ros.core.slam.association import chi2_quantile, maximum_consistent_set
+from em_exploration_ros.core.slam.association import chi2_quantile
 
 #: The most accepted detections of one pair of robots a screening compares a waiting one
-#: with (the latest ones within the window): two robots in range add two per keyframe.
+#: with (the latest ones): two robots in range add two per keyframe, 12 in a window of 5.
 MAX_HELD_PER_PAIR = 24
 
 #: A robot's odometry from one keyframe index to a later one: ``(delta (3,), covariance
@@ -166,24 +170,30 @@ class RobotDetectionScreen:
             held = [detection for detection in self._held.get(robots, [])
                     if detection.index >= lowest - self.window][-MAX_HELD_PER_PAIR:]
             pool = held + waiting
-            chosen = maximum_consistent_set(self._consistency(pool, motion))
-            now = [pool[k] for k in chosen if k >= len(held)] if len(chosen) >= 2 else []
+            consistent = self._consistency(pool, len(held), motion)
+            indices = np.array([detection.index for detection in pool])
+            now, undecided = [], []
+            for k, detection in enumerate(waiting, start=len(held)):
+                near = np.abs(indices - detection.index) <= self.window
+                near[k] = False
+                agreeing, others = int(np.count_nonzero(consistent[k, near])), int(near.sum())
+                if agreeing >= 1 and 2 * agreeing >= others:
+                    now.append(detection)
+                else:
+                    undecided.append((detection, agreeing, others))
             accepted.extend(now)
             self._hold(robots, now)
-            undecided = [detection for detection in waiting
-                         if not any(detection is taken for taken in now)]
             past = min(newest_index(robot) for robot in robots)
-            for detection in undecided:
+            for detection, agreeing, others in undecided:
                 if past < detection.index + self.window:
                     self._waiting.setdefault(robots, []).append(detection)
-                    continue
-                company = any(other is not detection
-                              and abs(other.index - detection.index) <= self.window
-                              for other in pool)
-                left_out.append(LeftOut(detection, (
-                    "inconsistent with the other detections of these robots" if company
-                    else "no other detection of these robots") + f" within {self.window} "
-                    "keyframes"))
+                elif others:
+                    left_out.append(LeftOut(detection, (
+                        f"agrees with {agreeing} of the {others} other detections of these "
+                        f"robots within {self.window} keyframes")))
+                else:
+                    left_out.append(LeftOut(detection, (
+                        f"no other detection of these robots within {self.window} keyframes")))
         return accepted, left_out
 
     def _hold(self, robots: tuple[int, int], detections: list[RobotDetection]) -> None:
@@ -192,9 +202,11 @@ class RobotDetectionScreen:
         held.sort(key=lambda detection: detection.index)
         del held[:-MAX_HELD_PER_PAIR]
 
-    def _consistency(self, pool: list[RobotDetection], motion: MotionLookup) -> np.ndarray:
-        """``(N, N)`` bool: which detections of ``pool`` (one pair of robots) agree; a pair
-        whose odometry the graph does not hold is not consistent."""
+    def _consistency(self, pool: list[RobotDetection], first_waiting: int,
+                     motion: MotionLookup) -> np.ndarray:
+        """``(N, N)`` bool: which detections of ``pool`` (one pair of robots) agree, for
+        every pair with a waiting one (from ``first_waiting`` on; two accepted ones are not
+        compared); a pair whose odometry the graph does not hold does not agree."""
         count = len(pool)
         consistent = np.eye(count, dtype=bool)
         lower, higher = pool[0].robots
@@ -207,7 +219,7 @@ class RobotDetectionScreen:
             return motions[key]
 
         for i in range(count):
-            for j in range(i + 1, count):
+            for j in range(max(i + 1, first_waiting), count):
                 first, second = sorted((pool[i], pool[j]), key=lambda d: d.index)
                 lower_motion = between_indices(lower, first.index, second.index)
                 higher_motion = between_indices(higher, first.index, second.index)
