@@ -201,3 +201,25 @@ def test_a_detection_agreeing_with_half_of_the_others_is_taken_though_older_ones
     screen.offer(new)
     accepted, _ = screen.screen(motion_with_a_turn_error, lambda robot: 6)
     assert accepted == ([new] if taken else [])
+
+
+def test_detections_further_apart_than_the_window_are_not_compared():
+    """A forged record may name a keyframe long past: the screen walks no odometry chain
+    longer than its window, and leaves the detection out at once."""
+    screen = RobotDetectionScreen(window=5, gate_probability=0.99, floor_variance=1e-12)
+    for index in range(3):
+        screen.accept_unscreened(detection(0, 1, 100 + index, {0: {100 + k: POSES[0][k]
+                                                                  for k in range(3)},
+                                                              1: {100 + k: POSES[1][k]
+                                                                  for k in range(3)}}))
+    old = detection(1, 0, 2, POSES)
+    screen.offer(old)
+    asked = []
+
+    def motion_within_the_window(robot, since, until):
+        asked.append(until - since)
+        return motion(POSES, robot, since, until)
+
+    accepted, left_out = screen.screen(motion_within_the_window, lambda robot: 102)
+    assert accepted == [] and [item.detection for item in left_out] == [old]
+    assert left_out[0].reason.startswith("no other detection") and asked == []

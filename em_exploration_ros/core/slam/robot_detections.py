@@ -41,7 +41,7 @@ from em_exploration_ros.core.records.readings import KeyframeId, TeammateReading
 from em_exploration_ros.core.slam.association import chi2_quantile
 
 #: The most accepted detections of one pair of robots a screening compares a waiting one
-#: with (the latest ones): two robots in range add two per keyframe, 12 in a window of 5.
+#: with (the latest ones): two robots in range add two per keyframe, 22 within 5 either side.
 MAX_HELD_PER_PAIR = 24
 
 #: A robot's odometry from one keyframe index to a later one: ``(delta (3,), covariance
@@ -206,7 +206,8 @@ class RobotDetectionScreen:
                      motion: MotionLookup) -> np.ndarray:
         """``(N, N)`` bool: which detections of ``pool`` (one pair of robots) agree, for
         every pair with a waiting one (from ``first_waiting`` on; two accepted ones are not
-        compared); a pair whose odometry the graph does not hold does not agree."""
+        compared) within ``window`` keyframes of each other; a pair whose odometry the graph
+        does not hold does not agree."""
         count = len(pool)
         consistent = np.eye(count, dtype=bool)
         lower, higher = pool[0].robots
@@ -221,6 +222,8 @@ class RobotDetectionScreen:
         for i in range(count):
             for j in range(max(i + 1, first_waiting), count):
                 first, second = sorted((pool[i], pool[j]), key=lambda d: d.index)
+                if second.index - first.index > self.window:
+                    continue
                 lower_motion = between_indices(lower, first.index, second.index)
                 higher_motion = between_indices(higher, first.index, second.index)
                 if lower_motion is None or higher_motion is None:
