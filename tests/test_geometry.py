@@ -5,6 +5,7 @@ import pytest
 
 from em_exploration_ros.core.geometry import (between, compose, compose_jacobians,
                                               coordinate_to_body_covariance, inverse,
+                                              inverse_jacobian,
                                               inverse_transform_points, range_bearing,
                                               transform_points, wrap_angle)
 
@@ -164,3 +165,10 @@ def test_a_non_finite_single_pose_gives_nan_like_a_batch_instead_of_raising(bad:
             np.testing.assert_array_equal(single, batch)
         single_j_a, _ = compose_jacobians(pose, other)
         np.testing.assert_array_equal(single_j_a, compose_jacobians(pose[None], other[None])[0][0])
+
+
+def test_the_inverse_s_jacobian_matches_finite_differences():
+    pose, step = np.array([1.5, -0.7, 2.2]), 1e-7
+    numeric = np.column_stack([(inverse(pose + step * axis) - inverse(pose - step * axis))
+                               / (2 * step) for axis in np.eye(3)])
+    assert inverse_jacobian(pose) == pytest.approx(numeric, abs=1e-6)

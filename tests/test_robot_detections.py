@@ -8,13 +8,13 @@ import logging
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.geometry import between, compose, inverse
+from em_exploration_ros.core.geometry import between, compose
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.records.readings import KeyframeMeasurements, TeammateReading
 from em_exploration_ros.core.slam.association import chi2_quantile
 from em_exploration_ros.core.slam.robot_detections import (RobotDetection,
                                                            RobotDetectionScreen,
-                                                           detections_agree, inverse_jacobian)
+                                                           detections_agree)
 from em_exploration_ros.core.slam.team_slam import TeamSlam
 
 DETECTION_COVARIANCE = np.diag([0.05 ** 2, 0.05 ** 2, 0.01 ** 2])
@@ -48,13 +48,6 @@ def motion(poses: dict, robot: int, since: int, until: int):
 
 
 POSES = {0: trajectory([0.0, 0.0, 0.0], 20), 1: trajectory([3.0, 4.0, 1.0], 20)}
-
-
-def test_the_inverse_s_jacobian_matches_finite_differences():
-    pose, step = np.array([1.5, -0.7, 2.2]), 1e-7
-    numeric = np.column_stack([(inverse(pose + step * axis) - inverse(pose - step * axis))
-                               / (2 * step) for axis in np.eye(3)])
-    assert inverse_jacobian(pose) == pytest.approx(numeric, abs=1e-6)
 
 
 def test_two_robots_seeing_each_other_agree_at_one_index_and_over_odometry():

@@ -173,6 +173,16 @@ def compose_jacobians(a: ArrayLike, b: ArrayLike) -> tuple[FloatArray, FloatArra
     return j_a, j_b
 
 
+def inverse_jacobian(pose: ArrayLike) -> FloatArray:
+    """Jacobian ``(3, 3)`` of ``inverse(pose)`` w.r.t. the coordinates of ``pose`` ``(3,)``:
+    ``cov(inverse(p)) = J cov(p) J^T``."""
+    x, y, theta = (float(value) for value in np.asarray(pose, dtype=float))
+    cos_t, sin_t = _cos_sin(theta)
+    return np.array([[-cos_t, -sin_t, sin_t * x - cos_t * y],
+                     [sin_t, -cos_t, cos_t * x + sin_t * y],
+                     [0.0, 0.0, -1.0]])
+
+
 def coordinate_to_body_covariance(pose: ArrayLike, covariance: ArrayLike) -> FloatArray:
     """Covariance ``(..., 3, 3)`` of additive coordinate errors of ``pose``, re-expressed
     in the pose's own body frame (first order): position rotated by ``-theta``, heading kept.

@@ -10,6 +10,9 @@ from typing import Iterator
 
 from rclpy.impl.rcutils_logger import RcutilsLogger
 
+from em_exploration_ros.core.sessions.effects import Level
+from em_exploration_ros.nodes.log_lines import write_at
+
 #: The Python logger above every module of the package.
 PACKAGE_LOGGER = "em_exploration_ros"
 
@@ -29,18 +32,15 @@ class RosLogHandler(logging.Handler):
         except Exception:  # noqa: BLE001 (a bad format string: logging's own report)
             self.handleError(record)
             return
-        # One call site per severity: rclpy refuses a call site whose severity changes.
-        logger = self._logger
         if record.levelno >= logging.CRITICAL:
-            logger.fatal(text)
+            self._logger.fatal(text)
         elif record.levelno >= logging.ERROR:
-            logger.error(text)
+            write_at(self._logger, Level.ERROR, text)
         elif record.levelno >= logging.WARNING:
-            logger.warning(text)
-        elif record.levelno >= logging.INFO:
-            logger.info(text)
+            write_at(self._logger, Level.WARN, text)
         else:
-            logger.debug(text)
+            write_at(self._logger, Level.INFO if record.levelno >= logging.INFO
+                     else Level.DEBUG, text)
 
 
 @contextmanager

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import time
 
+from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.node import Node
 
 from em_exploration_ros.core.sessions.effects import Level, LogLine
@@ -28,14 +29,18 @@ class LineWriter:
             if last_s is not None and now_s - last_s < self.period_s:
                 return
             self._last_s[line.throttle_key] = now_s
-        # One call site per severity: rclpy refuses a call site whose severity changes
-        # ("Logger severity cannot be changed between calls").
-        level, logger = line.level, self._logger
-        if level is Level.ERROR:
-            logger.error(line.text)
-        elif level is Level.WARN:
-            logger.warning(line.text)
-        elif level is Level.INFO:
-            logger.info(line.text)
-        else:
-            logger.debug(line.text)
+        write_at(self._logger, line.level, line.text)
+
+
+def write_at(logger: RcutilsLogger, level: Level, text: str) -> None:
+    """``text`` on a ROS logger at ``level``. One call site per severity, shared by every
+    writer: rclpy refuses a call site whose severity changes ("Logger severity cannot be
+    changed between calls")."""
+    if level is Level.ERROR:
+        logger.error(text)
+    elif level is Level.WARN:
+        logger.warning(text)
+    elif level is Level.INFO:
+        logger.info(text)
+    else:
+        logger.debug(text)

@@ -36,7 +36,8 @@ from typing import Callable
 
 import numpy as np
 
-from em_exploration_ros.core.geometry import compose, compose_jacobians, inverse, wrap_angle
+from em_exploration_ros.core.geometry import (compose, compose_jacobians, inverse,
+                                              inverse_jacobian, wrap_angle)
 from em_exploration_ros.core.records.readings import KeyframeId, TeammateReading
 from em_exploration_ros.core.slam.association import chi2_quantile
 
@@ -48,15 +49,6 @@ MAX_HELD_PER_PAIR = 24
 #: (3, 3))`` in the body frame of the earlier keyframe, or None when its graph does not hold
 #: the chain of keyframes between them. Arguments: robot, from index, to index.
 MotionLookup = Callable[[int, int, int], "tuple[np.ndarray, np.ndarray] | None"]
-
-
-def inverse_jacobian(pose: np.ndarray) -> np.ndarray:
-    """Jacobian ``(3, 3)`` of ``inverse(pose)`` w.r.t. the coordinates of ``pose``."""
-    x, y, theta = (float(value) for value in pose)
-    cos_t, sin_t = np.cos(theta), np.sin(theta)
-    return np.array([[-cos_t, -sin_t, sin_t * x - cos_t * y],
-                     [sin_t, -cos_t, cos_t * x + sin_t * y],
-                     [0.0, 0.0, -1.0]])
 
 
 @dataclass(frozen=True, eq=False)
