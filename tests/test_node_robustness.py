@@ -288,9 +288,10 @@ def test_a_robot_never_seen_alive_is_not_waited_for_the_robot_timeout(tmp_path):
     after robot_timeout_s (60 s here; 30 s by default, one robot after another)."""
     team = dict(ONE_ROBOT, **{"world.num_robots": 2})
     # startup_timeout_s: long enough for the world to discover this process's participant
-    # even when Fast DDS's first announcements are missed (it announces again after 3 s; at
-    # 3 s, about one run in ten treated the stand-in as never started, and it was not given
-    # up as a silent robot). The world starts as soon as both robots are connected.
+    # even when Fast DDS's first announcements are missed (it announces again after 1 s with
+    # config/fastdds_profiles.xml, 3 s by default; at a 3 s timeout and 3 s announcements,
+    # about one run in ten treated the stand-in as never started, and it was not given up as
+    # a silent robot). The world starts as soon as both robots are connected.
     world = NodeProcess.start_module(WORLD, ros_args(params=dict(
         team, startup_timeout_s=10.0, robot_timeout_s=60.0, liveliness_grace_s=4.0)),
         log_path=tmp_path / "world.log")

@@ -196,10 +196,11 @@ def evaluator_heard_every_robot(log_path, robots: int, evaluations_after: int) -
     """Whether the evaluator saw the liveliness of all ``robots`` robots and then evaluated
     ``evaluations_after`` more times (time for a gap in a stream to be asked for and
     re-sent). Until then a robot's first team updates may not have reached it: when Fast
-    DDS misses a participant's first announcements, discovery waits for the next one (3 s),
-    and at 25x the team passes t = 20 s within a second. A forged update with the next
-    sequence number is well-formed and cannot be told from the robot's own; sent before
-    the real one, it takes its place (this test once lost robot 0's first target so)."""
+    DDS misses a participant's first announcements, discovery waits for the next one (1 s
+    with config/fastdds_profiles.xml), and at 25x the team passes t = 20 s within a second.
+    A forged update with the next sequence number is well-formed and cannot be told from
+    the robot's own; sent before the real one, it takes its place (this test once lost
+    robot 0's first target so)."""
     lines = log_path.read_text().splitlines() if log_path.exists() else []
     heard = [i for i, line in enumerate(lines) if "liveliness asserted" in line]
     seen = {re.search(r"robot (\d+): liveliness", lines[i]).group(1) for i in heard}

@@ -51,11 +51,12 @@ class WorldNodeSettings:
         60.0, "Wall seconds to wait for every robot to connect before the first step; robots "
         "not connected by then are treated as stopped.", 0.0, 1e6)
     startup_settle_s: float = param_field(
-        3.5, "Wall seconds every connection must hold before the first step, so the "
+        2.0, "Wall seconds every connection must hold before the first step, so the "
         "middleware has matched the robots' team-update streams too (the graph shows a "
         "reader before every writer delivers to it: when Fast DDS misses a participant's "
         "first announcements, a robot and the evaluator find each other only at the next, "
-        "up to 3 s later).", 0.0, 60.0)
+        "up to 1 s later with config/fastdds_profiles.xml, 3 s with Fast DDS's default).",
+        0.0, 60.0)
     lost_team_wait_s: float = param_field(
         0.0, "Lockstep: wall seconds to wait, when every robot that has not finished is lost, "
         "for one to come back before ending the mission (0: end at once; run_team.sh "
