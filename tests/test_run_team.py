@@ -460,7 +460,8 @@ def test_an_unexpected_end_of_the_script_stops_every_process(tmp_path):
     the script itself, such as an unbound variable, the same way) stops the nodes first. The
     nodes, each in its own session, used to run on for good."""
     run, domain = start_team_run(tmp_path, "--planner", "NEAREST", "--map-size", "40",
-                                 "--landmarks", "4", "--until-explored", "1")
+                                 "--landmarks", "4", "--until-explored", "1",
+                                 "--summary", str(tmp_path / "summary.json"))
     with run:
         run.wait_for_output("  explored ", RUN_TIMEOUT_S)
         os.kill(run.pid, signal.SIGUSR1)
