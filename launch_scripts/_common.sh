@@ -29,9 +29,11 @@ em_activate() {
     export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
     # The distribution of the venv's ROS 2 wheels (ros2 doctor reports a missing one).
     export ROS_DISTRO=jazzy
-    # Writers' heartbeat every 100 ms instead of 3 s, and sample buffers freed once taken:
-    # see the file, whose memory policy rmw_fastrtps takes only with
-    # RMW_FASTRTPS_USE_QOS_FROM_XML=1. A profile the caller chose is kept.
+    # Writers' heartbeat every 100 ms instead of 3 s, participants announced every second
+    # instead of every 3 s, and sample buffers freed once taken: see the file, whose memory
+    # policy rmw_fastrtps takes only with RMW_FASTRTPS_USE_QOS_FROM_XML=1. A profile the
+    # caller chose is kept; one that announces less often than em-world's startup_settle_s
+    # (2 s) needs that setting raised past its period (a --params file).
     export FASTRTPS_DEFAULT_PROFILES_FILE="${FASTRTPS_DEFAULT_PROFILES_FILE:-$EM_REPO_ROOT/config/fastdds_profiles.xml}"
     export RMW_FASTRTPS_USE_QOS_FROM_XML="${RMW_FASTRTPS_USE_QOS_FROM_XML:-1}"
     # glibc gives memory freed after a flood back to the system (docs/results.md "Memory

@@ -4,6 +4,7 @@ the stepping. Wall times are given; nothing here sleeps."""
 from __future__ import annotations
 
 import dataclasses
+from xml.etree import ElementTree
 
 import numpy as np
 
@@ -18,6 +19,8 @@ from em_exploration_ros.core.sessions.world_effects import (Dropped, PublishCloc
                                                             StartTicking)
 from em_exploration_ros.core.sessions.world_session import TeamConnections, WorldSession
 from em_exploration_ros.core.world.simulation import WorldSimulation
+
+from ros_process import REPO_ROOT
 
 PARAMS = ExplorationParams().replace(world={"num_robots": 2, "width_m": 40.0, "height_m": 40.0,
                                             "num_landmarks": 6})
@@ -248,3 +251,27 @@ def test_real_time_ticks_advance_with_the_latest_commands():
     reference.advance()
     assert world.sim.step == 1
     np.testing.assert_array_equal(world.sim.true_pose(0), reference.true_pose(0))
+
+
+def test_the_start_up_settle_outlasts_the_team_profile_s_re_announcement_period():
+    """em-world's settle covers a participant whose first announcements were missed: the
+    team's Fast DDS profile (config/fastdds_profiles.xml, the default participant) announces
+    again within it, and its first announcements span at least the settle (both are
+    changed together or not at all)."""
+    namespace = {"dds": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    root = ElementTree.parse(REPO_ROOT / "config" / "fastdds_profiles.xml").getroot()
+    participants = [p for p in root.iterfind("dds:participant", namespace)
+                    if p.get("is_default_profile") == "true"]
+    assert len(participants) == 1
+    discovery = participants[0].find("dds:rtps/dds:builtin/dds:discovery_config", namespace)
+
+    def seconds(element) -> float:
+        return (float(element.findtext("dds:sec", namespaces=namespace))
+                + float(element.findtext("dds:nanosec", namespaces=namespace)) * 1e-9)
+
+    period_s = seconds(discovery.find("dds:leaseAnnouncement", namespace))
+    initial = discovery.find("dds:initialAnnouncements", namespace)
+    initial_span_s = (int(initial.findtext("dds:count", namespaces=namespace))
+                      * seconds(initial.find("dds:period", namespace)))
+    settle_s = WorldNodeSettings().startup_settle_s
+    assert period_s < settle_s <= initial_span_s
