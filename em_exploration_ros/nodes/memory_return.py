@@ -5,7 +5,7 @@ returns a heap's free memory to the system only from its top, and one live alloc
 the freed ones kept it all (the evaluator's heap stayed at 100 MB after em-fuzz flooded
 every topic for 60 s, against 32 MB in a clean run). ``malloc_trim(0)`` hands every whole
 free page back, wherever it lies. Each node process calls it every ``TRIM_PERIOD_S`` of
-wall time: about 1 ms when there is little to return, 10-20 ms after a flood freed 100 MB.
+wall time: 0.01-0.03 ms when there is little to return, 10-20 ms after a flood freed 100 MB.
 A C library without ``malloc_trim`` (not glibc) keeps its own policy: nothing is called.
 """
 from __future__ import annotations
@@ -18,8 +18,10 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.timer import Timer
 
-#: Wall seconds between two calls of ``malloc_trim`` in a node process.
-TRIM_PERIOD_S = 10.0
+#: Wall seconds between two calls of ``malloc_trim`` in a node process. A short team run
+#: ends a few wall seconds after a flood: with 10 s the evaluator sometimes ended before a
+#: trim came and kept up to 40 MB that it had freed (tests/test_flood_memory.py).
+TRIM_PERIOD_S = 1.0
 
 
 def _malloc_trim() -> Callable[[int], int] | None:
