@@ -263,6 +263,31 @@ def test_a_loop_closure_waits_for_its_track_so_clutter_in_its_wide_gate_is_not_n
     assert [r[1] for r in slam.landmark_readings()] == [3, 1, 2, 26, 25, 27]
 
 
+def test_a_track_does_not_name_a_landmark_another_reading_of_its_keyframe_names():
+    """One scan sees a landmark once. After the excursion a point 1 m from the mapped
+    landmark (inside its wide gate: paired with it, waiting) is seen at keyframe 24, the
+    landmark itself at 25, both at 26 and 27. At 26 both tracks are confirmed, the point's
+    with its first sighting paired with the landmark: the landmark's own track names it, and
+    the point's a new landmark, not the same one again (before, keyframe 26 held two
+    readings of landmark 0 from one pose, and the point's earlier one as a late reading of
+    it; Victoria Park had two such keyframes in 3332). At 27 each is recent and paired at
+    once."""
+    slam = TeamSlam(0, 1, SlamParams(), np.zeros(3), landmark_ids=False)
+    associator = OwnLandmarks(slam, ExplorationParams().sensors)
+    point = _reading_at(5.8, 0.6)
+    plan = (_MAP_AND_RETURN + [((0.0, 0.0), _STILL, [])] * 6  # 18-23: the landmark missed
+            + [((0.0, 0.0), _STILL, [point]), ((0.0, 0.0), _STILL, [_LANDMARK])]  # 24, 25
+            + [((0.0, 0.0), _STILL, [_LANDMARK, point])] * 2)                    # 26, 27
+    named = _drive(slam, associator, plan)
+    assert named[24].landmarks == named[25].landmarks == ()
+    assert [r.landmark_id for r in named[26].landmarks] == [0, 1]
+    assert [(late.keyframe_index, late.reading.landmark_id)
+            for late in named[26].late_landmarks] == [(25, 0), (24, 1)]
+    assert [r.landmark_id for r in named[27].landmarks] == [0, 1]
+    assert sorted(slam.landmark_estimates()) == [owned_landmark_id(0, 0),
+                                                 owned_landmark_id(0, 1)]
+
+
 def test_a_restarted_robot_gates_the_landmarks_of_its_journal_on_the_marginals():
     """A restarted robot's association starts afresh over the graph its journal rebuilt:
     it does not know when it last saw a landmark. Gated as if seen just before (the

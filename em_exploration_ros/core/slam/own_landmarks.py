@@ -160,13 +160,18 @@ class OwnLandmarks:
             [self._loop_closure_hits if d in waiting else self._tracks.confirm_hits
              for d in tracked],
             RobotMotion(odometry_pose, motion_since))))
+        paired = {d: int(ids[row]) for d, row in enumerate(pairing)
+                  if row is not None and d not in waiting}
+        # One scan sees a landmark once: a track does not name one another reading names.
+        taken = set(paired.values())
         named, late = [], []
         for d, reading in enumerate(readings):
-            if pairing[d] is not None and d not in waiting:
-                landmark = int(ids[pairing[d]])
+            if d in paired:
+                landmark = paired[d]
             elif confirmed[d] is not None:
                 landmark = self._confirmed_landmark(
-                    [*confirmed[d], _Sighting(keyframe.index, reading, waiting.get(d))])
+                    [*confirmed[d], _Sighting(keyframe.index, reading, waiting.get(d))], taken)
+                taken.add(landmark)
             else:
                 continue
             self._last_seen[landmark] = keyframe.index
@@ -194,10 +199,12 @@ class OwnLandmarks:
             for index in [index for index in history if index < kept]:
                 del history[index]
 
-    def _confirmed_landmark(self, sightings: list[_Sighting]) -> int:
+    def _confirmed_landmark(self, sightings: list[_Sighting], taken: set[int]) -> int:
         """The landmark (graph id) a confirmed track stands for: the own landmark its
-        sightings were paired with most often (the earliest such on a tie), else a new one."""
-        paired = [sighting.landmark for sighting in sightings if sighting.landmark is not None]
+        sightings were paired with most often (the earliest such on a tie) of those not in
+        ``taken`` (named by another reading of the same keyframe), else a new one."""
+        paired = [sighting.landmark for sighting in sightings
+                  if sighting.landmark is not None and sighting.landmark not in taken]
         if paired:
             return max(dict.fromkeys(paired), key=paired.count)
         return owned_landmark_id(self._robot, self._new_own_number())
