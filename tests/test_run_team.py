@@ -11,9 +11,12 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import signal
 import socket
 import subprocess
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -474,18 +477,43 @@ def test_an_unexpected_end_of_the_script_stops_every_process(tmp_path):
     assert "ended unexpectedly with nodes running; stopping them" in run.output()
 
 
+def _shared_memory_ports(pid: int) -> set[str]:
+    """The Fast DDS shared-memory port segments process ``pid`` has mapped (its own ports to
+    listen on and its teammates' it writes to)."""
+    try:
+        maps = Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return set()
+    return set(re.findall(r"/dev/shm/(fastrtps_port\d+)$", maps, re.MULTILINE))
+
+
 def _run_with_the_evaluator_signalled(tmp_path, signum: int, *options: str,
-                                      timeout_s: float = 60.0) -> tuple[int, str, str]:
+                                      timeout_s: float = 60.0,
+                                      ports: dict[str, set[str]] | None = None
+                                      ) -> tuple[int, str, str]:
     """A small NEAREST run (``options``; by default seed 0 until every robot finished) whose
     evaluator gets ``signum`` once progress shows; the exit code, output and ROS domain of
-    run_team.sh."""
+    run_team.sh. ``ports``, if given, gets the shared-memory ports the evaluator had mapped
+    before the signal (``before``) and those of the evaluator that runs 10 s after it, or
+    once it has its own (``after``: a restarted one; ``_shared_memory_ports``)."""
     run, domain = start_team_run(tmp_path, "--planner", "NEAREST", "--map-size", "40",
                                  "--landmarks", "4", *(options or ("--until-explored", "1")),
                                  "--summary", str(tmp_path / "summary.json"))
 
     def signal_the_evaluator() -> None:
         run.wait_for_output("  explored ", RUN_TIMEOUT_S)
-        os.kill(_evaluator_pid(domain), signum)
+        evaluator = _evaluator_pid(domain)
+        if ports is not None:
+            ports["before"] = _shared_memory_ports(evaluator)
+        os.kill(evaluator, signum)
+        if ports is not None:
+            ports["after"] = set()
+            deadline = time.monotonic() + 10.0
+            while time.monotonic() < deadline and not ports["after"] - ports["before"]:
+                pids = processes_in_domain(r"em_exploration_ros\.nodes\.evaluator_node", domain)
+                ports["after"] = set().union(*(_shared_memory_ports(p) for p in pids
+                                               if p != evaluator))
+                time.sleep(0.1)
 
     code = finish_team_run(run, timeout_s, meanwhile=signal_the_evaluator)
     return code, run.output(), domain
@@ -534,13 +562,20 @@ def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_
     mission at every level, as the end-to-end run's is (targets, decisions, the targets given
     up and the meetings the robots reported in their answers, some while no evaluator ran,
     the metrics)."""
+    ports: dict[str, set[str]] = {}
     code, output, domain = _run_with_the_evaluator_signalled(
         tmp_path, signal.SIGKILL, "--seed", "2", "--until-explored", "0.85",
         "--max-sim-time", "600", "--params", _short_progress_window(tmp_path), "--respawn",
-        timeout_s=RUN_TIMEOUT_S)
+        timeout_s=RUN_TIMEOUT_S, ports=ports)
     assert code == 0, output[-3000:]
     assert ("warning: the evaluator exited with code 137 (signal KILL); restarting it "
             "(respawn 1)") in output
+    # The restart listens on a shared-memory port of its own (run_team.sh's restart_profile):
+    # on its predecessor's, the others' writers could keep writing into the dead one's.
+    profile = tmp_path / "logs" / "fastdds_profile_evaluator_participant31.xml"
+    assert "<participantID>31</participantID>" in profile.read_text()
+    own_port = f"fastrtps_port{7400 + 250 * int(domain) + 11 + 2 * 31}"
+    assert own_port in ports["after"] and own_port not in ports["before"], ports
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert check_summary(summary) == []
