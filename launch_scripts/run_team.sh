@@ -659,8 +659,12 @@ restart_profile() {
     local id=${RESTART_PARTICIPANT_IDS[0]}
     RESTART_PARTICIPANT_IDS=("${RESTART_PARTICIPANT_IDS[@]:1}" "$id")
     RESTART_PROFILE="$LOG_DIR/fastdds_profile_$1_participant$id.xml"
-    sed "0,/<rtps>/s//<rtps>\n      <participantID>$id<\/participantID>/" \
-        "$FASTRTPS_DEFAULT_PROFILES_FILE" >"$RESTART_PROFILE"
+    if ! sed "0,/<rtps>/s//<rtps>\n      <participantID>$id<\/participantID>/" \
+            "$FASTRTPS_DEFAULT_PROFILES_FILE" 2>/dev/null >"$RESTART_PROFILE"; then
+        echo "$PROG: warning: could not write $RESTART_PROFILE (disk full?); $1 restarts" \
+            "on the team's profile (it may take its predecessor's participant id)" >&2
+        RESTART_PROFILE=""
+    fi
 }
 
 # respawn_robot INDEX WHY: SIGKILL robot INDEX's process group (if alive) and start the same

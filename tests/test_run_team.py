@@ -17,6 +17,7 @@ import socket
 import subprocess
 import time
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -551,6 +552,40 @@ def test_a_killed_evaluator_stops_the_run_and_keeps_the_summary_so_far(tmp_path)
     assert summary["sim_time_s"] > 0.0 and summary["history"]
     assert summary["history"][-1]["explored_ratio"] == summary["explored_ratio"] > 0.0
     assert f"summary: {tmp_path / 'summary.json'}" in output
+
+
+def test_a_restart_profile_is_the_team_s_with_an_id_of_its_own_or_none_with_a_warning(
+        tmp_path):
+    """run_team.sh's restart_profile, run alone: the team's Fast DDS profile with the next
+    participant id of the list (which turns round) in the run's logs, and where that cannot
+    be written (a full disk: the file is /dev/full), none, with a warning: the process
+    restarts on the team's profile."""
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "fastdds_profile_robot_2_participant30.xml").symlink_to("/dev/full")
+    function = re.search(r"^restart_profile\(\) \{.*?^\}", RUN_TEAM.read_text(),
+                         re.MULTILINE | re.DOTALL).group(0)
+    script = (f"PROG=run_team.sh EM_REPO_ROOT='{REPO_ROOT}'\n"
+              f"FASTRTPS_DEFAULT_PROFILES_FILE='{REPO_ROOT}/config/fastdds_profiles.xml'\n"
+              "RESTART_PARTICIPANT_IDS=(31 30)\n"
+              f"{function}\n"
+              f"LOG_DIR='{tmp_path}'; restart_profile robot_1; echo \"$RESTART_PROFILE\"\n"
+              f"LOG_DIR='{full}'; restart_profile robot_2; echo \"[$RESTART_PROFILE]\"\n"
+              "echo \"${RESTART_PARTICIPANT_IDS[*]}\"\n")
+    result = subprocess.run(["bash", "-c", script], capture_output=True, text=True,
+                            timeout=30)
+    assert result.returncode == 0, result.stderr
+    written, failed, ids = result.stdout.splitlines()
+    assert written == str(tmp_path / "fastdds_profile_robot_1_participant31.xml")
+    participant = ElementTree.parse(written).getroot().find(
+        "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}participant")
+    assert participant.get("is_default_profile") == "true"
+    assert participant.findtext(
+        "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}rtps/"
+        "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}participantID") == "31"
+    assert failed == "[]" and ids == "31 30"
+    assert (f"warning: could not write {full}/fastdds_profile_robot_2_participant30.xml "
+            "(disk full?); robot_2 restarts on the team's profile") in result.stderr
 
 
 def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_summary(
