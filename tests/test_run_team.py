@@ -490,13 +490,13 @@ def _shared_memory_ports(pid: int) -> set[str]:
 
 def _run_with_the_evaluator_signalled(tmp_path, signum: int, *options: str,
                                       timeout_s: float = 60.0,
-                                      ports: dict[str, set[str]] | None = None
-                                      ) -> tuple[int, str, str]:
+                                      ports: dict[str, set[str]] | None = None,
+                                      restart_port: str = "") -> tuple[int, str, str]:
     """A small NEAREST run (``options``; by default seed 0 until every robot finished) whose
     evaluator gets ``signum`` once progress shows; the exit code, output and ROS domain of
     run_team.sh. ``ports``, if given, gets the shared-memory ports the evaluator had mapped
-    before the signal (``before``) and those of the evaluator that runs 10 s after it, or
-    once it has its own (``after``: a restarted one; ``_shared_memory_ports``)."""
+    before the signal (``before``) and those a restarted evaluator maps once it maps
+    ``restart_port``, or when the run ends first (``after``; ``_shared_memory_ports``)."""
     run, domain = start_team_run(tmp_path, "--planner", "NEAREST", "--map-size", "40",
                                  "--landmarks", "4", *(options or ("--until-explored", "1")),
                                  "--summary", str(tmp_path / "summary.json"))
@@ -509,8 +509,9 @@ def _run_with_the_evaluator_signalled(tmp_path, signum: int, *options: str,
         os.kill(evaluator, signum)
         if ports is not None:
             ports["after"] = set()
-            deadline = time.monotonic() + 10.0
-            while time.monotonic() < deadline and not ports["after"] - ports["before"]:
+            deadline = time.monotonic() + RUN_TIMEOUT_S
+            while (restart_port not in ports["after"] and run.running()
+                   and time.monotonic() < deadline):
                 pids = processes_in_domain(r"em_exploration_ros\.nodes\.evaluator_node", domain)
                 ports["after"] = set().union(*(_shared_memory_ports(p) for p in pids
                                                if p != evaluator))
@@ -597,11 +598,16 @@ def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_
     mission at every level, as the end-to-end run's is (targets, decisions, the targets given
     up and the meetings the robots reported in their answers, some while no evaluator ran,
     the metrics)."""
+    # The restart's own shared-memory port: Fast DDS's for participant 31 (run_team.sh's
+    # first restart id) in the run's domain, 7400 + 250 domain + 11 + 2 id.
     ports: dict[str, set[str]] = {}
+    domain_id = int(os.environ["ROS_DOMAIN_ID"])
+    own_port = f"fastrtps_port{7400 + 250 * domain_id + 11 + 2 * 31}"
     code, output, domain = _run_with_the_evaluator_signalled(
         tmp_path, signal.SIGKILL, "--seed", "2", "--until-explored", "0.85",
         "--max-sim-time", "600", "--params", _short_progress_window(tmp_path), "--respawn",
-        timeout_s=RUN_TIMEOUT_S, ports=ports)
+        timeout_s=RUN_TIMEOUT_S, ports=ports, restart_port=own_port)
+    assert domain == str(domain_id)
     assert code == 0, output[-3000:]
     assert ("warning: the evaluator exited with code 137 (signal KILL); restarting it "
             "(respawn 1)") in output
@@ -609,7 +615,6 @@ def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_
     # on its predecessor's, the others' writers could keep writing into the dead one's.
     profile = tmp_path / "logs" / "fastdds_profile_evaluator_participant31.xml"
     assert "<participantID>31</participantID>" in profile.read_text()
-    own_port = f"fastrtps_port{7400 + 250 * int(domain) + 11 + 2 * 31}"
     assert own_port in ports["after"] and own_port not in ports["before"], ports
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
     summary = json.loads((tmp_path / "summary.json").read_text())
