@@ -50,6 +50,8 @@ EVALUATOR_END_GRACE_S=${EM_EVALUATOR_END_GRACE_S:-60}
 # the highest of the 32 that participants on one host announce themselves to (rmw_fastrtps's
 # localhost discovery), away from the low ones that the first processes take.
 RESTART_PARTICIPANT_IDS=(31 30 29 28 27 26 25 24 23 22 21 20 19 18 17 16 15 14 13 12)
+# The restart ids given so far in this run.
+RESTART_IDS_USED=()
 
 usage() {
     cat <<EOF
@@ -642,29 +644,61 @@ STEPPED_OVER_LINE="stepping over at step" STEPPED_OVER_AT=""
 declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=() SEEN_BEFORE=() REJOINED_BEFORE=()
 
 # restart_profile NAME: sets RESTART_PROFILE for restarting process NAME: the team's Fast DDS
-# profile with a participant id of the restart's own (the next of RESTART_PARTICIPANT_IDS),
-# written into the logs. Fast DDS gives a process the first participant id whose ports are
-# free, so a restart took its dead predecessor's, and with it its shared-memory port: the
-# other processes kept writing into the dead one's port segment, which they had mapped, when
-# it died between marking itself processing and waiting (a state the writers' check never
-# declares dead; Fast DDS 2.14's SharedMemGlobal), and the restarted process got none of
-# their data (an evaluator restarted in CI got no ground truth for 60 s). A new id is a new
-# port. (Ids of 32 and up are announced to by no one: two robots restarted at once never
-# found each other.) A profile of the caller's own (FASTRTPS_DEFAULT_PROFILES_FILE) is left
-# as it is: RESTART_PROFILE empty.
+# profile with a participant id of the restart's own, written into the logs. Fast DDS gives a
+# process the first participant port that is free, so a restart took its dead predecessor's,
+# and with it its shared-memory port: the other processes kept writing into the dead one's
+# port segment, which they had mapped, when it died between marking itself processing and
+# waiting (a state the writers' check never declares dead; Fast DDS 2.14's SharedMemGlobal),
+# and the restarted process got none of their data (an evaluator restarted in CI got no
+# ground truth for 60 s). A new id is a new port. The id is the first of
+# RESTART_PARTICIPANT_IDS whose port no live participant holds (participant_port_held: a
+# large team's first processes hold low ids, and Fast DDS would move a restart on an id that
+# is held past 31); that id then goes to the end of the list, so ids come round again only
+# after every other was used (with a warning: a restart killed before may have left that
+# port's segment mapped). No id free: a warning, and Fast DDS chooses. (Ids of 32 and up are
+# announced to by no one: two robots restarted at once never found each other.) A profile of
+# the caller's own (FASTRTPS_DEFAULT_PROFILES_FILE) is left as it is: RESTART_PROFILE empty.
 restart_profile() {
     RESTART_PROFILE=""
     [[ $FASTRTPS_DEFAULT_PROFILES_FILE == "$EM_REPO_ROOT/config/fastdds_profiles.xml" ]] \
         || return 0
-    local id=${RESTART_PARTICIPANT_IDS[0]}
-    RESTART_PARTICIPANT_IDS=("${RESTART_PARTICIPANT_IDS[@]:1}" "$id")
+    local id="" candidate
+    for candidate in "${RESTART_PARTICIPANT_IDS[@]}"; do
+        participant_port_held "$candidate" || { id=$candidate; break; }
+    done
+    if [[ -z $id ]]; then
+        echo "$PROG: warning: every restart participant id (${RESTART_PARTICIPANT_IDS[*]})" \
+            "is held; $1 restarts on the team's profile (it may take its predecessor's" \
+            "participant id)" >&2
+        return 0
+    fi
+    local kept=()
+    for candidate in "${RESTART_PARTICIPANT_IDS[@]}"; do
+        [[ $candidate == "$id" ]] || kept+=("$candidate")
+    done
+    RESTART_PARTICIPANT_IDS=("${kept[@]}" "$id")
     RESTART_PROFILE="$LOG_DIR/fastdds_profile_$1_participant$id.xml"
     if ! sed "0,/<rtps>/s//<rtps>\n      <participantID>$id<\/participantID>/" \
             "$FASTRTPS_DEFAULT_PROFILES_FILE" 2>/dev/null >"$RESTART_PROFILE"; then
         echo "$PROG: warning: could not write $RESTART_PROFILE (disk full?); $1 restarts" \
             "on the team's profile (it may take its predecessor's participant id)" >&2
         RESTART_PROFILE=""
+        return 0
     fi
+    [[ " ${RESTART_IDS_USED[*]} " == *" $id "* ]] \
+        && echo "$PROG: warning: $1 restarts with participant id $id, which an earlier" \
+            "restart had: every restart id has been used" >&2
+    RESTART_IDS_USED+=("$id")
+}
+
+# participant_port_held ID: whether a live participant of this host holds the discovery
+# (metatraffic unicast) UDP port of participant ID in ROS_DOMAIN_ID: 7400 + 250 domain + 10
+# + 2 ID (the RTPS port mapping), bound on any address (/proc/net/udp, udp6).
+participant_port_held() {
+    local port
+    printf -v port '%04X' $(( 7410 + 250 * ${ROS_DOMAIN_ID:-0} + 2 * $1 ))
+    awk -v port=":$port" 'substr($2, length($2) - 4) == port { held = 1 }
+        END { exit !held }' /proc/net/udp /proc/net/udp6 2>/dev/null
 }
 
 # respawn_robot INDEX WHY: SIGKILL robot INDEX's process group (if alive) and start the same

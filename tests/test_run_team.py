@@ -555,38 +555,68 @@ def test_a_killed_evaluator_stops_the_run_and_keeps_the_summary_so_far(tmp_path)
     assert f"summary: {tmp_path / 'summary.json'}" in output
 
 
-def test_a_restart_profile_is_the_team_s_with_an_id_of_its_own_or_none_with_a_warning(
+def test_a_restart_profile_is_the_team_s_with_a_free_id_of_its_own_or_none_with_a_warning(
         tmp_path):
-    """run_team.sh's restart_profile, run alone: the team's Fast DDS profile with the next
-    participant id of the list (which turns round) in the run's logs, and where that cannot
-    be written (a full disk: the file is /dev/full), none, with a warning: the process
-    restarts on the team's profile."""
+    """run_team.sh's restart_profile, run alone: the team's Fast DDS profile, in the run's
+    logs, with the first participant id of the list whose port no live participant holds
+    (id 31's is held here), which then goes to the end of the list; where that cannot be
+    written (a full disk: the file is /dev/full), none, with a warning; an id that an
+    earlier restart had, with a warning; and none, with a warning, when every id's port is
+    held: the process restarts on the team's profile."""
     full = tmp_path / "full"
     full.mkdir()
-    (full / "fastdds_profile_robot_2_participant30.xml").symlink_to("/dev/full")
+    (full / "fastdds_profile_robot_2_participant29.xml").symlink_to("/dev/full")
     function = re.search(r"^restart_profile\(\) \{.*?^\}", RUN_TEAM.read_text(),
                          re.MULTILINE | re.DOTALL).group(0)
-    script = (f"PROG=run_team.sh EM_REPO_ROOT='{REPO_ROOT}'\n"
-              f"FASTRTPS_DEFAULT_PROFILES_FILE='{REPO_ROOT}/config/fastdds_profiles.xml'\n"
-              "RESTART_PARTICIPANT_IDS=(31 30)\n"
-              f"{function}\n"
-              f"LOG_DIR='{tmp_path}'; restart_profile robot_1; echo \"$RESTART_PROFILE\"\n"
-              f"LOG_DIR='{full}'; restart_profile robot_2; echo \"[$RESTART_PROFILE]\"\n"
-              "echo \"${RESTART_PARTICIPANT_IDS[*]}\"\n")
-    result = subprocess.run(["bash", "-c", script], capture_output=True, text=True,
-                            timeout=30)
-    assert result.returncode == 0, result.stderr
-    written, failed, ids = result.stdout.splitlines()
-    assert written == str(tmp_path / "fastdds_profile_robot_1_participant31.xml")
+    held = re.search(r"^participant_port_held\(\) \{.*?^\}", RUN_TEAM.read_text(),
+                     re.MULTILINE | re.DOTALL).group(0)
+    domain_id = int(os.environ["ROS_DOMAIN_ID"])
+
+    def run(calls: str) -> subprocess.CompletedProcess:
+        script = (f"PROG=run_team.sh EM_REPO_ROOT='{REPO_ROOT}' ROS_DOMAIN_ID={domain_id}\n"
+                  f"FASTRTPS_DEFAULT_PROFILES_FILE='{REPO_ROOT}/config/fastdds_profiles.xml'\n"
+                  "RESTART_PARTICIPANT_IDS=(31 30 29) RESTART_IDS_USED=()\n"
+                  f"{function}\n{held}\n{calls}"
+                  "echo \"${RESTART_PARTICIPANT_IDS[*]}\"\n")
+        result = subprocess.run(["bash", "-c", script], capture_output=True, text=True,
+                                timeout=30)
+        assert result.returncode == 0, result.stderr
+        return result
+
+    sockets = []
+    try:
+        for participant in (31, 30, 29):  # the discovery ports of live participants
+            sockets.append(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+            sockets[-1].bind(("127.0.0.1", 7410 + 250 * domain_id + 2 * participant))
+            if participant == 31:
+                result = run(
+                    f"LOG_DIR='{tmp_path}'; restart_profile robot_1; echo \"$RESTART_PROFILE\"\n"
+                    f"LOG_DIR='{full}'; restart_profile robot_2; echo \"[$RESTART_PROFILE]\"\n"
+                    f"LOG_DIR='{tmp_path}'; restart_profile robot_3; echo \"$RESTART_PROFILE\"\n")
+        all_held = run(f"LOG_DIR='{tmp_path}'; restart_profile robot_4; "
+                       "echo \"[$RESTART_PROFILE]\"\n")
+    finally:
+        for held_socket in sockets:
+            held_socket.close()
+    written, failed, again, ids = result.stdout.splitlines()
+    assert written == str(tmp_path / "fastdds_profile_robot_1_participant30.xml")
     participant = ElementTree.parse(written).getroot().find(
         "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}participant")
     assert participant.get("is_default_profile") == "true"
     assert participant.findtext(
         "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}rtps/"
-        "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}participantID") == "31"
-    assert failed == "[]" and ids == "31 30"
-    assert (f"warning: could not write {full}/fastdds_profile_robot_2_participant30.xml "
+        "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}participantID") == "30"
+    assert failed == "[]"
+    assert (f"warning: could not write {full}/fastdds_profile_robot_2_participant29.xml "
             "(disk full?); robot_2 restarts on the team's profile") in result.stderr
+    assert again == str(tmp_path / "fastdds_profile_robot_3_participant30.xml")
+    assert ids == "31 29 30"
+    assert ("warning: robot_3 restarts with participant id 30, which an earlier restart "
+            "had") in result.stderr
+    assert "robot_1 restarts" not in result.stderr
+    assert all_held.stdout.splitlines() == ["[]", "31 30 29"]
+    assert ("warning: every restart participant id (31 30 29) is held; robot_4 restarts on "
+            "the team's profile") in all_held.stderr
 
 
 def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_summary(
