@@ -33,6 +33,16 @@ def test_the_watch_reports_after_the_wait_then_throttled_then_the_move():
     assert watch.stopped(41.9) is None and watch.stopped(42.0) == 5.0
 
 
+def test_the_watch_started_says_no_first_step_after_its_wait_then_throttled_until_one():
+    watch = ClockWatch(5.0, 30.0, started_s=100.0, first_step_after_s=10.0)
+    assert watch.no_first_step(109.9) is None
+    assert watch.no_first_step(110.0) == 10.0
+    assert watch.no_first_step(139.9) is None and watch.no_first_step(140.0) == 40.0
+    assert watch.seen(0, 141.0) is None
+    assert watch.no_first_step(500.0) is None                 # a step came
+    assert ClockWatch(5.0, 30.0).no_first_step(1e9) is None   # no start given
+
+
 def test_a_robot_warns_when_no_step_came_for_5_s_and_says_when_they_come_again():
     session, sim = started(relay_mode=False)
     assert session.tick(100.0, 0, None) == []                 # no step yet: the world waits
@@ -56,6 +66,27 @@ def test_a_robot_waiting_for_teammates_says_so_rather_than_blaming_the_world():
     [warning] = lines(session.tick(5.1, 1, None), Level.WARN)
     assert warning == ("no new step from the world for 5.0 s (last step 1; this robot waits "
                        "for teammates' records before it answers step 1)")
+
+
+def test_the_evaluator_says_when_no_first_ground_truth_came_10_s_after_its_start():
+    """A restarted evaluator that got nothing from the world waited in silence until the
+    silence rule ended the run: it now says so, as information (at a first start the world
+    holds its first step while the team connects), and whether the world is on the graph."""
+    session = evaluator_started()  # started at wall time 0
+    publishers = frozenset({WORLD_NODE})
+    assert lines(session.tick(9.9, True, publishers), Level.INFO) == []
+    [line] = lines(session.tick(10.0, True, publishers), Level.INFO)
+    assert line == ("no ground truth from the world yet, 10 s after this evaluator started "
+                    "(the world is on the ROS graph; at a run's start it holds its first "
+                    "step until the team is connected); the run ends by silence after 60 s "
+                    "without any")
+    assert lines(session.tick(39.9, False, frozenset()), Level.INFO) == []
+    assert ("no ground truth from the world yet, 40 s after this evaluator started (the "
+            "world is not on the ROS graph)") in lines(session.tick(40.0, False, frozenset()),
+                                                       Level.INFO)[-1]
+    evaluator_truth(session, 0, wall_s=41.0)
+    assert [line for line in lines(session.tick(75.0, True, publishers), Level.INFO)
+            if "no ground truth from the world yet" in line] == []
 
 
 def test_the_evaluator_warns_when_no_ground_truth_step_came_for_5_s():

@@ -189,7 +189,7 @@ class EvaluatorSession:
         self._started_wall_s = started_wall_s
         self._last_data_wall_s = started_wall_s
         self._world_watch = WorldWatch(settings.silence_timeout_s)
-        self._clock = ClockWatch()  # the steps of the ground truth
+        self._clock = ClockWatch(started_s=started_wall_s)  # the ground truth's steps
         self._unseen = UnseenLiveliness(self.num_robots, liveliness_lease_s)
         #: (step, reason) once the world said it stepped over.
         self._world_over: tuple[int, str] | None = None
@@ -506,7 +506,7 @@ class EvaluatorSession:
             effects.append(warn(f"robot {robot} lost: no liveliness for "
                                 f"{self.liveness.grace_s:g} s{never}"))
             effects += self._check_all_finished(wall_s)
-        effects += self._watch_the_clock(wall_s)
+        effects += self._watch_the_clock(wall_s, world_on_graph)
         effects += self._request_missing_updates()
         effects += self._process(wall_s)
         silent_s = wall_s - self._last_data_wall_s
@@ -529,13 +529,24 @@ class EvaluatorSession:
             return [info("the world is back on the ROS graph")]
         return []
 
-    def _watch_the_clock(self, wall_s: float) -> list[Effect]:
+    def _watch_the_clock(self, wall_s: float, world_on_graph: bool) -> list[Effect]:
         """Warn when no new step of ground truth came for ``CLOCK_STOPPED_S`` wall seconds
         (then every ``CLOCK_STOPPED_REPEAT_S``) while the run is not over: a world stopped
-        (SIGSTOP) or waiting for a robot's answer stays on the graph and says nothing."""
+        (SIGSTOP) or waiting for a robot's answer stays on the graph and says nothing.
+        Before the first ground truth, say so ``FIRST_STEP_AFTER_S`` after the start (then
+        as often): a restarted evaluator that gets nothing from the world waited in silence
+        until the silence rule ended the run."""
         if (self._world_over is not None or self.monitor.stopped
                 or self._team_finished is not None):
             return []
+        waited_s = self._clock.no_first_step(wall_s)
+        if waited_s is not None:
+            where = ("the world is on the ROS graph; at a run's start it holds its first step "
+                     "until the team is connected" if world_on_graph
+                     else "the world is not on the ROS graph")
+            return [info(f"no ground truth from the world yet, {waited_s:.0f} s after this "
+                         f"evaluator started ({where}); the run ends by silence after "
+                         f"{self.settings.silence_timeout_s:g} s without any")]
         stood_s = self._clock.stopped(wall_s)
         if stood_s is None:
             return []
