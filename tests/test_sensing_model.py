@@ -159,13 +159,16 @@ def test_em_sim_flags_set_the_sensing():
     (["--landmark-ids", "maybe"], "argument --landmark-ids: invalid choice: 'maybe'"),
 ])
 def test_em_sim_and_em_bench_refuse_bad_sensing(capsys, args, message):
-    for main, prefix in ((sim_cli.main, []), (bench.main, ["planners"])):
+    """One line says what is wrong, a second where to read on (no usage text above them:
+    argparse's own put the error under 11 lines of it), exit code 2."""
+    for main, prefix, prog in ((sim_cli.main, [], "em-sim"),
+                               (bench.main, ["planners"], "em-bench planners")):
         with pytest.raises(SystemExit) as exit_info:
             main([*prefix, *args])
         assert exit_info.value.code == 2
-        errors = [line for line in capsys.readouterr().err.splitlines()
-                  if "error:" in line]
-        assert len(errors) == 1 and message in errors[0], errors
+        error, hint = capsys.readouterr().err.splitlines()
+        assert error.startswith(f"{prog}: error: ") and message in error, error
+        assert hint == f"Try '{prog} --help'."
 
 
 @pytest.mark.parametrize("args, message", [

@@ -21,13 +21,14 @@ so a renamed executable or config file does not linger. Stdout: one line per fil
 """
 from __future__ import annotations
 
-import argparse
 import importlib.metadata
 import re
 import shlex
 import shutil
 import sys
 from pathlib import Path
+
+from em_exploration_ros.tools.cli_parser import CliParser
 
 PACKAGE = "em_exploration_ros"
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -111,7 +112,7 @@ def install(prefix: Path, manifest: Path, python: Path, repo: Path = REPO_ROOT) 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (1 if the project is not installed in this Python)."""
-    parser = argparse.ArgumentParser(prog="ament_install", description=__doc__.splitlines()[0])
+    parser = CliParser(prog="ament_install", description=__doc__.splitlines()[0])
     parser.add_argument("--prefix", type=Path, required=True, help="install prefix (the venv)")
     parser.add_argument("--manifest", type=Path, required=True,
                         help="file listing what was installed (read, then rewritten)")

@@ -34,6 +34,7 @@ from em_exploration_ros.bag_format.bag_writer import BagWriter, new_file
 from em_exploration_ros.bag_format.mcap_ros2_schema import MessageDefinition
 from em_exploration_ros.bag_format.qos_yaml import QosFormatError
 from em_exploration_ros.bag_format.rosbag2_metadata import MetadataFormatError
+from em_exploration_ros.tools.cli_parser import CliParser
 
 EXIT_BAD_INPUT = 2
 _NS_PER_S = 1_000_000_000
@@ -220,7 +221,7 @@ def _render_command(args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """Entry point of em-bag."""
-    parser = argparse.ArgumentParser(
+    parser = CliParser(
         prog="em-bag", description="Inspect recordings (bag directories or .mcap files).")
     commands = parser.add_subparsers(dest="command", required=True)
     info = commands.add_parser("info", help="summarize a recording")

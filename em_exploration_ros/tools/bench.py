@@ -50,6 +50,7 @@ from em_exploration_ros.tools import bench_plots
 from em_exploration_ros.tools.bench_trials import (ProgressBar, TrialSpec, code_version,
                                                   describe_error, failed_record, params_record,
                                                   duration_text, run_trial, write_json)
+from em_exploration_ros.tools.cli_parser import CliParser
 from em_exploration_ros.tools.dataset_bench import (DATASET_HELP, add_dataset_arguments,
                                                    check_dataset_arguments, run_dataset)
 from em_exploration_ros.tools.latency_bench import LATENCY_HELP, add_latency_arguments
@@ -545,8 +546,8 @@ def command_plot(args: argparse.Namespace,
 
 def build_parser() -> argparse.ArgumentParser:
     """The em-bench argument parser, one subcommand per benchmark."""
-    parser = argparse.ArgumentParser(prog="em-bench", description="Benchmarks of the "
-                                     "multi-robot exploration system.")
+    parser = CliParser(prog="em-bench", description="Benchmarks of the "
+                       "multi-robot exploration system.")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     planners = commands.add_parser(

@@ -24,7 +24,6 @@ any time. Listens on 127.0.0.1 unless ``--host`` says otherwise.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 import threading
 from dataclasses import dataclass
@@ -44,6 +43,7 @@ from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, add_topic_expression_arguments, cli_args, message_type_support,
     new_selected_topics, number_type, other_types_of_taken_topics, qos_from_rclpy, qos_to_rclpy)
+from em_exploration_ros.tools.cli_parser import CliParser
 
 #: What a viewer of the team needs (the default selection).
 VIEW_TOPICS = (r"^/(tf|tf_static|mission/anchor_pose|evaluation/metrics|world/(markers|landmarks)|"
@@ -72,7 +72,7 @@ class BridgeOptions:
 
 def parse_options(args: list[str]) -> BridgeOptions:
     """Parse em-foxglove arguments (ROS arguments removed); exits with status 2 on bad ones."""
-    parser = argparse.ArgumentParser(
+    parser = CliParser(
         prog="em-foxglove", description="Serve a running team to the Foxglove app (WebSocket).")
     parser.add_argument("--port", type=number_type(int, allow_zero=True), default=DEFAULT_PORT,
                         help=f"TCP port (default: {DEFAULT_PORT}; 0: any free port)")

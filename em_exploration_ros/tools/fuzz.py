@@ -48,7 +48,6 @@ writes it too; ``run_id`` and ``run_id_source``: the id sent and where it came f
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import random
@@ -67,6 +66,7 @@ from rclpy.serialization import serialize_message
 
 from em_exploration_ros.core.output_paths import output_path_problem
 from em_exploration_ros.tools.bag_ros import import_message_class
+from em_exploration_ros.tools.cli_parser import CliParser
 
 #: Node names whose subscriptions are attacked by default.
 SYSTEM_NODES = ("em_world", "em_robot", "em_evaluator")
@@ -386,7 +386,7 @@ class Fuzzer(Node):
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of em-fuzz; returns the exit code."""
-    parser = argparse.ArgumentParser(prog="em-fuzz", description=__doc__.split("\n\n")[0])
+    parser = CliParser(prog="em-fuzz", description=__doc__.split("\n\n")[0])
     parser.add_argument("--duration", type=float, default=20.0, help="wall seconds (20)")
     parser.add_argument("--rate", type=float, default=500.0, help="messages per second (500)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the values (0)")

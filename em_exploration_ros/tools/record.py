@@ -34,7 +34,6 @@ Exit codes: 0 the recording was closed; 2 bad arguments, or the output cannot be
 """
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from dataclasses import dataclass
@@ -62,6 +61,7 @@ from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, add_topic_expression_arguments, cli_args, message_type_support,
     new_selected_topics, number_type, other_types_of_taken_topics, qos_from_rclpy, qos_to_rclpy)
+from em_exploration_ros.tools.cli_parser import CliParser
 
 EXIT_USAGE = 2
 #: Exit code of a recording the OS refused to write (e.g. a full disk).
@@ -83,7 +83,7 @@ class RecordOptions:
 
 def parse_options(args: list[str]) -> RecordOptions:
     """Parse em-record arguments (ROS arguments removed); exits with status 2 on bad ones."""
-    parser = argparse.ArgumentParser(
+    parser = CliParser(
         prog="em-record",
         description="Record ROS 2 topics into a bag directory (rosbag2 format, MCAP storage).",
         epilog="exit codes: 0 recording closed; 2 bad arguments or output not creatable; "

@@ -48,6 +48,7 @@ from em_exploration_ros.nodes.node_main import interrupt_shuts_down
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, add_topic_expression_arguments, cli_args, import_message_class,
     number_type, qos_to_rclpy)
+from em_exploration_ros.tools.cli_parser import CliParser
 
 EXIT_BAD_INPUT = 2
 CLOCK_TOPIC = "/clock"
@@ -106,7 +107,7 @@ def _remap(text: str) -> tuple[str, str]:
 
 def parse_options(args: list[str]) -> ReplayOptions:
     """Parse em-replay arguments (ROS arguments removed); exits with status 2 on bad ones."""
-    parser = argparse.ArgumentParser(
+    parser = CliParser(
         prog="em-replay", description="Publish an MCAP recording with its original timing.")
     parser.add_argument("file", type=Path,
                         help="the recording: a bag directory or an .mcap file")

@@ -31,7 +31,6 @@ Exit code: 0 same targets, 1 different targets or the team run failed, 2 cannot 
 """
 from __future__ import annotations
 
-import argparse
 import ipaddress
 import json
 import math
@@ -49,6 +48,7 @@ from typing import Sequence
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import dump_params
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
+from em_exploration_ros.tools.cli_parser import CliParser
 from em_exploration_ros.tools.sim_cli import add_run_arguments, params_from_args
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -289,7 +289,7 @@ def _raise_on_sigterm(signum: int, frame: object) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = CliParser(description=__doc__.split("\n\n")[0])
     add_run_arguments(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of world and noise")
     parser.add_argument("--subnet", default=DEFAULT_SUBNET,

@@ -33,6 +33,7 @@ from em_exploration_ros.core.sessions.team_runner import Progress, TeamRunner
 from em_exploration_ros.core.world.world_file import (WorldFileError, params_for_world,
                                                       read_world_file, world_for_params,
                                                       world_yaml)
+from em_exploration_ros.tools.cli_parser import CliParser
 from em_exploration_ros.tools.run_pictures import (AnimationFrames, add_picture_arguments,
                                                    default_pictures, picture_problem)
 
@@ -146,7 +147,7 @@ def params_from_args(args: argparse.Namespace, seed: int | None = None) -> Explo
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CliParser(
         prog="em-sim", description="Run one seeded multi-robot exploration in one process.")
     add_run_arguments(parser)
     parser.add_argument("--seed", type=int, default=None, help="seed of world and noise")

@@ -31,6 +31,8 @@ from typing import Callable, TextIO
 
 import numpy as np
 
+from em_exploration_ros.tools.cli_parser import CliParser
+
 #: Events buffered before they are written (a killed process loses at most these).
 _FLUSH_EVERY = 500
 PUBLISH, CALLBACK_START = "pub", "cb"
@@ -208,8 +210,8 @@ def report(traces: dict[str, ProcessTrace], num_robots: int) -> str:
 def main(argv: list[str] | None = None) -> int:
     """``run`` (a traced node process) or ``report`` (the stage table of a traced run);
     returns the exit code (2 for bad arguments)."""
-    parser = argparse.ArgumentParser(prog="python -m em_exploration_ros.tools.step_trace",
-                                     description=__doc__.split("\n\n")[0])
+    parser = CliParser(prog="python -m em_exploration_ros.tools.step_trace",
+                       description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
     traced = commands.add_parser("run", help="run a node module with tracing")
     traced.add_argument("--out", type=Path, required=True, help="trace file to append to")
