@@ -17,9 +17,9 @@ import math
 CLOCK_STOPPED_S = 5.0
 #: Wall seconds between two lines while it stays stopped.
 CLOCK_STOPPED_REPEAT_S = 30.0
-#: Wall seconds after a node's start without a first step before it says so: longer than
-#: the world's own wait for the team at a first start (2-4 s here, up to 20 s on a loaded
-#: host), which is no fault, so the line is information, not a warning.
+#: Wall seconds after a node's start without a first step before it says so. At a first
+#: start the world holds its first step while the team connects, 2-4 s here but up to 20 s
+#: on a loaded host, which is no fault: the line is information, not a warning.
 FIRST_STEP_AFTER_S = 10.0
 
 
