@@ -58,6 +58,24 @@ def test_a_robot_warns_when_no_step_came_for_5_s_and_says_when_they_come_again()
         lines(moved, Level.INFO)
 
 
+def test_a_robot_says_when_no_scan_came_10_s_after_its_start_and_not_once_one_came():
+    """A robot restarted by hand that got nothing from the world waited in silence: it now
+    says so, as information (at a first start the world holds its first step while the
+    team connects)."""
+    session, sim = started(relay_mode=False, started_s=50.0)
+    assert lines(session.tick(59.9, 0, None), Level.INFO) == []
+    [line] = lines(session.tick(60.0, 0, None), Level.INFO)
+    assert line == ("no scan from the world yet, 10 s after this robot started (at a run's "
+                    "start the world holds its first step until the team is connected)")
+    assert lines(session.tick(89.9, 0, None), Level.INFO) == []
+    assert lines(session.tick(90.0, 0, None), Level.INFO) == [line.replace("10 s", "40 s")]
+    feed(session, sim, 0, 91.0, barrier=(0, 0, 0))
+    assert not any("no scan from the world yet" in text
+                   for text in lines(session.tick(200.0, 0, None), Level.INFO))
+    quiet, _ = started(relay_mode=False)  # no start time given (em-sim): no such line
+    assert lines(quiet.tick(1e6, 0, None), Level.INFO) == []
+
+
 def test_a_robot_waiting_for_teammates_says_so_rather_than_blaming_the_world():
     settings = dataclasses.replace(SETTINGS, barrier_timeout_s=60.0)
     session, sim = started(relay_mode=False, settings=settings)

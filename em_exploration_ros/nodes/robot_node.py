@@ -96,7 +96,7 @@ class RobotNode(LeanNode):
                                        self.wire, self.get_logger())
         self.session = RobotSession(self.robot_id, self.params, self.settings,
                                     journaled=self.journals is not None,
-                                    log_period_s=LOG_PERIOD_S)
+                                    log_period_s=LOG_PERIOD_S, started_s=time.monotonic())
         self.relay_mode = self.session.relay_mode
         self.exit_code = EXIT_OK
         self.done = Future()

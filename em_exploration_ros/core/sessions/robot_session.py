@@ -137,13 +137,16 @@ class RobotSession:
     (``links.*`` not perfect); ``journaled``: whether the driver keeps journals
     (``state_dir``); ``log_period_s``: the driver's period of throttled lines;
     ``make_agent``: makes the robot's brain from its id, the parameters and the anchor (a
-    benchmark or test gives its own collaborators, ``RobotAgent``'s keyword arguments)."""
+    benchmark or test gives its own collaborators, ``RobotAgent``'s keyword arguments);
+    ``started_s``: the driver's wall time [s, monotonic] at its start, if it wants a line
+    when no scan came ``FIRST_STEP_AFTER_S`` after it."""
 
     def __init__(self, robot_id: int, params: ExplorationParams, settings: RobotNodeSettings,
                  relay_mode: bool | None = None, journaled: bool = False,
                  log_period_s: float = 5.0,
-                 make_agent: Callable[[int, ExplorationParams, np.ndarray], RobotAgent] = RobotAgent
-                 ) -> None:
+                 make_agent: Callable[[int, ExplorationParams, np.ndarray],
+                                      RobotAgent] = RobotAgent,
+                 started_s: float | None = None) -> None:
         self.robot_id = robot_id
         self._make_agent = make_agent
         self.params = params
@@ -174,7 +177,9 @@ class RobotSession:
         self._last_request = 0.0
         self._barrier: dict[int, int] = {}
         self._world_watch = WorldWatch(settings.world_lost_timeout_s)
-        self._clock = ClockWatch()  # the world's steps (from the first scan on)
+        # The world's steps (from the first scan on); with the start's wall time [s], it
+        # says when none came yet.
+        self._clock = ClockWatch(started_s=started_s)
         self._next_world_check_s = 0.0
         self._recorder_wait_since: float | None = None
         self._recorder_listens = not settings.wait_for_recorder
@@ -729,9 +734,18 @@ class RobotSession:
     def _watch_the_clock(self, world_step: int, now_s: float) -> None:
         """Warn when no new step came from the world for ``CLOCK_STOPPED_S`` wall seconds
         (then every ``CLOCK_STOPPED_REPEAT_S``) while the run is not over, saying what this
-        robot knows of who holds the step (in lockstep the world waits for every answer)."""
-        if self._clock.step is None:
-            return  # not started: the world waits for its team
+        robot knows of who holds the step (in lockstep the world waits for every answer).
+        Before the first scan, say so as information ``FIRST_STEP_AFTER_S`` after the start
+        (then as often): a robot restarted by hand that gets nothing from the world waited
+        in silence."""
+        if self._clock.step is None:  # not started: at a first start the world waits
+            waited_s = self._clock.no_first_step(now_s)
+            if waited_s is not None:
+                self._out.append(info(
+                    f"no scan from the world yet, {waited_s:.0f} s after this robot started "
+                    f"(at a run's start the world holds its first step until the team is "
+                    f"connected)"))
+            return
         self._step_seen(world_step, now_s)
         if self._run_over():
             return
