@@ -88,7 +88,8 @@ EXTRA_EXTREME_PROBABILITY = 0.1
 #: Frame names of the system (plausible values) and wrong ones (extreme values).
 PLAUSIBLE_FRAMES = ("map", "world", "robot_0/base_link", "robot_1/odom")
 WRONG_FRAMES = ("", "no_such_frame", "robot_99/base_link", "x" * 10_000)
-_INT_BITS = {"char": (8, False), "int8": (8, True), "uint8": (8, False), "int16": (16, True), "uint16": (16, False),
+_INT_BITS = {"char": (8, False), "int8": (8, True), "uint8": (8, False), "int16": (16, True),
+             "uint16": (16, False),
              "int32": (32, True), "uint32": (32, False), "int64": (64, True),
              "uint64": (64, False)}
 _FLOAT_EXTREMES = {"double": (float("nan"), float("inf"), float("-inf"), 1e308, -1e308),

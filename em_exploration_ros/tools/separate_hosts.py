@@ -326,9 +326,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as error:
         parser.error(f"cannot build the world: {error}")
     counts = [len(t) for t in result.hosts_targets]
+    bridge_kb = [round(b / 1000) for b in result.bridge_bytes.values()]
     print(f"separate hosts: {params.world.num_robots} robots + world, run_team.sh exit "
           f"{result.exit_code}, wall {result.wall_s:.1f} s, targets per robot {counts}, "
-          f"kB through the bridge per host {[round(b / 1000) for b in result.bridge_bytes.values()]}, "
+          f"kB through the bridge per host {bridge_kb}, "
           f"packets dropped {100 * result.drop_ratio:.1f} %; "
           f"same targets as em-sim (one host): {'yes' if result.same_targets else 'NO'}; "
           f"run in {out}")

@@ -182,8 +182,8 @@ def _restart(text: str) -> tuple[int, int]:
 def _format_progress(progress: Progress) -> str:
     m = progress.metrics
     loc = "n/a" if math.isnan(m.loc_rmse_m) else f"{m.loc_rmse_m:.3f} m"
-    return (f"t={m.stamp_s:7.1f} s  explored {m.explored_ratio:5.3f}  distance {m.distance_m:7.1f} m"
-            f"  loc RMSE {loc}  decisions {progress.decisions}")
+    return (f"t={m.stamp_s:7.1f} s  explored {m.explored_ratio:5.3f}  "
+            f"distance {m.distance_m:7.1f} m  loc RMSE {loc}  decisions {progress.decisions}")
 
 
 def main(argv: Sequence[str] | None = None,
