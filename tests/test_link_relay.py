@@ -181,8 +181,10 @@ def test_the_world_relay_counts_requests_published_before_its_reader_matched():
     context = rclpy.Context()
     rclpy.init(context=context)
     executor = SingleThreadedExecutor(context=context)
+    nodes: list[Node] = []
     try:
         robot, world = Node("restarted_robot", context=context), Node("world", context=context)
+        nodes += [robot, world]
         publisher = robot.create_publisher(TeamUpdateRequest, REQUESTS_TOPIC, TEAM_QOS)
         own_stream = TeamUpdateRequest(requester_id=1, robot_id=1, first_sequence=1,
                                        last_sequence=0)
@@ -200,6 +202,8 @@ def test_the_world_relay_counts_requests_published_before_its_reader_matched():
         assert session.missing_messages({1: answer}) == []
     finally:
         executor.shutdown()
+        for node in nodes:  # pass or fail: no endpoint of this test stays in the graph
+            node.destroy_node()
         rclpy.try_shutdown(context=context)
 
 
