@@ -52,6 +52,9 @@ EVALUATOR_END_GRACE_S=${EM_EVALUATOR_END_GRACE_S:-60}
 RESTART_PARTICIPANT_IDS=(31 30 29 28 27 26 25 24 23 22 21 20 19 18 17 16 15 14 13 12)
 # The restart ids given so far in this run.
 RESTART_IDS_USED=()
+# The kernel's tables of bound UDP sockets (participant_port_held); a host without IPv6 has
+# no udp6.
+UDP_SOCKET_TABLES=(/proc/net/udp /proc/net/udp6)
 
 usage() {
     cat <<EOF
@@ -693,12 +696,17 @@ restart_profile() {
 
 # participant_port_held ID: whether a live participant of this host holds the discovery
 # (metatraffic unicast) UDP port of participant ID in ROS_DOMAIN_ID: 7400 + 250 domain + 10
-# + 2 ID (the RTPS port mapping), bound on any address (/proc/net/udp, udp6).
+# + 2 ID (the RTPS port mapping), bound on any address (UDP_SOCKET_TABLES that exist: awk
+# given a missing file stops, and every port would look free).
 participant_port_held() {
-    local port
+    local port table tables=()
+    for table in "${UDP_SOCKET_TABLES[@]}"; do
+        [[ -r $table ]] && tables+=("$table")
+    done
+    (( ${#tables[@]} )) || return 1
     printf -v port '%04X' $(( 7410 + 250 * ${ROS_DOMAIN_ID:-0} + 2 * $1 ))
     awk -v port=":$port" 'substr($2, length($2) - 4) == port { held = 1 }
-        END { exit !held }' /proc/net/udp /proc/net/udp6 2>/dev/null
+        END { exit !held }' "${tables[@]}"
 }
 
 # respawn_robot INDEX WHY: SIGKILL robot INDEX's process group (if alive) and start the same

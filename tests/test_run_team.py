@@ -572,10 +572,12 @@ def test_a_restart_profile_is_the_team_s_with_a_free_id_of_its_own_or_none_with_
                      re.MULTILINE | re.DOTALL).group(0)
     domain_id = int(os.environ["ROS_DOMAIN_ID"])
 
-    def run(calls: str) -> subprocess.CompletedProcess:
+    def run(calls: str, tables: str = "/proc/net/udp /proc/net/udp6"
+            ) -> subprocess.CompletedProcess:
         script = (f"PROG=run_team.sh EM_REPO_ROOT='{REPO_ROOT}' ROS_DOMAIN_ID={domain_id}\n"
                   f"FASTRTPS_DEFAULT_PROFILES_FILE='{REPO_ROOT}/config/fastdds_profiles.xml'\n"
                   "RESTART_PARTICIPANT_IDS=(31 30 29) RESTART_IDS_USED=()\n"
+                  f"UDP_SOCKET_TABLES=({tables})\n"
                   f"{function}\n{held}\n{calls}"
                   "echo \"${RESTART_PARTICIPANT_IDS[*]}\"\n")
         result = subprocess.run(["bash", "-c", script], capture_output=True, text=True,
@@ -595,6 +597,10 @@ def test_a_restart_profile_is_the_team_s_with_a_free_id_of_its_own_or_none_with_
                     f"LOG_DIR='{tmp_path}'; restart_profile robot_3; echo \"$RESTART_PROFILE\"\n")
         all_held = run(f"LOG_DIR='{tmp_path}'; restart_profile robot_4; "
                        "echo \"[$RESTART_PROFILE]\"\n")
+        # A host without IPv6 has no /proc/net/udp6: the ports held are still seen.
+        no_ipv6 = run(f"LOG_DIR='{tmp_path}'; restart_profile robot_5; "
+                      "echo \"[$RESTART_PROFILE]\"\n",
+                      tables=f"/proc/net/udp {tmp_path / 'no_udp6'}")
     finally:
         for held_socket in sockets:
             held_socket.close()
@@ -617,6 +623,7 @@ def test_a_restart_profile_is_the_team_s_with_a_free_id_of_its_own_or_none_with_
     assert all_held.stdout.splitlines() == ["[]", "31 30 29"]
     assert ("warning: every restart participant id (31 30 29) is held; robot_4 restarts on "
             "the team's profile") in all_held.stderr
+    assert no_ipv6.stdout.splitlines() == ["[]", "31 30 29"], no_ipv6.stderr
 
 
 def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_summary(
