@@ -146,8 +146,10 @@ class NodeProcess:
         """Everything the process has written so far."""
         return self.log_path.read_text(encoding="utf-8", errors="replace")
 
-    def wait_for_output(self, text: str, timeout_s: float) -> None:
-        """Wait until ``text`` appears in the output; fail early if the process exits."""
+    def wait_for_output(self, text: str, timeout_s: float,
+                        while_waiting: Callable[[], None] | None = None) -> None:
+        """Wait until ``text`` appears in the output; fail early if the process exits.
+        ``while_waiting`` runs between polls (``wait_until``)."""
         def seen() -> bool:
             if text in self.output():
                 return True
@@ -155,7 +157,8 @@ class NodeProcess:
                 raise RuntimeError(f"{self.command[:3]} exited with {self.process.returncode} "
                                    f"before printing {text!r}:\n{self.output()[-3000:]}")
             return False
-        wait_until(seen, timeout_s, f"{text!r} in {self.log_path.name}")
+        wait_until(seen, timeout_s, f"{text!r} in {self.log_path.name}",
+                   while_waiting=while_waiting)
 
     def wait(self, timeout_s: float) -> int:
         """Wait for the process to exit by itself; its exit code (TimeoutError if not)."""

@@ -105,8 +105,7 @@ def test_em_record_reports_every_message_it_did_not_receive(tmp_path: Path):
                     publisher.publish(UInt32(data=value))
 
             publish_marker()
-            wait_until(lambda: f"{TOPIC}: " in recorder.output(), 30.0,
-                       f"em-record's report of {TOPIC}'s gap", while_waiting=publish_marker)
+            recorder.wait_for_output(f"{TOPIC}: ", 30.0, while_waiting=publish_marker)
             assert recorder.stop() == 0, recorder.output()
     finally:
         # The node goes with the test, pass or fail: its publisher left in the graph made
