@@ -283,7 +283,7 @@ def test_an_out_folder_that_cannot_be_made_is_refused_before_any_trial(tmp_path)
         assert "trials:" not in result.stderr and "Traceback" not in result.stderr
 
 
-def test_plot_refuses_results_it_did_not_write(bench_out, tmp_path, caplog):
+def test_plot_refuses_results_it_did_not_write(bench_out, tmp_path, capsys):
     """Through em-bench's main in this process (one case through the CLI, for its exit
     code and stderr without a traceback)."""
     out = tmp_path / "out"
@@ -303,9 +303,10 @@ def test_plot_refuses_results_it_did_not_write(bench_out, tmp_path, caplog):
             (out / "summary.json").write_text(summary)
         if csv_lines is not None:
             (out / "results.csv").write_text("\n".join(csv_lines) + "\n")
-        caplog.clear()
         assert bench.main(["plot", "--out", str(out)]) == 2
-        assert refusal in caplog.text and problem in caplog.text, caplog.text
+        error, hint = capsys.readouterr().err.splitlines()
+        assert error.startswith(f"em-bench: error: {refusal}") and problem in error, error
+        assert hint == "Try 'em-bench --help'."
     result = run_cli("plot", "--out", str(out))  # the last case
     assert result.returncode == 2 and refusal in result.stderr, result.stderr
     assert "Traceback" not in result.stderr

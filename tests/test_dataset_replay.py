@@ -129,5 +129,6 @@ def test_em_bench_refuses_bad_arguments_in_one_line_with_exit_2(tmp_path):
         capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and result.stdout == ""
     assert result.stderr.strip().splitlines() == [
-        "em-bench: --robots must be a positive integer, got 'x'"]
+        "em-bench: error: --robots must be a positive integer, got 'x'",
+        "Try 'em-bench --help'."]
     assert not (tmp_path / "out").exists()

@@ -208,15 +208,15 @@ def test_em_sim_refuses_a_world_file_with_a_map_size(tmp_path, capsys):
     assert "--world gives the map size and the landmarks" in capsys.readouterr().err
 
 
-def test_em_bench_refuses_a_bad_world_file_before_any_trial(tmp_path, caplog):
+def test_em_bench_refuses_a_bad_world_file_before_any_trial(tmp_path, capsys):
     path = tmp_path / "world.yaml"
     _write(path, dict(GOOD, landmarks=[[41.0, 5.0, 1.0]]))
     out = tmp_path / "bench"
     assert bench.main(["planners", "--world", str(path), "--planners", "NEAREST",
                        "--trials", "1", "--out", str(out)]) == 2
-    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
-    assert errors == [f"world file {path}: landmark 0 at (41, 5) m is outside the 40 x 30 m "
-                      "map"]
+    assert capsys.readouterr().err.splitlines() == [
+        f"em-bench: error: world file {path}: landmark 0 at (41, 5) m is outside the "
+        "40 x 30 m map", "Try 'em-bench --help'."]
     assert not (out / "trials").exists()
 
 

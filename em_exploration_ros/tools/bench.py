@@ -595,8 +595,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return args.handler(args)
     except (ParamsFileError, ValueError, FileNotFoundError) as error:
-        _LOG.error("%s", error)
-        return 2
+        return parser.refuse(str(error))
     except KeyboardInterrupt:
         _LOG.warning("%s", getattr(args, "interrupted", "interrupted"))
         return 130

@@ -19,7 +19,12 @@ class CliParser(argparse.ArgumentParser):
     """``argparse.ArgumentParser`` whose errors are one line (and the ``--help`` hint) on
     standard error, exit code 2; its subcommands' parsers are of this class too."""
 
-    def error(self, message: str) -> NoReturn:
-        """Print ``<prog>: error: <message>`` and the ``--help`` hint; exit with code 2."""
+    def refuse(self, message: str) -> int:
+        """Print ``<prog>: error: <message>`` and the ``--help`` hint on standard error;
+        return 2, the exit code of a refusal (for a tool's own checks after parsing)."""
         sys.stderr.write(f"{self.prog}: error: {message}\nTry '{self.prog} --help'.\n")
-        sys.exit(2)
+        return 2
+
+    def error(self, message: str) -> NoReturn:
+        """Refuse as ``refuse`` does and exit with code 2."""
+        sys.exit(self.refuse(message))
