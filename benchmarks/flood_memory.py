@@ -1,4 +1,4 @@
-"""Memory of every process of a team run under a flood of its subscribed topics (issue 40, 6).
+"""Memory of every process of a team run under a flood of its subscribed topics.
 
 Runs the lockstep team twice with ``./launch_scripts/run_team.sh`` (default: 3 robots, the
 default world, explored to 0.95 or 600 simulated seconds, so that the flooded run goes on

@@ -1,4 +1,4 @@
-"""What restarting one robot's process costs the team's estimate (issue 40, point 5).
+"""What restarting one robot's process costs the team's estimate.
 
 For each seed, em-sim's engine runs the mission three times: clean, with one restart of
 robot ``--robot`` (before step 800, about half of the default mission) and with three

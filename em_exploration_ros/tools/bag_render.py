@@ -5,7 +5,7 @@ One validating pass over the recording (``BagScanner``) keeps the last message o
 state topic and every message of the stream topics; only those are deserialized, with
 ``rclpy.serialization`` (no ROS graph, no ``rclpy.init``), and converted with
 ``nodes.conversions``. A type whose recorded schema is not the installed definition (a
-recording made before a message changed, e.g. the compact TeamUpdate of issue 12) is
+recording made before a message changed, e.g. before TeamUpdate became compact) is
 decoded with the schema the recording holds (mcap-ros2-support's dynamic decoder) and read
 by field name. All positions are in the ``map`` frame, which is the ``world`` frame
 in simulation, in metres.

@@ -1,6 +1,5 @@
-"""How well the robots associated their sonar detections, against ground truth (issue 38,
-point 3). Truth side only: the world's record of where each detection came from never
-reaches a robot.
+"""How well the robots associated their sonar detections, against ground truth. Truth
+side only: the world's record of where each detection came from never reaches a robot.
 
 A robot's graph holds landmark readings (``TeamSlam.landmark_readings``: its own keyframes'
 and its teammates'); each is one detection of the world's scan at that keyframe's step,

@@ -1,6 +1,7 @@
 """Data association of one robot's sonar detections when they carry no landmark identity
-(issue 38): the individual Mahalanobis gate, joint compatibility branch and bound (JCBB)
-over one scan, and tentative tracks that become landmarks only once seen consistently.
+(``sensors.landmark_ids`` false): the individual Mahalanobis gate, joint compatibility
+branch and bound (JCBB) over one scan, and tentative tracks that become landmarks only once
+seen consistently.
 
 Frames and units: the ``map`` frame. A pose is ``(x [m], y [m], theta [rad])`` with the
 ``(3, 3)`` covariance of its additive coordinate errors; a landmark is a point ``(x, y)

@@ -1,5 +1,5 @@
 """One robot's landmarks when sonar detections carry no identity (``sensors.landmark_ids``
-false, issue 38): its own detections paired with its own landmarks, and which of its
+false): its own detections paired with its own landmarks, and which of its
 teammates' landmarks are its own.
 
 Each robot numbers its own landmarks (0, 1, ...), and its keyframes carry those numbers to
