@@ -497,7 +497,8 @@ def test_ctrl_c_stops_every_trial_quietly_and_a_rerun_resumes(tmp_path):
 def test_progress_reports_each_trial_and_estimates_time_left(tmp_path):
     now = [0.0]
     stream = io.StringIO()
-    specs = [bench_trials.TrialSpec("s", planner, seed, ExplorationParams(), tmp_path / f"{seed}.json")
+    specs = [bench_trials.TrialSpec("s", planner, seed, ExplorationParams(),
+                                    tmp_path / f"{seed}.json")
              for seed in (0, 1) for planner in ("NEAREST", "CE")]
     progress = bench_trials.ProgressBar(4, 2, stream, clock=lambda: now[0])
     progress.queue(specs)

@@ -170,11 +170,11 @@ class ScanCompatibility:
         if not pairs:
             return 0.0
         detections = np.array([d for d, _ in pairs])
-        landmarks = np.array([l for _, l in pairs])
+        landmarks = np.array([row for _, row in pairs])
         jacobians = self._pose_jacobians[landmarks].reshape(-1, 3)
         joint = jacobians @ self._pose_covariance @ jacobians.T
-        for k, (d, l) in enumerate(pairs):
-            joint[2 * k:2 * k + 2, 2 * k:2 * k + 2] += self._point_parts[l] + self.noise[d]
+        for k, (d, row) in enumerate(pairs):
+            joint[2 * k:2 * k + 2, 2 * k:2 * k + 2] += self._point_parts[row] + self.noise[d]
         innovation = self.innovations[detections, landmarks].reshape(-1)
         return float(innovation @ np.linalg.solve(joint, innovation))
 
@@ -193,10 +193,10 @@ def jcbb(compatibility: ScanCompatibility, gate_probability: float) -> tuple[Pai
     """
     detections, landmarks = compatibility.num_detections, compatibility.num_landmarks
     gate = chi2_quantile(2, gate_probability)
-    candidates = [sorted(range(landmarks), key=lambda l, d=d: compatibility.nis[d, l])
+    candidates = [sorted(range(landmarks), key=lambda row, d=d: compatibility.nis[d, row])
                   for d in range(detections)]
-    candidates = [[l for l in row if compatibility.nis[d, l] <= gate]
-                  for d, row in enumerate(candidates)]
+    candidates = [[row for row in rows if compatibility.nis[d, row] <= gate]
+                  for d, rows in enumerate(candidates)]
     thresholds = [0.0] + [chi2_quantile(2 * k, gate_probability)
                           for k in range(1, detections + 1)]
     best: list = [(None,) * detections, 0, 0.0]  # hypothesis, pairings, joint NIS
@@ -208,7 +208,7 @@ def jcbb(compatibility: ScanCompatibility, gate_probability: float) -> tuple[Pai
                 best[:] = [tuple(hypothesis), len(pairs), nis]
             return
         remaining = detections - index - 1
-        taken = {l for _, l in pairs}
+        taken = {row for _, row in pairs}
         if len(pairs) + 1 + remaining >= best[1]:
             for landmark in candidates[index]:
                 if landmark in taken:
