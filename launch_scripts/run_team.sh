@@ -594,6 +594,7 @@ fi
 
 echo "$PROG: $NUM_ROBOTS robots, planner $RUN_PLANNER, seed $RUN_SEED, $MODE," \
      "ROS_DOMAIN_ID=$ROS_DOMAIN_ID; logs in $LOG_DIR"
+em_clean_shared_memory "$PROG"
 print_second_terminal
 if [[ -n $RECORD ]]; then
     start record -m "$RECORD_MODULE" -o "$RECORD_PATH" --ros-args -p use_sim_time:=true

@@ -16,6 +16,8 @@ em_activate
 # shell), and discovery restricted to this host.
 em_pick_ros_domain
 echo "tests: ROS_DOMAIN_ID=$ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE"
+# Shared-memory files of processes killed before (earlier runs' tests kill some on purpose).
+em_clean_shared_memory tests
 
 cd "$EM_REPO_ROOT"
 exec "$EM_VENV/bin/python" -m pytest "$@"

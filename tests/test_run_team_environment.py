@@ -5,6 +5,7 @@ terminal the run's ROS environment."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -86,3 +87,75 @@ def test_run_team_prints_the_second_terminals_lines_before_the_first_step(tmp_pa
     site = Path(terminal["PYTHONPATH"].split(":")[1])
     assert terminal["PYTHONPATH"].startswith("/opt/ros/lib:") and (site / "em_exploration_msgs"
                                                                   ).is_dir()
+
+
+SHARED_MEMORY = Path("/dev/shm")
+#: A ROS participant that says when it is up, then waits to be stopped.
+PARTICIPANT = """
+import sys, time, rclpy
+from std_msgs.msg import String
+rclpy.init()
+node = rclpy.create_node("shm_probe")
+node.create_publisher(String, "shm_probe", 10)
+print("up", flush=True)
+time.sleep(120)
+"""
+CLEANED = (r"^run_team\.sh: removed the shared-memory files of (\d+) port\(s\) and (\d+) "
+           r"segment\(s\) that dead Fast DDS processes left in /dev/shm$")
+
+
+def _fast_dds_files() -> set[str]:
+    return {path.name for path in SHARED_MEMORY.glob("*fastrtps_*")}
+
+
+def _participant() -> tuple[subprocess.Popen, set[str]]:
+    """A live participant and the shared-memory files it made (none other starts meanwhile)."""
+    before = _fast_dds_files()
+    process = subprocess.Popen([sys.executable, "-c", PARTICIPANT], stdout=subprocess.PIPE,
+                               text=True)
+    assert process.stdout.readline().strip() == "up"
+    return process, _fast_dds_files() - before
+
+
+def _clean_shared_memory(venv: str = "$EM_VENV") -> subprocess.CompletedProcess:
+    return subprocess.run(
+        ["bash", "-c", f"source {COMMON} && em_activate && EM_VENV={venv} "
+                       "em_clean_shared_memory run_team.sh"],
+        capture_output=True, text=True, timeout=60)
+
+
+def test_shared_memory_a_killed_process_left_is_removed_and_a_live_one_s_kept():
+    """run_team.sh and run_tests.sh start with this: files piled up by killed processes
+    made a new run's processes miss some of each other's data."""
+    killed, killed_files = _participant()
+    live = None
+    try:
+        live, live_files = _participant()
+        assert any(name.endswith("_el") for name in killed_files | live_files)
+        killed.kill()
+        killed.wait(timeout=30)
+        assert killed_files <= _fast_dds_files()  # a killed process leaves its files
+        result = _clean_shared_memory()
+        assert result.returncode == 0 and result.stderr == "", result.stderr
+        removed = re.match(CLEANED, result.stdout.strip())
+        assert removed, result.stdout
+        assert int(removed[1]) >= 2 and int(removed[2]) >= 1  # the killed one's ports, segment
+        assert not killed_files & _fast_dds_files()
+        assert live_files <= _fast_dds_files()
+        again = _clean_shared_memory()
+        assert again.returncode == 0 and again.stdout == "" and again.stderr == ""
+    finally:
+        for process in (killed, live):
+            if process is not None and process.poll() is None:
+                process.kill()
+                process.wait(timeout=30)
+        _clean_shared_memory()
+
+
+def test_a_failed_clean_of_shared_memory_is_a_warning_not_a_failure():
+    result = _clean_shared_memory(venv="/nonexistent")
+    assert result.returncode == 0 and result.stdout == ""
+    assert result.stderr.startswith("run_team.sh: warning: could not remove Fast DDS's "
+                                    "leftover shared-memory files (fastdds shm clean: "), \
+        result.stderr
+    assert len(result.stderr.splitlines()) == 1
