@@ -98,25 +98,20 @@ em_hold_run_lock() {
 }
 
 # Remove the Fast DDS shared-memory files in /dev/shm that processes left when they died
-# without closing them (killed, crashed), with `fastdds shm clean` from the venv: it removes
-# a port or segment only when no live process holds its lock, so a running team's files stay.
-# On a host where such files had piled up (about 950 after days of killed runs) the
-# processes of a new run missed some of each other's data (docs/results.md "Set-up and
-# tests"). Prints "$1: removed the shared-memory files of ..." when there were any,
-# a warning on stderr when the tool failed; never fails the caller.
+# without closing them (killed, crashed): the dead ports of ROS_DOMAIN_ID (whose run lock
+# the caller holds) and every dead segment, with em_exploration_ros.tools.shm_leftovers (its
+# docstring says why not with `fastdds shm clean`). A running process's files stay. Prints
+# "$1: removed the shared-memory files of ..." when there were any, a warning on stderr when
+# the removal failed; never fails the caller.
 em_clean_shared_memory() {
-    local report ports segments
-    if ! report=$("$EM_VENV/bin/python" "$EM_VENV/tools/fastdds/fastdds.py" shm clean 2>&1); then
+    local report
+    if ! report=$("$EM_VENV/bin/python" -m em_exploration_ros.tools.shm_leftovers \
+            --domain "${ROS_DOMAIN_ID:-0}" --prog "$1" 2>&1); then
         echo "$1: warning: could not remove Fast DDS's leftover shared-memory files" \
-            "(fastdds shm clean: $(tail -n 1 <<<"$report"))" >&2
+            "($(tail -n 1 <<<"$report"))" >&2
         return 0
     fi
-    ports=$(sed -n 's/^\([0-9][0-9]*\) zombie ports cleaned$/\1/p' <<<"$report")
-    segments=$(sed -n 's/^\([0-9][0-9]*\) zombie segments cleaned$/\1/p' <<<"$report")
-    if [[ ${ports:-0} != 0 || ${segments:-0} != 0 ]]; then
-        echo "$1: removed the shared-memory files of ${ports:-0} port(s) and" \
-            "${segments:-0} segment(s) that dead Fast DDS processes left in /dev/shm"
-    fi
+    [[ -z $report ]] || echo "$report"
     return 0
 }
 

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
-from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, finish_team_run, processes_in_domain,
-                         start_team_run)
+from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, NodeProcess, ProcessSet,
+                         finish_team_run, processes_in_domain, start_team_run, wait_until)
 
 from em_exploration_ros.tools.ament_install import launcher_text
 
@@ -100,62 +101,85 @@ node.create_publisher(String, "shm_probe", 10)
 print("up", flush=True)
 time.sleep(120)
 """
-CLEANED = (r"^run_team\.sh: removed the shared-memory files of (\d+) port\(s\) and (\d+) "
-           r"segment\(s\) that dead Fast DDS processes left in /dev/shm$")
+CLEANED = (r"^run_team\.sh: removed the shared-memory files of (\d+) port\(s\) of ROS domain "
+           r"(\d+) and (\d+) segment\(s\) that dead Fast DDS processes left in /dev/shm$")
 
 
 def _fast_dds_files() -> set[str]:
     return {path.name for path in SHARED_MEMORY.glob("*fastrtps_*")}
 
 
-def _participant() -> tuple[subprocess.Popen, set[str]]:
-    """A live participant and the shared-memory files it made (none other starts meanwhile)."""
-    before = _fast_dds_files()
-    process = subprocess.Popen([sys.executable, "-c", PARTICIPANT], stdout=subprocess.PIPE,
-                               text=True)
-    assert process.stdout.readline().strip() == "up"
-    return process, _fast_dds_files() - before
+def _files_locked_by(pid: int) -> set[str]:
+    """The Fast DDS files (segments, ports) whose lock file ``pid`` holds (/proc/locks)."""
+    inodes = {line.split()[5].rsplit(":", 1)[1] for line in
+              Path("/proc/locks").read_text().splitlines() if line.split()[4] == str(pid)}
+    return {path.name[:-3] for path in SHARED_MEMORY.glob("fastrtps_*_el")
+            if str(path.stat().st_ino) in inodes}
 
 
-def _clean_shared_memory(venv: str = "$EM_VENV") -> subprocess.CompletedProcess:
+def _participant(processes: ProcessSet, domain: int, log_path: Path
+                 ) -> tuple[NodeProcess, set[str]]:
+    """A live participant in ``domain`` (stopped with ``processes``) and the shared-memory
+    files it owns (a segment, ports), once it owns a port of the domain."""
+    process = processes.add(NodeProcess([sys.executable, "-c", PARTICIPANT], log_path,
+                                        env={"ROS_DOMAIN_ID": str(domain)}))
+    process.wait_for_output("up", 60)
+    wait_until(lambda: _domain_ports(_files_locked_by(process.pid), domain), 30,
+               f"a shared-memory port of domain {domain} locked by the participant")
+    return process, _files_locked_by(process.pid)
+
+
+def _domain_ports(files: set[str], domain: int) -> set[str]:
+    return {name for name in files if re.fullmatch(r"fastrtps_port\d+", name)
+            and 7400 + 250 * domain <= int(name[13:]) < 7650 + 250 * domain}
+
+
+def _clean_shared_memory(domain: int, venv: str = "$EM_VENV") -> subprocess.CompletedProcess:
     return subprocess.run(
-        ["bash", "-c", f"source {COMMON} && em_activate && EM_VENV={venv} "
-                       "em_clean_shared_memory run_team.sh"],
+        ["bash", "-c", f"source {COMMON} && em_activate && ROS_DOMAIN_ID={domain} "
+                       f"EM_VENV={venv} em_clean_shared_memory run_team.sh"],
         capture_output=True, text=True, timeout=60)
 
 
-def test_shared_memory_a_killed_process_left_is_removed_and_a_live_one_s_kept():
+def test_shared_memory_dead_processes_left_is_removed_in_the_run_s_domain_only(tmp_path):
     """run_team.sh and run_tests.sh start with this: files piled up by killed processes
-    made a new run's processes miss some of each other's data."""
-    killed, killed_files = _participant()
-    live = None
-    try:
-        live, live_files = _participant()
-        assert any(name.endswith("_el") for name in killed_files | live_files)
-        killed.kill()
-        killed.wait(timeout=30)
-        assert killed_files <= _fast_dds_files()  # a killed process leaves its files
-        result = _clean_shared_memory()
-        assert result.returncode == 0 and result.stderr == "", result.stderr
-        removed = re.match(CLEANED, result.stdout.strip())
-        assert removed, result.stdout
-        assert int(removed[1]) >= 2 and int(removed[2]) >= 1  # the killed one's ports, segment
-        assert not killed_files & _fast_dds_files()
-        assert live_files <= _fast_dds_files()
-        again = _clean_shared_memory()
-        assert again.returncode == 0 and again.stdout == "" and again.stderr == ""
-    finally:
-        for process in (killed, live):
-            if process is not None and process.poll() is None:
-                process.kill()
-                process.wait(timeout=30)
-        _clean_shared_memory()
+    made a new run's processes miss some of each other's data. A dead port of another
+    domain stays: there, it tells a restart not to take the dead one's participant id. (A
+    live port in the run's domain: tests/test_fastdds_shm.py.)"""
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    # Each participant alone in its domain: a live one that had written to the killed one's
+    # port may remove that port itself (Fast DDS does, now and then).
+    other, third = domain % 101 + 1, (domain + 1) % 101 + 1
+    with ProcessSet() as processes:
+        try:
+            killed, killed_files = _participant(processes, domain, tmp_path / "killed.log")
+            elsewhere, elsewhere_files = _participant(processes, other,
+                                                      tmp_path / "elsewhere.log")
+            _, live_files = _participant(processes, third, tmp_path / "live.log")
+            for process in (killed, elsewhere):
+                process.signal_group(signal.SIGKILL)
+                process.wait(30)
+            assert killed_files | elsewhere_files <= _fast_dds_files()  # a killed one's stay
+            result = _clean_shared_memory(domain)
+            assert result.returncode == 0 and result.stderr == "", result.stderr
+            removed = re.match(CLEANED, result.stdout.strip())
+            assert removed, result.stdout
+            assert int(removed[1]) >= 1 and int(removed[2]) == domain and int(removed[3]) >= 2
+            left = _fast_dds_files()
+            assert not _domain_ports(killed_files, domain) & left
+            assert _domain_ports(elsewhere_files, other) <= left  # another domain's stays
+            assert not {name for name in killed_files | elsewhere_files
+                        if re.fullmatch(r"fastrtps_[0-9a-z]{16}", name)} & left  # segments go
+            assert live_files <= left  # a live process's segment (and port) stay
+            again = _clean_shared_memory(domain)
+            assert again.returncode == 0 and again.stdout == "" and again.stderr == ""
+        finally:
+            _clean_shared_memory(other)
 
 
 def test_a_failed_clean_of_shared_memory_is_a_warning_not_a_failure():
-    result = _clean_shared_memory(venv="/nonexistent")
+    result = _clean_shared_memory(int(os.environ["ROS_DOMAIN_ID"]), venv="/nonexistent")
     assert result.returncode == 0 and result.stdout == ""
     assert result.stderr.startswith("run_team.sh: warning: could not remove Fast DDS's "
-                                    "leftover shared-memory files (fastdds shm clean: "), \
-        result.stderr
+                                    "leftover shared-memory files ("), result.stderr
     assert len(result.stderr.splitlines()) == 1

@@ -1,0 +1,65 @@
+"""Fast DDS's files and ports on one host: the RTPS port mapping, the names of the
+shared-memory files in /dev/shm, and whether a file's owner is alive.
+
+Ports (the RTPS specification's default mapping, Fast DDS's too): participant ``id`` of ROS
+domain ``domain`` has the UDP discovery port ``7400 + 250 domain + 10 + 2 id`` and the user
+data port ``... + 11 + 2 id``; its shared-memory port is the file ``fastrtps_port<user data
+port>`` (with ``..._el`` and ``sem.fastrtps_port<port>_mutex``). A process's segment is
+``fastrtps_<16 characters>`` (with ``..._el``). A live process holds an exclusive ``flock``
+on each ``_el`` file it made; one that can be locked is a dead process's.
+"""
+from __future__ import annotations
+
+import fcntl
+from pathlib import Path
+
+PORT_BASE = 7400
+DOMAIN_GAIN = 250
+PARTICIPANT_GAIN = 2
+DISCOVERY_OFFSET = 10
+USER_DATA_OFFSET = 11
+SHARED_MEMORY_DIR = Path("/dev/shm")
+LOCK_SUFFIX = "_el"
+PORT_PREFIX = "fastrtps_port"
+
+
+def discovery_port(domain: int, participant: int) -> int:
+    """The UDP discovery (metatraffic unicast) port of ``participant`` in ``domain``."""
+    return PORT_BASE + DOMAIN_GAIN * domain + DISCOVERY_OFFSET + PARTICIPANT_GAIN * participant
+
+
+def shared_memory_port_file(domain: int, participant: int) -> str:
+    """The /dev/shm file name of ``participant``'s shared-memory port in ``domain``."""
+    port = PORT_BASE + DOMAIN_GAIN * domain + USER_DATA_OFFSET + PARTICIPANT_GAIN * participant
+    return f"{PORT_PREFIX}{port}"
+
+
+def in_domain(port: int, domain: int) -> bool:
+    """Whether ``port`` is one of ``domain``'s (the mapping gives each domain 250)."""
+    return PORT_BASE + DOMAIN_GAIN * domain <= port < PORT_BASE + DOMAIN_GAIN * (domain + 1)
+
+
+def lock_is_free(lock_file: Path) -> bool:
+    """Whether no live process holds ``lock_file``'s flock (False if it cannot be opened)."""
+    try:
+        with open(lock_file, "ab") as handle:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(handle, fcntl.LOCK_UN)
+            return True
+    except OSError:
+        return False
+
+
+def dead_port_files(directory: Path = SHARED_MEMORY_DIR) -> set[str]:
+    """Names of the shared-memory port files in ``directory`` that no live process listens
+    on: their lock is free, or they have none. A writer that found a port's listener dead
+    makes the port anew without a lock file; so does, for a moment, a process opening its
+    own port (which then counts as dead: a process starting beside it may take another
+    id)."""
+    if not directory.is_dir():
+        return set()
+    names = {path.name for path in directory.iterdir()}
+    return {name for name in names
+            if name.startswith(PORT_PREFIX) and name[len(PORT_PREFIX):].isdigit()
+            and (name + LOCK_SUFFIX not in names
+                 or lock_is_free(directory / (name + LOCK_SUFFIX)))}
