@@ -46,15 +46,6 @@ RESPAWN_CONFIRM_S=${EM_RESPAWN_CONFIRM_S:-60}
 # the summary and the map and exit; after that it is taken for wedged (or stopped) and the run
 # fails. Generous: the final evaluation and the map of a large run take a few seconds.
 EVALUATOR_END_GRACE_S=${EM_EVALUATOR_END_GRACE_S:-60}
-# --respawn: the Fast DDS participant ids of restarted processes, in turn (restart_profile):
-# the highest of the 32 that participants on one host announce themselves to (rmw_fastrtps's
-# localhost discovery), away from the low ones that the first processes take.
-RESTART_PARTICIPANT_IDS=(31 30 29 28 27 26 25 24 23 22 21 20 19 18 17 16 15 14 13 12)
-# The restart ids given so far in this run.
-RESTART_IDS_USED=()
-# The kernel's tables of bound UDP sockets (participant_port_held); a host without IPv6 has
-# no udp6.
-UDP_SOCKET_TABLES=(/proc/net/udp /proc/net/udp6)
 
 usage() {
     cat <<EOF
@@ -439,8 +430,9 @@ PIDS=() NAMES=()
 
 # start NAME ARGS...: run "python ARGS" in its own session (so its own process group); with
 # --netns, robot_<i> in namespace PREFIXrobot_<i> and everything else in PREFIXworld (ip netns
-# exec and env run the command in the same process, so the PID is still the group's). With
-# RESTART_PROFILE set, the process takes that Fast DDS profile (restart_profile).
+# exec runs the command in the same process, so the PID is still the group's). A restarted
+# process keeps off its dead predecessor's Fast DDS participant id by itself
+# (em_exploration_ros/nodes/participant_id.py).
 start() {
     local name=$1 host=()
     shift
@@ -448,7 +440,6 @@ start() {
         [[ $name == robot_* ]] && host=(ip netns exec "$NETNS$name") \
             || host=(ip netns exec "${NETNS}world")
     fi
-    [[ -n ${RESTART_PROFILE:-} ]] && host+=(env "FASTRTPS_DEFAULT_PROFILES_FILE=$RESTART_PROFILE")
     local command=("$@")
     if [[ -n $TRACE_DIR && ( $name == world || $name == evaluator || $name == robot_* ) ]]; then
         command=(-m "$TRACE_MODULE" run --out "$TRACE_DIR/$name.trace" "${@:2}")
@@ -647,69 +638,6 @@ FAILED="" RECORDING_PROBLEM="" EVALUATOR_LOST=""
 STEPPED_OVER_LINE="stepping over at step" STEPPED_OVER_AT=""
 declare -A REPORTED=() RESPAWNS=() STARTED_AT=() LOST_SEEN=() SEEN_BEFORE=() REJOINED_BEFORE=()
 
-# restart_profile NAME: sets RESTART_PROFILE for restarting process NAME: the team's Fast DDS
-# profile with a participant id of the restart's own, written into the logs. Fast DDS gives a
-# process the first participant port that is free, so a restart took its dead predecessor's,
-# and with it its shared-memory port: the other processes kept writing into the dead one's
-# port segment, which they had mapped, when it died between marking itself processing and
-# waiting (a state the writers' check never declares dead; Fast DDS 2.14's SharedMemGlobal),
-# and the restarted process got none of their data (an evaluator restarted in CI got no
-# ground truth for 60 s). A new id is a new port. The id is the first of
-# RESTART_PARTICIPANT_IDS whose port no live participant holds (participant_port_held: a
-# large team's first processes hold low ids, and Fast DDS would move a restart on an id that
-# is held past 31); that id then goes to the end of the list, so ids come round again only
-# after every other was used (with a warning: a restart killed before may have left that
-# port's segment mapped). No id free: a warning, and Fast DDS chooses. (Ids of 32 and up are
-# announced to by no one: two robots restarted at once never found each other.) A profile of
-# the caller's own (FASTRTPS_DEFAULT_PROFILES_FILE) is left as it is: RESTART_PROFILE empty.
-restart_profile() {
-    RESTART_PROFILE=""
-    [[ $FASTRTPS_DEFAULT_PROFILES_FILE == "$EM_REPO_ROOT/config/fastdds_profiles.xml" ]] \
-        || return 0
-    local id="" candidate
-    for candidate in "${RESTART_PARTICIPANT_IDS[@]}"; do
-        participant_port_held "$candidate" || { id=$candidate; break; }
-    done
-    if [[ -z $id ]]; then
-        echo "$PROG: warning: every restart participant id (${RESTART_PARTICIPANT_IDS[*]})" \
-            "is held; $1 restarts on the team's profile (it may take its predecessor's" \
-            "participant id)" >&2
-        return 0
-    fi
-    local kept=()
-    for candidate in "${RESTART_PARTICIPANT_IDS[@]}"; do
-        [[ $candidate == "$id" ]] || kept+=("$candidate")
-    done
-    RESTART_PARTICIPANT_IDS=("${kept[@]}" "$id")
-    RESTART_PROFILE="$LOG_DIR/fastdds_profile_$1_participant$id.xml"
-    if ! sed "0,/<rtps>/s//<rtps>\n      <participantID>$id<\/participantID>/" \
-            "$FASTRTPS_DEFAULT_PROFILES_FILE" 2>/dev/null >"$RESTART_PROFILE"; then
-        echo "$PROG: warning: could not write $RESTART_PROFILE (disk full?); $1 restarts" \
-            "on the team's profile (it may take its predecessor's participant id)" >&2
-        RESTART_PROFILE=""
-        return 0
-    fi
-    [[ " ${RESTART_IDS_USED[*]} " == *" $id "* ]] \
-        && echo "$PROG: warning: $1 restarts with participant id $id, which an earlier" \
-            "restart had: every restart id has been used" >&2
-    RESTART_IDS_USED+=("$id")
-}
-
-# participant_port_held ID: whether a live participant of this host holds the discovery
-# (metatraffic unicast) UDP port of participant ID in ROS_DOMAIN_ID: 7400 + 250 domain + 10
-# + 2 ID (the RTPS port mapping), bound on any address (UDP_SOCKET_TABLES that exist: awk
-# given a missing file stops, and every port would look free).
-participant_port_held() {
-    local port table tables=()
-    for table in "${UDP_SOCKET_TABLES[@]}"; do
-        [[ -r $table ]] && tables+=("$table")
-    done
-    (( ${#tables[@]} )) || return 1
-    printf -v port '%04X' $(( 7410 + 250 * ${ROS_DOMAIN_ID:-0} + 2 * $1 ))
-    awk -v port=":$port" 'substr($2, length($2) - 4) == port { held = 1 }
-        END { exit !held }' "${tables[@]}"
-}
-
 # respawn_robot INDEX WHY: SIGKILL robot INDEX's process group (if alive) and start the same
 # command line again; it rejoins the team (the world takes it back, its teammates re-send
 # its stream).
@@ -726,9 +654,7 @@ respawn_robot() {
     group_alive "$pid" && kill -KILL -- "-$pid" 2>/dev/null
     wait "$pid" 2>/dev/null
     REPORTED[$pid]=1
-    restart_profile "$name"
     start_robot "$robot"
-    RESTART_PROFILE=""
     # The new process takes the old one's place in the lists.
     PIDS[$index]=${PIDS[-1]}
     unset 'PIDS[-1]' 'NAMES[-1]'
@@ -770,9 +696,7 @@ evaluator_ended_the_run() {
     echo "$PROG: warning: the evaluator $(exit_status_text "$EVALUATOR_CODE"); restarting it" \
         "(respawn ${RESPAWNS[evaluator]})" >&2
     wait "$TAIL_PID" 2>/dev/null
-    restart_profile evaluator
     start_evaluator
-    RESTART_PROFILE=""
     for index in "${!PIDS[@]}"; do  # the new process takes the old one's place in the lists
         [[ ${PIDS[$index]} == "$EVALUATOR_PID" ]] || continue
         PIDS[$index]=${PIDS[-1]}

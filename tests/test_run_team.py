@@ -17,7 +17,6 @@ import socket
 import subprocess
 import time
 from pathlib import Path
-from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -555,77 +554,6 @@ def test_a_killed_evaluator_stops_the_run_and_keeps_the_summary_so_far(tmp_path)
     assert f"summary: {tmp_path / 'summary.json'}" in output
 
 
-def test_a_restart_profile_is_the_team_s_with_a_free_id_of_its_own_or_none_with_a_warning(
-        tmp_path):
-    """run_team.sh's restart_profile, run alone: the team's Fast DDS profile, in the run's
-    logs, with the first participant id of the list whose port no live participant holds
-    (id 31's is held here), which then goes to the end of the list; where that cannot be
-    written (a full disk: the file is /dev/full), none, with a warning; an id that an
-    earlier restart had, with a warning; and none, with a warning, when every id's port is
-    held: the process restarts on the team's profile."""
-    full = tmp_path / "full"
-    full.mkdir()
-    (full / "fastdds_profile_robot_2_participant29.xml").symlink_to("/dev/full")
-    function = re.search(r"^restart_profile\(\) \{.*?^\}", RUN_TEAM.read_text(),
-                         re.MULTILINE | re.DOTALL).group(0)
-    held = re.search(r"^participant_port_held\(\) \{.*?^\}", RUN_TEAM.read_text(),
-                     re.MULTILINE | re.DOTALL).group(0)
-    domain_id = int(os.environ["ROS_DOMAIN_ID"])
-
-    def run(calls: str, tables: str = "/proc/net/udp /proc/net/udp6"
-            ) -> subprocess.CompletedProcess:
-        script = (f"PROG=run_team.sh EM_REPO_ROOT='{REPO_ROOT}' ROS_DOMAIN_ID={domain_id}\n"
-                  f"FASTRTPS_DEFAULT_PROFILES_FILE='{REPO_ROOT}/config/fastdds_profiles.xml'\n"
-                  "RESTART_PARTICIPANT_IDS=(31 30 29) RESTART_IDS_USED=()\n"
-                  f"UDP_SOCKET_TABLES=({tables})\n"
-                  f"{function}\n{held}\n{calls}"
-                  "echo \"${RESTART_PARTICIPANT_IDS[*]}\"\n")
-        result = subprocess.run(["bash", "-c", script], capture_output=True, text=True,
-                                timeout=30)
-        assert result.returncode == 0, result.stderr
-        return result
-
-    sockets = []
-    try:
-        for participant in (31, 30, 29):  # the discovery ports of live participants
-            sockets.append(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
-            sockets[-1].bind(("127.0.0.1", 7410 + 250 * domain_id + 2 * participant))
-            if participant == 31:
-                result = run(
-                    f"LOG_DIR='{tmp_path}'; restart_profile robot_1; echo \"$RESTART_PROFILE\"\n"
-                    f"LOG_DIR='{full}'; restart_profile robot_2; echo \"[$RESTART_PROFILE]\"\n"
-                    f"LOG_DIR='{tmp_path}'; restart_profile robot_3; echo \"$RESTART_PROFILE\"\n")
-        all_held = run(f"LOG_DIR='{tmp_path}'; restart_profile robot_4; "
-                       "echo \"[$RESTART_PROFILE]\"\n")
-        # A host without IPv6 has no /proc/net/udp6: the ports held are still seen.
-        no_ipv6 = run(f"LOG_DIR='{tmp_path}'; restart_profile robot_5; "
-                      "echo \"[$RESTART_PROFILE]\"\n",
-                      tables=f"/proc/net/udp {tmp_path / 'no_udp6'}")
-    finally:
-        for held_socket in sockets:
-            held_socket.close()
-    written, failed, again, ids = result.stdout.splitlines()
-    assert written == str(tmp_path / "fastdds_profile_robot_1_participant30.xml")
-    participant = ElementTree.parse(written).getroot().find(
-        "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}participant")
-    assert participant.get("is_default_profile") == "true"
-    assert participant.findtext(
-        "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}rtps/"
-        "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}participantID") == "30"
-    assert failed == "[]"
-    assert (f"warning: could not write {full}/fastdds_profile_robot_2_participant29.xml "
-            "(disk full?); robot_2 restarts on the team's profile") in result.stderr
-    assert again == str(tmp_path / "fastdds_profile_robot_3_participant30.xml")
-    assert ids == "31 29 30"
-    assert ("warning: robot_3 restarts with participant id 30, which an earlier restart "
-            "had") in result.stderr
-    assert "robot_1 restarts" not in result.stderr
-    assert all_held.stdout.splitlines() == ["[]", "31 30 29"]
-    assert ("warning: every restart participant id (31 30 29) is held; robot_4 restarts on "
-            "the team's profile") in all_held.stderr
-    assert no_ipv6.stdout.splitlines() == ["[]", "31 30 29"], no_ipv6.stderr
-
-
 def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_summary(
         tmp_path):
     """The evaluator SIGKILLed with --respawn (issue 40, point 3): run_team.sh restarts it,
@@ -635,8 +563,9 @@ def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_
     mission at every level, as the end-to-end run's is (targets, decisions, the targets given
     up and the meetings the robots reported in their answers, some while no evaluator ran,
     the metrics)."""
-    # The restart's own shared-memory port: Fast DDS's for participant 31 (run_team.sh's
-    # first restart id) in the run's domain, 7400 + 250 domain + 11 + 2 id.
+    # The restart's own shared-memory port: Fast DDS's for participant 31 (the first id a
+    # process takes instead of a dead one's, nodes/participant_id.py) in the run's domain,
+    # 7400 + 250 domain + 11 + 2 id.
     ports: dict[str, set[str]] = {}
     domain_id = int(os.environ["ROS_DOMAIN_ID"])
     own_port = f"fastrtps_port{7400 + 250 * domain_id + 11 + 2 * 31}"
@@ -648,10 +577,10 @@ def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_
     assert code == 0, output[-3000:]
     assert ("warning: the evaluator exited with code 137 (signal KILL); restarting it "
             "(respawn 1)") in output
-    # The restart listens on a shared-memory port of its own (run_team.sh's restart_profile):
-    # on its predecessor's, the others' writers could keep writing into the dead one's.
-    profile = tmp_path / "logs" / "fastdds_profile_evaluator_participant31.xml"
-    assert "<participantID>31</participantID>" in profile.read_text()
+    # The restart listens on a shared-memory port of its own: on its predecessor's, the
+    # others' writers could keep writing into the dead one's.
+    assert re.search(r"participant id 31 instead of \d+: a process that died held id \d+ ",
+                     (tmp_path / "logs" / "evaluator.log").read_text())
     assert own_port in ports["after"] and own_port not in ports["before"], ports
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
     summary = json.loads((tmp_path / "summary.json").read_text())

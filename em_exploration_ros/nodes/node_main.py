@@ -1,10 +1,11 @@
 """The common life cycle of the system's node processes (the ``main()`` of each node).
 
-Start rclpy, build the node, spin until Ctrl-C / SIGTERM / shutdown (or until the node's
-own ``done`` future completes), handing the memory it freed back to the system now and then
-(``memory_return``), then let the node wrap up, destroy it and shut down. While it spins
-and wraps up, the ROS-free core's Python log records go to the node's ROS logger
-(``core_log``). A
+Start rclpy (on a participant id of the process's own when Fast DDS would give it a dead
+process's: ``participant_id``), build the node, spin until Ctrl-C / SIGTERM / shutdown (or
+until the node's own ``done`` future completes), handing the memory it freed back to the
+system now and then (``memory_return``), then let the node wrap up, destroy it and shut
+down. While it spins and wraps up, the ROS-free core's Python log records go to the node's
+ROS logger (``core_log``). A
 node that refuses its parameters (``ValueError`` or one of rclpy's ``ParameterException``s
 from its constructor: wrong type, outside the declared range) ends the process with exit
 code 2 and one fatal log line, no traceback. Only the constructor's errors mean bad
@@ -34,6 +35,7 @@ from rclpy.node import Node
 from em_exploration_ros.nodes import lean_executor
 from em_exploration_ros.nodes.core_log import core_logs_to
 from em_exploration_ros.nodes.memory_return import return_freed_memory
+from em_exploration_ros.nodes.participant_id import ParticipantProfile, own_participant_id
 
 #: The error rclpy raises when a call into its C library fails (e.g. publishing after the
 #: context was shut down).
@@ -69,17 +71,19 @@ def run_node(make_node: Callable[[], NodeType], logger_name: str,
     ``wrap_up(node)`` runs after the spin ends, whatever ended it, and returns the exit
     code (default 0). A node with a ``done`` future spins until it completes.
     """
-    with interrupt_shuts_down() as interrupted:
+    with interrupt_shuts_down() as interrupted, own_participant_id() as participant:
         rclpy.init(args=args)
         if interrupted():  # Ctrl-C before rclpy's handler was in place
             rclpy.try_shutdown()
             return 0
-        return _spin_node(make_node, logger_name, wrap_up)
+        return _spin_node(make_node, logger_name, wrap_up, participant)
 
 
 def _spin_node(make_node: Callable[[], NodeType], logger_name: str,
-               wrap_up: Callable[[NodeType], int] | None) -> int:
-    """``run_node`` after ``rclpy.init``: build, spin, wrap up, shut down."""
+               wrap_up: Callable[[NodeType], int] | None,
+               participant: ParticipantProfile) -> int:
+    """``run_node`` after ``rclpy.init``: build (the participant with it), spin, wrap up,
+    shut down."""
     node = None
     try:
         try:
@@ -87,6 +91,10 @@ def _spin_node(make_node: Callable[[], NodeType], logger_name: str,
         except (ValueError, ParameterException) as error:
             rclpy.logging.get_logger(logger_name).fatal(f"cannot start: {error}")
             return EXIT_BAD_PARAMETERS
+        finally:
+            participant.release()
+        if participant.line is not None:
+            node.get_logger().info(participant.line)
         return_freed_memory(node)
         with core_logs_to(node.get_logger()):
             lean_executor.spin(node, until=getattr(node, "done", None))
