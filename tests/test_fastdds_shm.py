@@ -34,9 +34,9 @@ def shm(tmp_path):
     files."""
     held = []
 
-    def port(name, lock="dead"):
+    def shared_file(name, lock="dead"):
+        """``name`` with its lock file (held here when "live"), or without one ("none")."""
         (tmp_path / name).write_bytes(b"x")
-        (tmp_path / f"sem.{name}_mutex").write_bytes(b"x")
         if lock != "none":
             (tmp_path / f"{name}_el").write_bytes(b"")
         if lock == "live":
@@ -44,20 +44,15 @@ def shm(tmp_path):
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
             held.append(handle)
 
-    port(shared_memory_port_file(5, 0), "live")
-    port(shared_memory_port_file(5, 1))
-    port(shared_memory_port_file(5, 2), "none")
-    port(shared_memory_port_file(6, 0))
-    port("fastrtps_port7000")
+    for name, lock in ((shared_memory_port_file(5, 0), "live"),
+                       (shared_memory_port_file(5, 1), "dead"),
+                       (shared_memory_port_file(5, 2), "none"),
+                       (shared_memory_port_file(6, 0), "dead"), ("fastrtps_port7000", "dead")):
+        shared_file(name, lock)
+        (tmp_path / f"sem.{name}_mutex").write_bytes(b"x")
     for name, lock in ((SEGMENT_LIVE, "live"), (SEGMENT_DEAD, "dead"),
                        (SEGMENT_NO_LOCK, "none")):
-        (tmp_path / name).write_bytes(b"x")
-        if lock != "none":
-            (tmp_path / f"{name}_el").write_bytes(b"")
-        if lock == "live":
-            handle = open(tmp_path / f"{name}_el", "ab")
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            held.append(handle)
+        shared_file(name, lock)
     (tmp_path / "lttng-ust-wait-6").write_bytes(b"x")
     yield tmp_path
     for handle in held:
