@@ -172,8 +172,7 @@ def _shared_memory_ports() -> set[str]:
 def test_nodes_restarted_after_a_kill_take_ids_of_their_own_two_at_once(tmp_path):
     """As robots restarted by hand with ``ros2 run`` after their processes were killed:
     Fast DDS would give them a dead one's id and shared-memory port. Two restarted at once
-    take two ids (without the choice's lock both took 31, and Fast DDS moved one past it,
-    where no participant announces itself)."""
+    take two ids (without the choice's lock both chose 31 in a run of three)."""
     domain = int(os.environ.get("ROS_DOMAIN_ID") or 0)
     before = _shared_memory_ports()
     first = NodeProcess([sys.executable, "-c", NODE], tmp_path / "first.log")

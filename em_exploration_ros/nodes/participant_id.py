@@ -107,7 +107,7 @@ def profile_with_participant_id(profile: str | None, participant: int) -> str | 
 PROFILE_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
 #: Processes that take an id of their own choose, and make their participant, one at a
 #: time per domain, under an flock on this file (``{domain}``): two restarted at once saw
-#: the same free id, and Fast DDS moved the second past ``HIGHEST_ANNOUNCED_ID``.
+#: the same free id, which only one of them can have.
 CHOICE_LOCK = "em_exploration_participant_choice_{domain}.lock"
 #: How long [s] a process waits for that lock before it chooses without it (a process
 #: stopped while holding it must not stop the others' starts).
