@@ -15,6 +15,7 @@ import re
 import signal
 import sys
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import pytest
 from em_exploration_msgs.msg import TeamUpdate
@@ -228,7 +229,7 @@ def test_hostile_team_messages_are_rejected_and_change_nothing(tmp_path):
 
 def keyframes_in_graph(log: str, robot: int) -> set[int]:
     """Robot ``robot``'s keyframe indices in the last "team graph keyframes" line of a log."""
-    line = [l for l in log.splitlines() if "team graph keyframes:" in l][-1]
+    line = [text for text in log.splitlines() if "team graph keyframes:" in text][-1]
     ranges = re.search(rf"robot {robot}: \d+ \[([0-9 -]*)\]", line).group(1).split()
     return {i for r in ranges for i in range(int(r.split("-")[0]), int(r.split("-")[1]) + 1)}
 
@@ -300,6 +301,40 @@ def test_killed_and_wedged_robots_are_restarted_and_rejoin_without_losing_keyfra
         assert (lost["status"], rejoined["status"]) == ("lost", "rejoined")
         # The world may have waited for it (no simulated time lost), but it was down.
         assert rejoined["wall_s"] > lost["wall_s"] and entry["downtime_wall_s"] > 0.0
+    assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
+
+
+def test_a_robot_killed_and_restarted_by_hand_rejoins_on_a_participant_id_of_its_own(
+        tmp_path):
+    """No --respawn: robot 1 is SIGKILLed mid-run and started again by hand, with its
+    command line and environment (as ``ros2 run`` with the same arguments would). Fast DDS
+    would give it the dead process's participant id, whose shared-memory port the others
+    may still write into; it takes one of its own, gets its stream back and rejoins."""
+    summary_path = tmp_path / "summary.json"
+    run, domain = start_team_run(tmp_path, *SMALL_TEAM, "--until-explored", "0.93",
+                                 "--summary", str(summary_path))
+    logs = summary_path.parent / "logs"
+    with run, ProcessSet() as by_hand:
+        run.wait_for_output("t=   20.0 s", RUN_TIMEOUT_S)
+        for log in ("world.log", "evaluator.log"):
+            wait_for_liveliness(logs / log, 1, RUN_TIMEOUT_S)
+        pid = robot_pid(domain, 1)
+        command = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")[:-1]
+        environment = dict(item.split("=", 1) for item in Path(
+            f"/proc/{pid}/environ").read_bytes().decode().split("\0") if "=" in item)
+        os.kill(pid, signal.SIGKILL)
+        restarted = by_hand.add(NodeProcess(command, tmp_path / "robot_1_by_hand.log",
+                                            env=environment))
+        wait_until(lambda: "robot 1 rejoined" in (logs / "evaluator.log").read_text(),
+                   RUN_TIMEOUT_S, "robot 1 rejoining")
+        code = run.wait(RUN_TIMEOUT_S)
+    output = run.output()
+    assert code == 0, output[-3000:]
+    assert "robot_1 exited with code 137; the team goes on" in output
+    assert re.search(r"participant id \d+ instead of (\d+): a process that died held id \1 ",
+                     restarted.output()), restarted.output()[-3000:]
+    summary = json.loads(summary_path.read_text())
+    assert summary["explored_ratio"] >= 0.93, summary["stop_reason"]
     assert processes_in_domain(RUN_PROCESS_PATTERN, domain) == []
 
 
