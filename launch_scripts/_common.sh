@@ -105,8 +105,11 @@ em_hold_run_lock() {
 # the removal failed; never fails the caller.
 em_clean_shared_memory() {
     local report
-    if ! report=$("$EM_VENV/bin/python" -m em_exploration_ros.tools.shm_leftovers \
-            --domain "${ROS_DOMAIN_ID:-0}" --prog "$1" 2>&1); then
+    # Not a process of the run: no ROS_DOMAIN_ID of its own (tests find a run's processes by
+    # it), the domain as an argument.
+    if ! report=$(env -u ROS_DOMAIN_ID "$EM_VENV/bin/python" \
+            -m em_exploration_ros.tools.shm_leftovers --domain "${ROS_DOMAIN_ID:-0}" \
+            --prog "$1" 2>&1); then
         echo "$1: warning: could not remove Fast DDS's leftover shared-memory files" \
             "($(tail -n 1 <<<"$report"))" >&2
         return 0

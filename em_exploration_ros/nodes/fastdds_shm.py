@@ -11,6 +11,7 @@ on each ``_el`` file it made; one that can be locked is a dead process's.
 from __future__ import annotations
 
 import fcntl
+import os
 from pathlib import Path
 
 PORT_BASE = 7400
@@ -40,14 +41,19 @@ def in_domain(port: int, domain: int) -> bool:
 
 
 def lock_is_free(lock_file: Path) -> bool:
-    """Whether no live process holds ``lock_file``'s flock (False if it cannot be opened)."""
+    """Whether no live process holds ``lock_file``'s flock (False if it cannot be opened;
+    opened to read only, so that one removed meanwhile is not made anew)."""
     try:
-        with open(lock_file, "ab") as handle:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            fcntl.flock(handle, fcntl.LOCK_UN)
-            return True
+        descriptor = os.open(lock_file, os.O_RDONLY)
     except OSError:
         return False
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(descriptor)
 
 
 def dead_port_files(directory: Path = SHARED_MEMORY_DIR) -> set[str]:
