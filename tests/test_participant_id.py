@@ -204,3 +204,24 @@ def test_nodes_restarted_after_a_kill_take_ids_of_their_own_two_at_once(tmp_path
         for restart in restarts:
             restart.stop()
     assert not list(Path(tempfile.gettempdir()).glob("em_fastdds_participant*_*.xml"))
+
+
+def test_em_record_restarted_after_a_kill_takes_an_id_of_its_own(tmp_path):
+    """em-record makes its participant as the nodes do: a recorder started again by hand
+    after its process was killed does not take the dead one's id, whose port the others may
+    still write into (its recording would miss what they write)."""
+    def recorder(name: str) -> NodeProcess:
+        return NodeProcess([sys.executable, "-m", "em_exploration_ros.tools.record",
+                            "-o", str(tmp_path / name), "--topics", "/em_test/nothing"],
+                           tmp_path / f"{name}.log")
+
+    before = _shared_memory_ports()
+    with recorder("killed") as killed:
+        wait_until(lambda: _shared_memory_ports() - before, 60, "the recorder's port file")
+        killed.signal_group(signal.SIGKILL)
+        killed.wait(30)
+    with recorder("again") as again:
+        again.wait_for_output("participant id ", 60)
+        assert LINE.search(again.output()), again.output()
+        again.signal_group(signal.SIGINT)
+        assert again.wait(30) == 0, again.output()

@@ -79,6 +79,20 @@ def run_node(make_node: Callable[[], NodeType], logger_name: str,
         return _spin_node(make_node, logger_name, wrap_up, participant)
 
 
+def first_node(make_node: Callable[[], NodeType], participant: ParticipantProfile
+               ) -> NodeType:
+    """The process's first node, made while ``participant``'s profile is in place (its
+    participant is made with it: ``participant_id``); the profile is released after, and
+    its line logged by the node."""
+    try:
+        node = make_node()
+    finally:
+        participant.release()
+    if participant.line is not None:
+        node.get_logger().info(participant.line)
+    return node
+
+
 def _spin_node(make_node: Callable[[], NodeType], logger_name: str,
                wrap_up: Callable[[NodeType], int] | None,
                participant: ParticipantProfile) -> int:
@@ -87,14 +101,10 @@ def _spin_node(make_node: Callable[[], NodeType], logger_name: str,
     node = None
     try:
         try:
-            node = make_node()
+            node = first_node(make_node, participant)
         except (ValueError, ParameterException) as error:
             rclpy.logging.get_logger(logger_name).fatal(f"cannot start: {error}")
             return EXIT_BAD_PARAMETERS
-        finally:
-            participant.release()
-        if participant.line is not None:
-            node.get_logger().info(participant.line)
         return_freed_memory(node)
         with core_logs_to(node.get_logger()):
             lean_executor.spin(node, until=getattr(node, "done", None))

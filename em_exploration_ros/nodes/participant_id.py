@@ -13,8 +13,8 @@ port is free again: that is how a dead process's id is told from a free one.
 :func:`profile_with_participant_id` makes the Fast DDS profile that gives the process an id
 of its own instead, the first from ``HIGHEST_ANNOUNCED_ID`` down whose ports are clean;
 :func:`own_participant_id` puts that profile in place while the process makes its
-participant (``node_main.run_node``: every node process, restarted by run_team.sh
-``--respawn`` or by hand with ``ros2 run``).
+participant (``node_main.first_node``: every node process, restarted by run_team.sh
+``--respawn`` or by hand with ``ros2 run``, and em-record and em-replay).
 
 A dead process's port file is evidence only while it is there: run_team.sh and run_tests.sh
 remove dead ports of their own domain alone before they start (``tools/shm_leftovers.py``).

@@ -55,7 +55,8 @@ from em_exploration_ros.bag_format.topic_selection import TopicSelection
 from em_exploration_ros.nodes import lean_executor
 from em_exploration_ros.nodes.input_guard import InputGuard
 from em_exploration_ros.nodes.message_info import MessageInfo, publication_sequence
-from em_exploration_ros.nodes.node_main import interrupt_shuts_down
+from em_exploration_ros.nodes.node_main import first_node, interrupt_shuts_down
+from em_exploration_ros.nodes.participant_id import own_participant_id
 from em_exploration_ros.nodes.recorder_presence import RECORDER_NODE_NAME
 from em_exploration_ros.nodes.sim_clock import install_validated_clock
 from em_exploration_ros.tools.bag_ros import (
@@ -253,12 +254,12 @@ def main(argv: list[str] | None = None) -> None:
     except OSError as error:
         sys.stderr.write(f"em-record: cannot create {options.output}: {error.strerror}\n")
         sys.exit(EXIT_USAGE)
-    with interrupt_shuts_down() as interrupted:
+    with interrupt_shuts_down() as interrupted, own_participant_id() as participant:
         rclpy.init(args=full_args)
         recorder = None
         try:
             if not interrupted():  # a Ctrl-C before rclpy.init ends the recording empty
-                recorder = Recorder(writer, options)
+                recorder = first_node(lambda: Recorder(writer, options), participant)
                 lean_executor.spin(recorder)
         except (ExternalShutdownException, BagWriteError):
             pass  # a BagWriteError is writer.failure, reported when the bag is closed

@@ -44,7 +44,8 @@ from em_exploration_ros.bag_format.mcap_ros2_schema import (DefinitionNotFoundEr
                                                             same_layout)
 from em_exploration_ros.bag_format.qos_yaml import QosFormatError, QosProfile, offer_for_playback
 from em_exploration_ros.bag_format.topic_selection import TopicSelection
-from em_exploration_ros.nodes.node_main import interrupt_shuts_down
+from em_exploration_ros.nodes.node_main import first_node, interrupt_shuts_down
+from em_exploration_ros.nodes.participant_id import own_participant_id
 from em_exploration_ros.tools.bag_ros import (
     MessageTypeError, add_topic_expression_arguments, cli_args, import_message_class,
     number_type, qos_to_rclpy)
@@ -364,12 +365,12 @@ def main(argv: list[str] | None = None) -> None:
     except BagError as error:
         sys.stderr.write(f"em-replay: {error}\n")
         sys.exit(EXIT_BAD_INPUT)
-    with interrupt_shuts_down() as interrupted:
+    with interrupt_shuts_down() as interrupted, own_participant_id() as participant:
         rclpy.init(args=full_args)
         replayer = None
         try:
             if not interrupted():  # a Ctrl-C before rclpy.init plays nothing
-                replayer = Replayer(info, topics, options)
+                replayer = first_node(lambda: Replayer(info, topics, options), participant)
                 replayer.play()
         except ExternalShutdownException:
             pass
