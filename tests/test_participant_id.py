@@ -97,11 +97,16 @@ def test_the_copy_is_in_place_until_released_then_the_variable_is_as_before(tmp_
         chosen.release()  # once only
     assert environ == {"ROS_DOMAIN_ID": str(DOMAIN), PROFILE_VARIABLE: str(profile)}
 
+    # A copy left by a process killed while it made its participant goes with the next.
+    gone = tmp_path / participant_id.PROFILE_COPIES / "999999999.xml"
+    gone.write_text("<profiles/>")
     bare: dict[str, str] = {"ROS_DOMAIN_ID": str(DOMAIN)}
     # No profile: one that sets the id alone.
     with own_participant_id(bare, tmp_path) as chosen:
         copy = Path(bare[PROFILE_VARIABLE])
         assert "<participantID>31</participantID>" in copy.read_text()
+        assert copy == tmp_path / participant_id.PROFILE_COPIES / f"{os.getpid()}.xml"
+        assert not gone.exists()
     assert bare == {"ROS_DOMAIN_ID": str(DOMAIN)} and not copy.exists()
 
 
@@ -118,6 +123,18 @@ def test_nothing_changes_where_there_is_nothing_to_avoid_or_no_profile_to_change
     with own_participant_id(environ, tmp_path) as chosen:
         assert environ == before and chosen.line is None
     assert environ == before
+
+
+def test_a_copy_that_cannot_be_written_leaves_fast_dds_s_choice_and_says_so(tmp_path,
+                                                                             dead_id_2):
+    (tmp_path / participant_id.PROFILE_COPIES).write_text("a file where the folder goes")
+    environ = {"ROS_DOMAIN_ID": str(DOMAIN)}
+    with own_participant_id(environ, tmp_path) as chosen:
+        assert environ == {"ROS_DOMAIN_ID": str(DOMAIN)}
+        assert chosen.line.startswith(
+            "Fast DDS gives this process participant id 2, whose shared-memory port a dead "
+            "process left"), chosen.line
+        assert "a profile with id 31 could not be written (" in chosen.line
 
 
 def test_a_profile_with_its_own_id_is_left_as_it_is(tmp_path, dead_id_2):
@@ -203,7 +220,8 @@ def test_nodes_restarted_after_a_kill_take_ids_of_their_own_two_at_once(tmp_path
     finally:
         for restart in restarts:
             restart.stop()
-    assert not list(Path(tempfile.gettempdir()).glob("em_fastdds_participant*_*.xml"))
+    copies = Path(tempfile.gettempdir()) / participant_id.PROFILE_COPIES
+    assert not [restart.pid for restart in restarts if (copies / f"{restart.pid}.xml").exists()]
 
 
 def test_em_record_restarted_after_a_kill_takes_an_id_of_its_own(tmp_path):

@@ -109,6 +109,8 @@ PROFILE_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
 #: time per domain, under an flock on this file (``{domain}``): two restarted at once saw
 #: the same free id, which only one of them can have.
 CHOICE_LOCK = "em_exploration_participant_choice_{domain}.lock"
+#: The folder, beside that lock file, of the profiles' copies (one per process id).
+PROFILE_COPIES = "em_exploration_participant_profiles"
 #: How long [s] a process waits for that lock before it chooses without it (a process
 #: stopped while holding it must not stop the others' starts).
 CHOICE_LOCK_WAIT_S = 10.0
@@ -152,8 +154,9 @@ def own_participant_id(environ: MutableMapping[str, str] = os.environ,
     process a dead process's id (:func:`host_choice`), ``environ[PROFILE_VARIABLE]`` names a
     copy of the process's profile with an id of its own, until
     :meth:`ParticipantProfile.release` or the block's end; the choice is made under the
-    domain's ``CHOICE_LOCK`` in ``lock_dir`` (the temporary folder), held until then. Only
-    for rmw_fastrtps_cpp, and never over a profile that sets its own id."""
+    domain's ``CHOICE_LOCK`` in ``lock_dir`` (the temporary folder), held until then, and
+    the copy is written in its ``PROFILE_COPIES`` folder. Only for rmw_fastrtps_cpp, and
+    never over a profile that sets its own id."""
     profile = _own_participant_profile(environ, lock_dir or Path(tempfile.gettempdir()))
     try:
         yield profile
@@ -178,6 +181,32 @@ def _choice_lock(path: Path) -> IO[bytes] | None:
                 handle.close()
                 return None
             time.sleep(0.02)
+
+
+def _profile_copy(lock_dir: Path) -> Path:
+    """Where this process writes its profile's copy: ``PROFILE_COPIES/<pid>.xml`` in
+    ``lock_dir``, the copies of processes that are gone removed first (a process killed
+    while it made its participant leaves its copy; the next one that chooses removes it)."""
+    folder = lock_dir / PROFILE_COPIES
+    folder.mkdir(mode=0o777, exist_ok=True)
+    for left in folder.glob("*.xml"):
+        if left.stem.isdigit() and not _alive(int(left.stem)):
+            try:
+                left.unlink(missing_ok=True)
+            except OSError:
+                pass  # another user's: theirs to remove
+    return folder / f"{os.getpid()}.xml"
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (one of another user counts as alive)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    return True
 
 
 def _own_participant_profile(environ: MutableMapping[str, str], lock_dir: Path
@@ -209,10 +238,15 @@ def _own_participant_profile(environ: MutableMapping[str, str], lock_dir: Path
         text = None  # rmw_fastrtps reports an unreadable profile itself
     if text is None:
         return ParticipantProfile(lock=lock)
-    handle, copy = tempfile.mkstemp(prefix=f"em_fastdds_participant{choice.instead}_",
-                                    suffix=".xml")
-    with os.fdopen(handle, "w") as file:
-        file.write(text)
+    try:
+        copy = str(_profile_copy(lock_dir))
+        with open(copy, "w") as file:
+            file.write(text)
+    except OSError as error:
+        return ParticipantProfile(
+            f"Fast DDS gives this process participant id {choice.dead}, whose shared-memory "
+            f"port a dead process left (/dev/shm/{dead_port}): a profile with id "
+            f"{choice.instead} could not be written ({error})", lock=lock)
     environ[PROFILE_VARIABLE] = copy
     return ParticipantProfile(
         f"participant id {choice.instead} instead of {choice.dead}: a process that died held "
