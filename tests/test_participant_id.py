@@ -70,6 +70,14 @@ def test_the_profile_gets_the_id_in_its_first_rtps_element_unless_it_has_one():
     assert "<participantID>29</participantID>" in bare and bare.startswith(BARE_PROFILE[:20])
 
 
+def test_a_host_whose_tables_cannot_be_read_leaves_the_choice_to_fast_dds(monkeypatch):
+    def unreadable(*_args):
+        raise PermissionError(13, "Permission denied", "/dev/shm")
+
+    monkeypatch.setattr(participant_id, "dead_port_files", unreadable)
+    assert participant_id.host_choice(DOMAIN) is None
+
+
 @pytest.fixture()
 def dead_id_2(monkeypatch):
     """This host as if id 2 were a dead process's (and 31 free)."""
@@ -161,7 +169,7 @@ def test_the_choice_is_made_under_the_domain_s_lock_or_says_it_was_not(tmp_path,
         fcntl.flock(other, fcntl.LOCK_EX)  # a process stopped while holding it
         with own_participant_id(environ, tmp_path) as chosen:
             assert chosen.line.endswith(
-                f"(chosen without {lock_path.name}, held by another process for over 0.2 s)")
+                f"(chosen without {lock_path.name}: another process held it for over 0.2 s)")
             assert "<participantID>31</participantID>" in Path(
                 environ[PROFILE_VARIABLE]).read_text()
 

@@ -33,6 +33,7 @@ from em_exploration_ros.bag_format.bag_reader import scan_bag
 from em_exploration_ros.core.evaluation.summary import check_summary
 from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.core.sessions.team_runner import TeamRunner
+from em_exploration_ros.nodes.fastdds_shm import shared_memory_port_file
 
 #: Bound of the end-to-end run (set-up check, start-up, exploration, shutdown) [s].
 RUN_TIMEOUT_S = 150.0
@@ -564,11 +565,10 @@ def test_a_killed_evaluator_is_restarted_with_respawn_and_writes_the_clean_runs_
     up and the meetings the robots reported in their answers, some while no evaluator ran,
     the metrics)."""
     # The restart's own shared-memory port: Fast DDS's for participant 31 (the first id a
-    # process takes instead of a dead one's, nodes/participant_id.py) in the run's domain,
-    # 7400 + 250 domain + 11 + 2 id.
+    # process takes instead of a dead one's, nodes/participant_id.py) in the run's domain.
     ports: dict[str, set[str]] = {}
     domain_id = int(os.environ["ROS_DOMAIN_ID"])
-    own_port = f"fastrtps_port{7400 + 250 * domain_id + 11 + 2 * 31}"
+    own_port = shared_memory_port_file(domain_id, 31)
     code, output, domain = _run_with_the_evaluator_signalled(
         tmp_path, signal.SIGKILL, "--seed", "2", "--until-explored", "0.85",
         "--max-sim-time", "600", "--params", _short_progress_window(tmp_path), "--respawn",

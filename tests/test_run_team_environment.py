@@ -14,6 +14,7 @@ from pathlib import Path
 from ros_process import (REPO_ROOT, RUN_PROCESS_PATTERN, NodeProcess, ProcessSet,
                          finish_team_run, processes_in_domain, start_team_run, wait_until)
 
+from em_exploration_ros.nodes.fastdds_shm import in_domain
 from em_exploration_ros.tools.ament_install import launcher_text
 
 COMMON = REPO_ROOT / "launch_scripts" / "_common.sh"
@@ -130,8 +131,8 @@ def _participant(processes: ProcessSet, domain: int, log_path: Path
 
 
 def _domain_ports(files: set[str], domain: int) -> set[str]:
-    return {name for name in files if re.fullmatch(r"fastrtps_port\d+", name)
-            and 7400 + 250 * domain <= int(name[13:]) < 7650 + 250 * domain}
+    return {name for name in files if (port := re.fullmatch(r"fastrtps_port(\d+)", name))
+            and in_domain(int(port[1]), domain)}
 
 
 def _clean_shared_memory(domain: int, venv: str = "$EM_VENV") -> subprocess.CompletedProcess:

@@ -88,9 +88,13 @@ def participant_to_avoid(domain: int, bound_ports: set[int], dead_port_names: se
 
 
 def host_choice(domain: int) -> ParticipantChoice | None:
-    """:func:`participant_to_avoid` from this host's UDP socket tables and /dev/shm."""
-    tables = [path.read_text() for path in UDP_SOCKET_TABLES if path.is_file()]
-    return participant_to_avoid(domain, bound_udp_ports(tables), dead_port_files())
+    """:func:`participant_to_avoid` from this host's UDP socket tables and /dev/shm; None
+    (Fast DDS chooses) when they cannot be read: a node's start does not hang on them."""
+    try:
+        tables = [path.read_text() for path in UDP_SOCKET_TABLES if path.is_file()]
+        return participant_to_avoid(domain, bound_udp_ports(tables), dead_port_files())
+    except OSError:
+        return None
 
 
 def profile_with_participant_id(profile: str | None, participant: int) -> str | None:
@@ -164,22 +168,22 @@ def own_participant_id(environ: MutableMapping[str, str] = os.environ,
         profile.release()
 
 
-def _choice_lock(path: Path) -> IO[bytes] | None:
-    """``path`` open with an exclusive flock on it, or None when it cannot be had within
-    ``CHOICE_LOCK_WAIT_S`` (or opened)."""
+def _choice_lock(path: Path) -> tuple[IO[bytes] | None, str]:
+    """``path`` open with an exclusive flock on it, or None and why not: it cannot be
+    opened, or had within ``CHOICE_LOCK_WAIT_S``."""
     try:
         handle = os.fdopen(os.open(path, os.O_RDWR | os.O_CREAT, 0o666), "r+b")
-    except OSError:
-        return None
+    except OSError as error:
+        return None, f"it cannot be opened: {error.strerror}"
     deadline = time.monotonic() + CHOICE_LOCK_WAIT_S
     while True:
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return handle
+            return handle, ""
         except OSError:
             if time.monotonic() >= deadline:
                 handle.close()
-                return None
+                return None, (f"another process held it for over {CHOICE_LOCK_WAIT_S:g} s")
             time.sleep(0.02)
 
 
@@ -220,7 +224,7 @@ def _own_participant_profile(environ: MutableMapping[str, str], lock_dir: Path
         return ParticipantProfile()  # rclpy refuses it itself
     if host_choice(domain) is None:
         return ParticipantProfile()
-    lock = _choice_lock(lock_dir / CHOICE_LOCK.format(domain=domain))
+    lock, no_lock = _choice_lock(lock_dir / CHOICE_LOCK.format(domain=domain))
     choice = host_choice(domain)  # again, with the ids the others took meanwhile
     if choice is None:
         return ParticipantProfile(lock=lock)
@@ -252,6 +256,6 @@ def _own_participant_profile(environ: MutableMapping[str, str], lock_dir: Path
         f"participant id {choice.instead} instead of {choice.dead}: a process that died held "
         f"id {choice.dead} and left its shared-memory port (/dev/shm/{dead_port}), into "
         f"which the others may still write"
-        + ("" if lock else f" (chosen without {CHOICE_LOCK.format(domain=domain)}, held by "
-                           f"another process for over {CHOICE_LOCK_WAIT_S:g} s)"),
+        + ("" if lock else f" (chosen without {CHOICE_LOCK.format(domain=domain)}: "
+                           f"{no_lock})"),
         environ, previous, copy, lock)
