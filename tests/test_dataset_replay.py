@@ -17,6 +17,7 @@ from em_exploration_ros.core.evaluation.dataset_replay import (CALIBRATION_POSES
                                                                read_planar_dataset, replay,
                                                                replay_params, segments,
                                                                with_heading_sigma)
+from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.tools.bench import build_parser
 from em_exploration_ros.tools.dataset_bench import check_dataset_arguments
 
@@ -87,15 +88,36 @@ def test_a_prefix_is_associated_without_identities(prefix, robots, precision, re
     assert summary["landmark_rms_to_batch_m"] < 2.0
 
 
+def test_a_parameter_file_s_slam_group_reaches_the_robots(prefix):
+    """Tracks confirmed at 2 sightings instead of 3 name more of the prefix's readings (the
+    dataset holds no clutter); the file's sensor settings give way to the dataset's."""
+    dataset, batch = prefix
+    sigma = calibrated_heading_sigma(dataset, replay_params(dataset).slam.prior_sigmas)
+    calibrated = with_heading_sigma(dataset, sigma)
+    base = ExplorationParams().replace(slam={"track_confirm_hits": 2},
+                                       sensors={"landmark_ids": True, "sonar_max_range_m": 5})
+    assert replay_params(dataset, base).slam.track_confirm_hits == 2
+    assert not replay_params(dataset, base).sensors.landmark_ids
+    assert replay_params(dataset, base).sensors == replay_params(dataset).sensors
+    default = replay(calibrated, 1, batch)["association"]
+    sooner = replay(calibrated, 1, batch, base)["association"]
+    assert sooner["correct"] > default["correct"] and sooner["recall"] > default["recall"]
+
+
 def test_em_bench_dataset_writes_the_summary_and_prints_its_last_lines(tmp_path):
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    slam:\n      track_confirm_hits: 2\n")
     result = subprocess.run(
         [sys.executable, "-m", "em_exploration_ros.tools.bench", "dataset", "victoria_park",
-         "--poses", "200", "--robots", "2", "--out", str(tmp_path / "out")],
+         "--poses", "200", "--robots", "2", "--params", str(params),
+         "--out", str(tmp_path / "out")],
         capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["dataset"] == "victoria_park" and summary["robots"] == 2
     assert summary["dataset_poses"] == 200 and summary["wall_time_s"] > 0
+    assert summary["slam_params"]["track_confirm_hits"] == 2
+    assert summary["slam_params"]["loop_closure_confirm_hits"] == 2  # the default
     lines = result.stdout.strip().splitlines()
     assert lines[0].startswith("victoria_park: 200 poses, 2 robot(s)")
     assert lines[0].endswith(f"odometry heading sigma "
@@ -120,6 +142,24 @@ def test_bad_arguments_are_refused(tmp_path, arguments, message):
     with pytest.raises(ValueError) as refused:
         check_dataset_arguments(args)
     assert str(refused.value) == message
+
+
+def test_a_bad_parameter_file_is_refused_in_one_line_with_exit_2(tmp_path):
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    slam:\n      track_confirm_hits: 0\n")
+    args = build_parser().parse_args(["dataset", "victoria_park", "--params", str(params),
+                                      "--out", str(tmp_path / "out")])
+    with pytest.raises(ValueError, match="track_confirm_hits"):
+        check_dataset_arguments(args)
+    result = subprocess.run(
+        [sys.executable, "-m", "em_exploration_ros.tools.bench", "dataset", "victoria_park",
+         "--params", str(tmp_path / "missing.yaml"), "--out", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and result.stdout == ""
+    first, hint = result.stderr.strip().splitlines()
+    assert first.startswith("em-bench: error: ") and "missing.yaml" in first
+    assert hint == "Try 'em-bench --help'."
+    assert not (tmp_path / "out").exists()
 
 
 def test_em_bench_refuses_bad_arguments_in_one_line_with_exit_2(tmp_path):

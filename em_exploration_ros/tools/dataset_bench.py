@@ -1,17 +1,20 @@
 """em-bench dataset: a real dataset through the team's own data association and SLAM.
 
-``em-bench dataset victoria_park [--robots K] [--poses N] --out DIR`` reads GTSAM's Victoria
+``em-bench dataset victoria_park [--robots K] [--poses N] [--params FILE] --out DIR`` reads
+GTSAM's Victoria
 Park dataset (``gtsam.findExampleDataFile``), withholds its landmark identities, drives it
 with one robot or K robots of a decentralized team (consecutive segments of the trajectory,
 core/evaluation/dataset_replay.py) with the odometry's heading sigma calibrated on the first
-poses, and writes DIR/summary.json: the association's precision and recall against the
-dataset's association, the landmarks created, the landmarks' RMS against the batch
-least-squares solution, the calibrated heading sigma and the wall times. Its last lines are
+poses and the SLAM and association parameters of FILE (default: the defaults), and writes
+DIR/summary.json: the association's precision and recall against the dataset's association,
+the landmarks created, the landmarks' RMS against the batch least-squares solution, the
+calibrated heading sigma, the SLAM parameters used and the wall times. Its last lines are
 printed.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 from typing import Any
@@ -24,6 +27,8 @@ from em_exploration_ros.core.evaluation.dataset_replay import (MAX_ROBOTS, batch
                                                                read_planar_dataset, replay,
                                                                replay_params,
                                                                with_heading_sigma)
+from em_exploration_ros.core.params import ExplorationParams
+from em_exploration_ros.core.params_yaml import load_params
 from em_exploration_ros.tools.bench_trials import write_json
 
 #: The datasets em-bench knows: name -> file of GTSAM's example data.
@@ -41,6 +46,10 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
                         f"(1 to {MAX_ROBOTS}; default 1)")
     parser.add_argument("--poses", metavar="N",
                         help="only the dataset's first N poses (default: all)")
+    parser.add_argument("--params", type=Path, metavar="FILE",
+                        help="ROS 2 parameter YAML file whose slam group (association and "
+                        "SLAM) the robots use; the sensor's noise and range, and no "
+                        "identities, come from the dataset")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
 
 
@@ -57,9 +66,11 @@ def _positive(option: str, text: str | None) -> int | None:
     return value
 
 
-def check_dataset_arguments(args: argparse.Namespace) -> tuple[str, int, int | None]:
-    """The dataset's file, robots and poses of ``args``; ValueError (one line) naming the
-    first argument that cannot give a run (``--out`` is em-bench's to check)."""
+def check_dataset_arguments(args: argparse.Namespace
+                            ) -> tuple[str, int, int | None, ExplorationParams]:
+    """The dataset's file, robots, poses and parameters of ``args``; ValueError (one line,
+    a parameter file's ``ParamsFileError`` too) naming the first argument that cannot give
+    a run (``--out`` is em-bench's to check)."""
     if args.name not in DATASETS:
         raise ValueError(f"unknown dataset {args.name!r}; known: {', '.join(DATASETS)}")
     robots = _positive("--robots", args.robots)
@@ -68,7 +79,8 @@ def check_dataset_arguments(args: argparse.Namespace) -> tuple[str, int, int | N
     poses = _positive("--poses", args.poses)
     if poses is not None and poses < robots:
         raise ValueError(f"--poses {poses} cannot make {robots} segments of at least one pose")
-    return DATASETS[args.name], robots, poses
+    params = load_params(args.params) if args.params is not None else ExplorationParams()
+    return DATASETS[args.name], robots, poses, params
 
 
 def summary_lines(summary: dict[str, Any]) -> list[str]:
@@ -85,18 +97,19 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
 
 
 def run_dataset(args: argparse.Namespace, file_name: str, robots: int,
-                poses: int | None) -> int:
+                poses: int | None, params: ExplorationParams) -> int:
     """Run the replay of the checked arguments, write DIR/summary.json (DIR ready), print
     its last lines."""
     started = time.perf_counter()
     dataset = read_planar_dataset(gtsam.findExampleDataFile(file_name), poses)
-    prior_sigmas = replay_params(dataset).slam.prior_sigmas
-    batch = batch_solution(dataset, prior_sigmas)
+    slam = replay_params(dataset, params).slam
+    batch = batch_solution(dataset, slam.prior_sigmas)
     batch_s = time.perf_counter() - started
-    heading_sigma = calibrated_heading_sigma(dataset, prior_sigmas)
+    heading_sigma = calibrated_heading_sigma(dataset, slam.prior_sigmas)
     summary = {"dataset": args.name,
-               **replay(with_heading_sigma(dataset, heading_sigma), robots, batch),
-               "odometry_heading_sigma_rad": heading_sigma}
+               **replay(with_heading_sigma(dataset, heading_sigma), robots, batch, params),
+               "odometry_heading_sigma_rad": heading_sigma,
+               "slam_params": dataclasses.asdict(slam)}
     summary["batch_wall_time_s"] = batch_s
     summary["wall_time_s"] = time.perf_counter() - started
     write_json(args.out / "summary.json", summary)

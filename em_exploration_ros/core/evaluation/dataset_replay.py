@@ -223,11 +223,13 @@ def with_heading_sigma(dataset: PlanarDataset, sigma_rad: float) -> PlanarDatase
     return dataclasses.replace(dataset, poses=tuple(recalibrated(p) for p in dataset.poses))
 
 
-def replay_params(dataset: PlanarDataset) -> ExplorationParams:
+def replay_params(dataset: PlanarDataset, base: ExplorationParams | None = None
+                  ) -> ExplorationParams:
     """The team's parameters for ``dataset``: its observation noise (the shared reading noise
     of the team stream), a sonar range of its farthest observation, no landmark identities,
-    teammate readings (the starts) with the prior's sigmas; SLAM and association defaults."""
-    params = ExplorationParams()
+    teammate readings (the starts) with the prior's sigmas; SLAM and association as in
+    ``base`` (a parameter file's; default the defaults)."""
+    params = base if base is not None else ExplorationParams()
     prior = params.slam.prior_sigmas
     return params.replace(sensors={
         "landmark_ids": False,
@@ -355,9 +357,11 @@ def _keyframes(robot_id: int, dataset: PlanarDataset, segment: range,
 
 
 def replay(dataset: PlanarDataset, num_robots: int,
-           batch: tuple[np.ndarray, dict[int, np.ndarray]]) -> dict[str, Any]:
-    """Drive ``dataset`` with ``num_robots`` robots (module docstring), scored against
-    ``batch`` (:func:`batch_solution` with the prior's sigmas); returns the summary:
+           batch: tuple[np.ndarray, dict[int, np.ndarray]],
+           base: ExplorationParams | None = None) -> dict[str, Any]:
+    """Drive ``dataset`` with ``num_robots`` robots (module docstring) with the SLAM and
+    association parameters of ``base`` (:func:`replay_params`), scored against ``batch``
+    (:func:`batch_solution` with the prior's sigmas); returns the summary:
     ``dataset_poses``, ``robots``, ``keyframes``, ``detections``, ``dataset_landmarks``
     (observed in the poses kept), ``association``, ``landmarks_created``,
     ``landmark_rms_to_batch_m``. ``ValueError`` for fewer than one robot, more than
@@ -366,7 +370,7 @@ def replay(dataset: PlanarDataset, num_robots: int,
         raise ValueError(f"robots must be in [1, {MAX_ROBOTS}], got {num_robots}")
     if len(dataset.poses) < num_robots:
         raise ValueError(f"{len(dataset.poses)} poses cannot make {num_robots} segments")
-    params = replay_params(dataset)
+    params = replay_params(dataset, base)
     batch_poses, batch_landmarks = batch
     cuts = segments(len(dataset.poses), num_robots)
     robots = [_ReplayRobot(r, num_robots, params, dataset.start) for r in range(num_robots)]
