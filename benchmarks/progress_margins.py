@@ -75,7 +75,8 @@ def _longest_blocked(stamps, commanded, odometry) -> float:
     for stamp, c, o in zip(stamps, commanded, odometry):
         if c > 0.0 and o < _BLOCKED_FRACTION * c:
             start = stamp if start is None else start
-            longest = max(longest, stamp - start + (stamps[1] - stamps[0] if len(stamps) > 1 else 0))
+            longest = max(longest,
+                          stamp - start + (stamps[1] - stamps[0] if len(stamps) > 1 else 0))
         else:
             start = None
     return longest

@@ -3,13 +3,14 @@
 Runs ``./launch_scripts/run_team.sh --respawn --seed SEED --summary DIR/summary.json
 --domain-id ID [run_team.sh options]`` and, from ``--first-kill`` wall seconds on, sends a
 robot process SIGKILL (``--signal STOP``: SIGSTOP, a wedged process, which run_team.sh
-restarts once the world reports the robot lost) ``--kills`` times, each after a pause drawn uniformly from ``--pause``
-seconds and chosen at random among the robots running then (a ``random.Random(SEED)``
-draws both, so the kill times and targets repeat; what the robots were doing at those wall
-times does not). Robot processes are the run's descendants (``team_cpu.sample_descendants``).
-Prints the kills, run_team.sh's exit code, the summary's stop reason, explored ratio and
-RMSEs, how many records each restarted robot recovered, and how often the logs say a step
-waited for team data that never came ("never reached the relay", "still missing after").
+restarts once the world reports the robot lost) ``--kills`` times, each after a pause drawn
+uniformly from ``--pause`` seconds and chosen at random among the robots running then (a
+``random.Random(SEED)`` draws both, so the kill times and targets repeat; what the robots
+were doing at those wall times does not). Robot processes are the run's descendants
+(``team_cpu.sample_descendants``). Prints the kills, run_team.sh's exit code, the summary's
+stop reason, explored ratio and RMSEs, how many records each restarted robot recovered, and
+how often the logs say a step waited for team data that never came ("never reached the
+relay", "still missing after").
 
 Usage: ``.venv/bin/python benchmarks/restart_chaos.py [--seed 1] [--kills 3] [--out DIR]
 [-- run_team.sh options]``, e.g. ``-- --comm-range 30 --comm-loss 0.2``.

@@ -3,9 +3,9 @@
 Builds em-fuzz's pools of TeamUpdate messages (``--pools`` seeds, ``fuzz.POOL_SIZE`` each,
 with the run id ``RUN_ID``) and times, per message, what a robot did with each before
 ``input_guard.screened_team_updates`` (rclpy's ``deserialize_message`` and
-``content_problem``) and what it does now first (``update_screening.screen_team_update``). Prints the sizes,
-the times (mean, and of the largest messages) and how many messages the head alone drops
-for a receiver of robot 1's topic that expects sequence number ``EXPECTED``.
+``content_problem``) and what it does now first (``update_screening.screen_team_update``).
+Prints the sizes, the times (mean, and of the largest messages) and how many messages the head
+alone drops for a receiver of robot 1's topic that expects sequence number ``EXPECTED``.
 
 Usage: ``.venv/bin/python benchmarks/team_update_screening.py [--pools 50]``
 """

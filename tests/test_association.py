@@ -94,13 +94,13 @@ def _brute_force(compatibility: ScanCompatibility, probability: float):
     compatible at every pairing in detection order (JCBB's search space); the one with the
     most pairings, then the lowest joint NIS."""
     gate = chi2_quantile(2, probability)
-    options = [[None] + [l for l in range(compatibility.num_landmarks)
-                         if compatibility.nis[d, l] <= gate]
+    options = [[None] + [landmark for landmark in range(compatibility.num_landmarks)
+                         if compatibility.nis[d, landmark] <= gate]
                for d in range(compatibility.num_detections)]
     best, best_key = None, None
     for hypothesis in itertools.product(*options):
-        pairs = [(d, l) for d, l in enumerate(hypothesis) if l is not None]
-        if len({l for _, l in pairs}) < len(pairs):
+        pairs = [(d, landmark) for d, landmark in enumerate(hypothesis) if landmark is not None]
+        if len({landmark for _, landmark in pairs}) < len(pairs):
             continue
         if any(compatibility.joint_nis(pairs[:k]) > chi2_quantile(2 * k, probability)
                for k in range(1, len(pairs) + 1)):
@@ -147,7 +147,7 @@ def test_jcbb_pairs_a_scan_with_clutter_as_it_was_made():
         scan = np.concatenate([measured, clutter])
         answer = jcbb(ScanCompatibility(prediction, scan, np.repeat(NOISE[None], 6, axis=0)),
                       0.99)
-        expected = (*[int(l) for l in seen], None, None)
+        expected = (*[int(landmark) for landmark in seen], None, None)
         correct += sum(a == e for a, e in zip(answer, expected))
         total += len(expected)
     assert correct / total >= 0.97

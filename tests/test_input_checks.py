@@ -103,7 +103,8 @@ def test_numbers_must_be_finite_and_plausible(values, reason):
 def test_stamps_frames_ids_and_sizes():
     assert stamp_problem(0, 0) is None and "negative" in stamp_problem(-2**31, 0)
     assert frame_problem("map", "map") is None
-    assert "'x" * 1 in frame_problem("x" * 1000, "map") and "..." in frame_problem("x" * 1000, "map")
+    assert ("'x" * 1 in frame_problem("x" * 1000, "map")
+            and "..." in frame_problem("x" * 1000, "map"))
     assert id_problem(2, 3, "robot") is None and "0..2" in id_problem(3, 3, "robot")
     assert "0..2147483647" in id_problem(2**32 - 1, None, "landmark id")
     assert size_problem(5, 5, "poses") is None and "at most 5" in size_problem(6, 5, "poses")

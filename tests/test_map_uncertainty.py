@@ -173,7 +173,8 @@ def test_observed_mask_matches_the_occupancy_rule_and_traces_agree() -> None:
     sums = observations.intersection_sums(covs, GEOMETRY.rows * GEOMETRY.cols)
     information, flat_observed = sums.information(), sums.observed
     np.testing.assert_allclose(sums.covariance_traces()[flat_observed],
-                               np.trace(covariances, axis1=-2, axis2=-1).ravel()[flat_observed], rtol=1e-10)
+                               np.trace(covariances, axis1=-2, axis2=-1).ravel()[flat_observed],
+                               rtol=1e-10)
     assert np.all(sums.covariance_traces()[~flat_observed] == 0.0)
     np.testing.assert_allclose(
         information_to_covariance(information, flat_observed, 1.2).reshape(covariances.shape),

@@ -11,7 +11,8 @@ from em_exploration_ros.core.evaluation.summary import MeetingEntry, activity_li
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.records.team_data import FrontierType, RendezvousEvent, RendezvousState
 
-REQUEST, ARRIVED, RELEASE = RendezvousState.REQUEST, RendezvousState.ARRIVED, RendezvousState.RELEASE
+REQUEST, ARRIVED, RELEASE = (RendezvousState.REQUEST, RendezvousState.ARRIVED,
+                             RendezvousState.RELEASE)
 
 
 def event(requester, partner, sender, state, stamp_s, rendezvous_id=0, timeout_s=50.0):

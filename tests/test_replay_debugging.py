@@ -2,15 +2,15 @@
 then choose exactly the targets the recorded robots chose.
 
 bags/sample_3robots/ (a bag directory) is a 3-robot lockstep run;
-bags/sample_3robots.params.yaml holds the parameters its nodes ran with. Fresh em-robot processes with those parameters receive
-only what the world published (/clock, /mission/anchor_pose, /robot_i/sonar,
-/robot_i/odom) through em-replay; they exchange their own team updates, which reproduce the
-recorded sequence numbers that the recorded scans name in their lockstep barrier
-(SonarScan.team_sequences). em-record records the fresh robots' team updates; every
-recorded update's targets (decision index, x, y, frontier type) must come out the same, in
-the same updates, in the same order. The fresh robots are given the recording's run identity
-(``run_id``, read from its updates): a robot drops what another run publishes. All processes
-are bounded in time and stopped.
+bags/sample_3robots.params.yaml holds the parameters its nodes ran with. Fresh em-robot
+processes with those parameters receive only what the world published (/clock,
+/mission/anchor_pose, /robot_i/sonar, /robot_i/odom) through em-replay; they exchange their
+own team updates, which reproduce the recorded sequence numbers that the recorded scans name
+in their lockstep barrier (SonarScan.team_sequences). em-record records the fresh robots'
+team updates; every recorded update's targets (decision index, x, y, frontier type) must
+come out the same, in the same updates, in the same order. The fresh robots are given the
+recording's run identity (``run_id``, read from its updates): a robot drops what another run
+publishes. All processes are bounded in time and stopped.
 """
 from __future__ import annotations
 

@@ -75,7 +75,8 @@ def test_noise_free_odometry_is_exact() -> None:
     reading = sim.odometry(1, previous, current)
     np.testing.assert_array_equal(reading.delta, between(previous, current))
     step = float(np.hypot(*reading.delta[:2]))
-    np.testing.assert_array_equal(reading.covariance, odometry_covariance_per_step(step, True, EXACT))
+    np.testing.assert_array_equal(reading.covariance,
+                                  odometry_covariance_per_step(step, True, EXACT))
     assert reading.covariance[2, 2] > 0.0 and reading.covariance[0, 0] > 0.0
 
 

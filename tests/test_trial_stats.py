@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from em_exploration_ros.core.evaluation.trial_stats import (band, curve_on_grid, distance_grid, mean_ci,
-                                                 paired_difference, t_critical_95)
+from em_exploration_ros.core.evaluation.trial_stats import (band, curve_on_grid, distance_grid,
+                                                 mean_ci, paired_difference, t_critical_95)
 
 
 def test_t_critical_values_match_the_table_and_fall_back_to_normal():

@@ -108,7 +108,8 @@ def _duration_ns(value: Any, field: str) -> int:
     try:
         sec, nsec = int(value["sec"]), int(value["nsec"])
     except (KeyError, TypeError, ValueError) as error:
-        raise QosFormatError(f"{field}: expected {{sec, nsec}}, got {shown_value(value)}") from error
+        raise QosFormatError(
+            f"{field}: expected {{sec, nsec}}, got {shown_value(value)}") from error
     if (sec, nsec) in _LEGACY_INFINITE:
         return DURATION_INFINITE_NS
     return min(sec * _NS_PER_S + nsec, DURATION_INFINITE_NS)

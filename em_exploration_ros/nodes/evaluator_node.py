@@ -6,14 +6,14 @@ the run waits for before it ends, the exit codes 0, 3, 4, 5 and 130, the summary
 the ground truth (``/world/ground_truth/robot_i``, ``/world/landmarks``, ``/world/status``,
 ``/world/link_counts`` in relay mode) and to what each robot publishes
 (``/robot_i/estimated_path``, ``/robot_i/landmarks``, ``/robot_i/estimated_pose``,
-``/robot_i/team/updates``, ``/robot_i/motion_command``, its liveliness), checks each message's header and numbers,
-hands it to the session as core values (wall times from the steady clock), and performs the
-effects: ``/evaluation/metrics``, ``/team/update_requests`` (it never publishes anything a
-robot uses for its estimates or decisions), log lines, the summary JSON (the summary so far
-while the run goes on, ``KeepSoFar``) and the final map PNG, the exit code. When the sonar
-is not the paper's ideal one it also takes the truth of each robot's keyframe scans
-(``/world/sonar_truth/robot_i``) and, without landmark identities, the landmarks each robot
-tied to its own (``/robot_i/landmark_correspondences``): the summary's ``association``.
+``/robot_i/team/updates``, ``/robot_i/motion_command``, its liveliness), checks each message's
+header and numbers, hands it to the session as core values (wall times from the steady clock),
+and performs the effects: ``/evaluation/metrics``, ``/team/update_requests`` (it never
+publishes anything a robot uses for its estimates or decisions), log lines, the summary JSON
+(the summary so far while the run goes on, ``KeepSoFar``) and the final map PNG, the exit code.
+When the sonar is not the paper's ideal one it also takes the truth of each robot's keyframe
+scans (``/world/sonar_truth/robot_i``) and, without landmark identities, the landmarks each
+robot tied to its own (``/robot_i/landmark_correspondences``): the summary's ``association``.
 
 Run (with the simulation clock): ``python -m em_exploration_ros.nodes.evaluator_node
 --ros-args -p use_sim_time:=true -p summary_path:=runs/x/summary.json``

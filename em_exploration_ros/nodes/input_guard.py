@@ -1,9 +1,9 @@
 """What every node does with input it cannot use, and with a publish that fails.
 
 ``InputGuard.drop(topic, reason)`` writes one throttled WARN per topic and kind of reason
-(with the count dropped since the previous line); the checks themselves are the ROS-free functions of
-``core.agent.input_checks``. ``header_problem`` and ``content_problem`` apply them to any
-message: the header's stamp and frame; every floating-point number and every time it
+(with the count dropped since the previous line); the checks themselves are the ROS-free
+functions of ``core.agent.input_checks``. ``header_problem`` and ``content_problem`` apply them
+to any message: the header's stamp and frame; every floating-point number and every time it
 carries; ``checked_team_update`` adds a team update's array sizes.
 ``size_limited`` drops a serialized message longer than the topic's largest valid one
 before it is deserialized; ``screened_team_updates`` deserializes a team update only once

@@ -145,4 +145,5 @@ class TeamRelay:
         counts, step = effect.counts, effect.step
         publish_or_log(self.counts_pub, TeamLinkCounts(
             run_id=self.session.settings.run_id, step=step, sent=counts.sent,
-            on_time=counts.on_time, late=counts.late, never=counts.never), self.node, f"the link counts of step {step}")
+            on_time=counts.on_time, late=counts.late, never=counts.never), self.node,
+            f"the link counts of step {step}")

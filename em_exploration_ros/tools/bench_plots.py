@@ -5,8 +5,8 @@ per trial and metrics sample, missing values empty) and ``summary.json`` (see be
 Outputs there: per setting the paper's three plots, ``<setting>_loc_rmse.png``,
 ``<setting>_landmark_rmse.png`` and ``<setting>_explored_ratio.png`` (mean and 95%
 confidence band per planner against the team's distance travelled, see
-core/evaluation/trial_stats.py), and ``results.md`` (final values with 95% CIs and paired differences).
-Matplotlib draws through its Agg renderer only (no display, no pyplot state).
+core/evaluation/trial_stats.py), and ``results.md`` (final values with 95% CIs and paired
+differences). Matplotlib draws through its Agg renderer only (no display, no pyplot state).
 """
 from __future__ import annotations
 

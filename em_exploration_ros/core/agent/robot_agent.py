@@ -26,9 +26,9 @@ finished teammates are no rendezvous candidates. A teammate silent for
 link): a partner stops waiting for such a requester (RELEASE), but the teammate stays a
 rendezvous candidate at its last known target, and a requester keeps going to such a
 partner until its wait limit, because meeting is what restores the link. Until then the
-robot plans with what it has: the teammate's last keyframes and targets. For each meeting it requested, the robot
-records the trace of its own latest pose covariance just before and after the SLAM update
-that added the first inter-robot factor with the partner (``meeting_effects``).
+robot plans with what it has: the teammate's last keyframes and targets. For each meeting it
+requested, the robot records the trace of its own latest pose covariance just before and after
+the SLAM update that added the first inter-robot factor with the partner (``meeting_effects``).
 """
 from __future__ import annotations
 

@@ -7,9 +7,9 @@ Top-level keys (units in the names): ``explored_ratio``, ``distance_m`` (all rob
 ``type`` (exploration / revisiting / rendezvous)), ``decision_times_s``, ``status``
 (active / finished / lost / rejoined at the end), ``status_changes`` (``status``,
 ``sim_time_s``, ``wall_s``, ``reason``; the first and latest 100, with
-``status_changes_omitted`` left out between them), ``downtime_s`` and ``downtime_wall_s`` (simulated and
-wall seconds lost), ``given_up`` (targets the robot gave up, in order: ``x``, ``y`` [m, map
-frame], ``stamp_s``, ``reason``: blocked / no progress / deadline), ``blocked_s``
+``status_changes_omitted`` left out between them), ``downtime_s`` and ``downtime_wall_s``
+(simulated and wall seconds lost), ``given_up`` (targets the robot gave up, in order: ``x``,
+``y`` [m, map frame], ``stamp_s``, ``reason``: blocked / no progress / deadline), ``blocked_s``
 (simulation time during which the robot's odometry showed it blocked while it commanded
 forward motion) and ``slam_recoveries`` (SLAM updates that diverged or failed and were
 re-solved in batch); ``given_up``, ``blocked_s`` and ``slam_recoveries`` are null where the
@@ -188,7 +188,8 @@ def check_summary(data: dict[str, Any]) -> list[str]:
         problems += [f"robot entry missing '{key}'" for key in ROBOT_KEYS if key not in robot]
         for target in robot.get("targets", []):
             if target.get("type") not in TARGET_TYPES:
-                problems.append(f"robot {robot.get('id')}: unknown target type {target.get('type')!r}")
+                problems.append(
+                    f"robot {robot.get('id')}: unknown target type {target.get('type')!r}")
     return problems
 
 

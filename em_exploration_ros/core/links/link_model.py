@@ -125,8 +125,8 @@ class TeamLinks:
     Per step ``k``: ``deliveries(k)`` hands out what arrives before step ``k`` is processed;
     robots ``offer`` the frames they produce while processing it (in any order);
     ``transmit(k, positions)`` then queues them and starts every transmission the channels
-    allow, with the true positions of step ``k``. Memory: the queues (bounded) and the frames in flight (bounded by what the
-    channels can carry within the latency).
+    allow, with the true positions of step ``k``. Memory: the queues (bounded) and the
+    frames in flight (bounded by what the channels can carry within the latency).
     """
 
     def __init__(self, params: LinkParams, num_robots: int, time_step_s: float,

@@ -43,7 +43,8 @@ _REVERSED_TOLERANCE_RAD = np.radians(7.5)
 def blocked_step(commanded_forward_m: float, odometry_forward_m: float) -> bool:
     """Whether one step was blocked: forward motion commanded [m] but the odometry measured
     less than a tenth of it [m]."""
-    return commanded_forward_m > 0.0 and odometry_forward_m < _BLOCKED_FRACTION * commanded_forward_m
+    return (commanded_forward_m > 0.0
+            and odometry_forward_m < _BLOCKED_FRACTION * commanded_forward_m)
 
 
 class GiveUpReason(str, Enum):

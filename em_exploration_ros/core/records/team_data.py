@@ -202,7 +202,8 @@ def _check_partner(target: TargetRecord, num_robots: int) -> None:
 
 def _check_robot_id(robot_id: int, num_robots: int, what: str) -> None:
     if not 0 <= robot_id < num_robots:
-        raise InvalidTeamUpdate(f"{what} {robot_id} is not a robot of this team (0..{num_robots - 1})")
+        raise InvalidTeamUpdate(
+            f"{what} {robot_id} is not a robot of this team (0..{num_robots - 1})")
 
 
 def _check_id(value: int, what: str) -> None:

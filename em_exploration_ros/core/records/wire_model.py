@@ -52,7 +52,8 @@ def pose_through_wire(pose: np.ndarray) -> np.ndarray:
 
 
 def command_to_twist(turn_rad: float, forward_m: float, time_step_s: float) -> tuple[float, float]:
-    """A per-step motion (turn [rad], forward distance [m]) as (linear.x [m/s], angular.z [rad/s])."""
+    """A per-step motion (turn [rad], forward distance [m]) as (linear.x [m/s],
+    angular.z [rad/s])."""
     return forward_m / time_step_s, turn_rad / time_step_s
 
 

@@ -45,9 +45,9 @@ class Finished:
 @dataclass(frozen=True)
 class KeepSoFar:
     """Replace the summary file with ``summary``, the run so far, whose stop reason starts
-    with ``evaluator_session.EVALUATOR_LOST_PREFIX`` (the final summary replaces it; it stays when the
-    evaluator dies before the run ended). Replaced atomically: a process killed while it
-    writes leaves the previous one."""
+    with ``evaluator_session.EVALUATOR_LOST_PREFIX`` (the final summary replaces it; it
+    stays when the evaluator dies before the run ended). Replaced atomically: a process
+    killed while it writes leaves the previous one."""
 
     summary: RunSummary
 
