@@ -24,15 +24,19 @@ LOCK_SUFFIX = "_el"
 PORT_PREFIX = "fastrtps_port"
 
 
+def _port(domain: int, participant: int, offset: int) -> int:
+    """``participant``'s port in ``domain`` at ``offset`` of the mapping (module docstring)."""
+    return PORT_BASE + DOMAIN_GAIN * domain + offset + PARTICIPANT_GAIN * participant
+
+
 def discovery_port(domain: int, participant: int) -> int:
     """The UDP discovery (metatraffic unicast) port of ``participant`` in ``domain``."""
-    return PORT_BASE + DOMAIN_GAIN * domain + DISCOVERY_OFFSET + PARTICIPANT_GAIN * participant
+    return _port(domain, participant, DISCOVERY_OFFSET)
 
 
 def shared_memory_port_file(domain: int, participant: int) -> str:
     """The /dev/shm file name of ``participant``'s shared-memory port in ``domain``."""
-    port = PORT_BASE + DOMAIN_GAIN * domain + USER_DATA_OFFSET + PARTICIPANT_GAIN * participant
-    return f"{PORT_PREFIX}{port}"
+    return f"{PORT_PREFIX}{_port(domain, participant, USER_DATA_OFFSET)}"
 
 
 def in_domain(port: int, domain: int) -> bool:

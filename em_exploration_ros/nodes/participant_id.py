@@ -144,7 +144,7 @@ class ParticipantProfile:
                 self._environ.pop(PROFILE_VARIABLE, None)
             else:
                 self._environ[PROFILE_VARIABLE] = self._previous
-            os.unlink(self._copy)
+            Path(self._copy).unlink(missing_ok=True)  # a temporary-folder cleaner's already
             self._copy = None
         if self._lock is not None:
             self._lock.close()

@@ -25,7 +25,6 @@ from em_exploration_ros.core.evaluation.association_stats import association_lin
 from em_exploration_ros.core.evaluation.dataset_replay import (MAX_ROBOTS, batch_solution,
                                                                calibrated_heading_sigma,
                                                                read_planar_dataset, replay,
-                                                               replay_params,
                                                                with_heading_sigma)
 from em_exploration_ros.core.params import ExplorationParams
 from em_exploration_ros.core.params_yaml import load_params
@@ -102,7 +101,7 @@ def run_dataset(args: argparse.Namespace, file_name: str, robots: int,
     its last lines."""
     started = time.perf_counter()
     dataset = read_planar_dataset(gtsam.findExampleDataFile(file_name), poses)
-    slam = replay_params(dataset, params).slam
+    slam = params.slam  # the replay's: the dataset sets the sensors alone
     batch = batch_solution(dataset, slam.prior_sigmas)
     batch_s = time.perf_counter() - started
     heading_sigma = calibrated_heading_sigma(dataset, slam.prior_sigmas)
