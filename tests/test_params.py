@@ -73,8 +73,9 @@ def test_node_settings_are_not_exploration_parameters(tmp_path):
 def test_bad_files_give_clear_errors(tmp_path, text, message):
     path = tmp_path / "bad.yaml"
     path.write_text(text)
-    with pytest.raises(ParamsFileError, match=message):
+    with pytest.raises(ParamsFileError, match=message) as refused:
         load_params(path)
+    assert "\n" not in str(refused.value)  # one line, PyYAML's several parts too
 
 
 def test_a_binary_file_is_a_clear_error(tmp_path):

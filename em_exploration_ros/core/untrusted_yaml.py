@@ -89,12 +89,16 @@ def load_yaml(text: str, what: str, error: type[ValueError]) -> Any:
     """Parse ``text`` (``yaml.safe_load``, and a mapping may not hold one key twice);
     raises ``error`` naming ``what`` if it is not YAML (an integer of more than 4300
     digits included), holds a duplicate key (named with its line), or nests too deeply
-    to parse."""
+    to parse. The error is one line: PyYAML's own spans several (the problem, where, the
+    line quoted with a caret under the place), which become its parts joined by "; ",
+    without the caret."""
     try:
         return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
     except DuplicateKeyError as problem:
         raise error(f"{what}: {problem}") from None
     except (yaml.YAMLError, ValueError) as problem:
-        raise error(f"{what} is not valid YAML: {problem}") from None
+        parts = (part.strip() for part in str(problem).splitlines())
+        shown = "; ".join(part for part in parts if part not in ("", "^"))
+        raise error(f"{what} is not valid YAML: {shown}") from None
     except RecursionError:
         raise error(f"{what} is nested too deeply to parse") from None

@@ -75,12 +75,7 @@ def read_world_file(path: str | Path) -> World:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
         raise WorldFileError(f"{what} is not UTF-8 text") from None
-    try:
-        data = load_yaml(text, what, WorldFileError)
-    except WorldFileError as error:  # a YAML error spans lines: one line of its parts
-        raise WorldFileError("; ".join(part.strip() for part in str(error).splitlines()
-                                       if part.strip())) from None
-    return world_from_data(data, what)
+    return world_from_data(load_yaml(text, what, WorldFileError), what)
 
 
 def world_from_data(data: Any, what: str = "world file") -> World:
