@@ -4,11 +4,13 @@ their locks held or not."""
 from __future__ import annotations
 
 import fcntl
+import os
 import subprocess
 import sys
 
 import pytest
 
+from em_exploration_ros.nodes import fastdds_shm
 from em_exploration_ros.nodes.fastdds_shm import (dead_port_files, discovery_port, in_domain,
                                                   shared_memory_port_file)
 from em_exploration_ros.tools.shm_leftovers import remove_leftovers
@@ -64,6 +66,28 @@ def test_a_port_file_is_dead_when_no_live_process_holds_its_lock_or_it_has_none(
                                     shared_memory_port_file(5, 2),
                                     shared_memory_port_file(6, 0), "fastrtps_port7000"}
     assert dead_port_files(shm / "missing") == set()
+    assert dead_port_files(shm, domain=5) == {shared_memory_port_file(5, 1),
+                                              shared_memory_port_file(5, 2)}
+
+
+def test_a_lock_taken_for_a_moment_by_another_process_s_look_is_not_an_owner(shm,
+                                                                          monkeypatch):
+    """Fast DDS's writers take a port's lock for a moment to see whether its owner lives;
+    a port found locked at the first try, then free, is still a dead one's. The live one
+    stays live."""
+    real_flock, looked = fcntl.flock, set()
+
+    def flock_after_a_look(descriptor, operation):
+        inode = os.fstat(descriptor).st_ino
+        if inode not in looked:  # every lock file's first try: another process looks
+            looked.add(inode)
+            raise BlockingIOError(11, "Resource temporarily unavailable")
+        return real_flock(descriptor, operation)
+
+    monkeypatch.setattr(fastdds_shm.fcntl, "flock", flock_after_a_look)
+    assert dead_port_files(shm, domain=5) == {shared_memory_port_file(5, 1),
+                                              shared_memory_port_file(5, 2)}
+    assert (shm / f"{shared_memory_port_file(5, 1)}_el").stat().st_ino in looked
 
 
 def test_dead_ports_of_the_domain_and_dead_segments_are_removed_the_rest_stays(shm):

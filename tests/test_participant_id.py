@@ -71,7 +71,7 @@ def test_the_profile_gets_the_id_in_its_first_rtps_element_unless_it_has_one():
 
 
 def test_a_host_whose_tables_cannot_be_read_leaves_the_choice_to_fast_dds(monkeypatch):
-    def unreadable(*_args):
+    def unreadable(*_args, **_kwargs):
         raise PermissionError(13, "Permission denied", "/dev/shm")
 
     monkeypatch.setattr(participant_id, "dead_port_files", unreadable)
@@ -144,6 +144,22 @@ def test_a_copy_that_cannot_be_written_leaves_fast_dds_s_choice_and_says_so(tmp_
             "Fast DDS gives this process participant id 2, whose shared-memory port a dead "
             "process left"), chosen.line
         assert "a profile with id 31 could not be written (" in chosen.line
+
+
+def test_a_dead_port_seen_at_a_later_look_is_avoided_too(tmp_path, monkeypatch):
+    """A writer resetting a dead port removes its file for a moment: the first looks may
+    find no dead port, a later one does, and the process takes an id of its own."""
+    looks = iter([None, None, ParticipantChoice(2, 31), None, ParticipantChoice(2, 31)])
+    monkeypatch.setattr(participant_id, "host_choice", lambda domain: next(looks))
+    monkeypatch.setattr(participant_id, "CHOICE_LOOK_PAUSE_S", 0.0)
+    environ = {"ROS_DOMAIN_ID": str(DOMAIN)}
+    with own_participant_id(environ, tmp_path) as chosen:
+        assert chosen.line.startswith("participant id 31 instead of 2: ")
+        assert "<participantID>31</participantID>" in Path(environ[PROFILE_VARIABLE]).read_text()
+    assert next(looks, "all looked") == "all looked"
+    monkeypatch.setattr(participant_id, "host_choice", lambda domain: None)
+    with own_participant_id(environ, tmp_path) as chosen:  # every look finds nothing
+        assert chosen.line is None and PROFILE_VARIABLE not in environ
 
 
 def test_a_profile_with_its_own_id_is_left_as_it_is(tmp_path, dead_id_2):

@@ -24,8 +24,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from em_exploration_ros.nodes.fastdds_shm import (LOCK_SUFFIX, PORT_PREFIX, SHARED_MEMORY_DIR,
-                                                  dead_port_files, in_domain, lock_is_free)
+from em_exploration_ros.nodes.fastdds_shm import (LOCK_SUFFIX, SHARED_MEMORY_DIR,
+                                                  dead_port_files, lock_is_free)
 from em_exploration_ros.tools.cli_parser import CliParser
 
 SEGMENT = re.compile(r"^fastrtps_[0-9a-z]{16}$")
@@ -50,8 +50,7 @@ def remove_leftovers(domain: int, directory: Path = SHARED_MEMORY_DIR) -> tuple[
     removed."""
     ports = sum(_remove([directory / name, directory / (name + LOCK_SUFFIX),
                          directory / f"sem.{name}_mutex"])
-                for name in sorted(dead_port_files(directory))
-                if in_domain(int(name[len(PORT_PREFIX):]), domain))
+                for name in sorted(dead_port_files(directory, domain)))
     names = {path.name for path in directory.iterdir()} if directory.is_dir() else set()
     segments = sum(_remove([directory / name, directory / (name + LOCK_SUFFIX)])
                    for name in sorted(names)
